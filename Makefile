@@ -1,0 +1,41 @@
+# posernet — two commands on a fresh clone: `make demo` and `make test`.
+PYTHON ?= python3.11
+VENV   := .venv
+PY     := $(VENV)/bin/python
+PIP    := $(PY) -m pip
+STAMP  := $(VENV)/.installed
+# Where `make demo` writes its dataset, tables and plots.
+DEMO_DIR ?= outputs/demo
+
+.DEFAULT_GOAL := help
+.PHONY: help install test test-fast lint demo clean
+
+help:  ## list the targets
+	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-10s %s\n", $$1, $$2}'
+
+$(STAMP): pyproject.toml
+	@command -v $(PYTHON) >/dev/null || { echo "error: $(PYTHON) not found (set PYTHON=...)"; exit 1; }
+	test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PIP) install --quiet --upgrade pip
+	# CPU wheel of torch first: a bare `torch` would pull a multi-GB CUDA build.
+	$(PIP) install --quiet torch==2.13.0
+	$(PIP) install --quiet -e '.[dev]'
+	touch $(STAMP)
+
+install: $(STAMP)  ## create .venv and install posernet (editable) with dev tools
+
+test: $(STAMP)  ## run the whole test suite (unit + slow end-to-end)
+	$(PY) -m pytest -q
+
+test-fast: $(STAMP)  ## run the unit tests only (skips tests marked slow)
+	$(PY) -m pytest -q -m "not slow"
+
+lint: $(STAMP)  ## ruff check + format check
+	$(VENV)/bin/ruff check src tests benchmarks
+	$(VENV)/bin/ruff format --check src tests benchmarks
+
+demo: $(STAMP)  ## run the main job on the built-in synthetic default
+	$(VENV)/bin/posernet-demo out_dir=$(DEMO_DIR)
+
+clean:  ## remove the virtual environment and generated outputs
+	rm -rf $(VENV) outputs .pytest_cache .ruff_cache

@@ -1,0 +1,36 @@
+"""posernet: refine relative camera poses with matched object detections (PoserNet, ECCV 2022),
+then average them into absolute camera poses.
+
+The public API is re-exported here; see the README for a tour.
+"""
+
+from . import geometry
+from .graph import (
+    GraphBatch,
+    GraphValidationError,
+    ViewGraph,
+    denormalize_boxes,
+    load_graphs,
+    node_attributes,
+    normalize_boxes,
+    save_graphs,
+)
+from .metrics import per_graph_mean, relative_pose_errors, threshold_row
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "GraphBatch",
+    "GraphValidationError",
+    "ViewGraph",
+    "__version__",
+    "denormalize_boxes",
+    "geometry",
+    "load_graphs",
+    "node_attributes",
+    "normalize_boxes",
+    "per_graph_mean",
+    "relative_pose_errors",
+    "save_graphs",
+    "threshold_row",
+]

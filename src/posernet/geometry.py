@@ -1,0 +1,324 @@
+"""Batched rotation / pose algebra on torch tensors.
+
+Conventions (``DESIGN.md`` section 2):
+
+* quaternions are scalar-first ``(w, x, y, z)``; stored ones are unit norm with ``w >= 0``;
+* an absolute pose is world-to-camera, ``x_cam = R X + t``;
+* the relative pose of edge ``i -> j`` maps camera-i points to camera j:
+  ``R_ij = R_j R_i^T``, ``t_ij = t_j - R_ij t_i``;
+* a pose vector is ``[qw, qx, qy, qz, tx, ty, tz]`` (7 values).
+
+Every function accepts any number of leading batch dimensions and is differentiable where the
+math is (angles use ``atan2`` of a safe norm so that gradients stay finite at 0 and 180 degrees).
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+
+__all__ = [
+    "angle_between_vectors",
+    "axis_angle_to_rotation_matrix",
+    "camera_to_world",
+    "compose_pose_vec",
+    "invert_pose_vec",
+    "invert_se3",
+    "make_se3",
+    "matrix_to_pose_vec",
+    "pose_vec_to_matrix",
+    "quaternion_angle",
+    "quaternion_canonical",
+    "quaternion_conjugate",
+    "quaternion_multiply",
+    "quaternion_normalize",
+    "quaternion_rotate",
+    "quaternion_to_rotation_matrix",
+    "relative_pose",
+    "relative_pose_vec",
+    "rotation_angle",
+    "rotation_error_deg",
+    "rotation_matrix_to_axis_angle",
+    "rotation_matrix_to_quaternion",
+    "translation_direction_error_deg",
+    "world_to_camera",
+]
+
+_EPS = 1e-12
+
+
+def _check_last(x: Tensor, size: int, name: str) -> None:
+    if not isinstance(x, Tensor):
+        raise TypeError(f"{name} must be a torch.Tensor, got {type(x).__name__}")
+    if x.ndim < 1 or x.shape[-1] != size:
+        raise ValueError(f"{name} must have shape (*, {size}), got {tuple(x.shape)}")
+
+
+def _check_mat(x: Tensor, size: int, name: str) -> None:
+    if not isinstance(x, Tensor):
+        raise TypeError(f"{name} must be a torch.Tensor, got {type(x).__name__}")
+    if x.ndim < 2 or x.shape[-2:] != (size, size):
+        raise ValueError(f"{name} must have shape (*, {size}, {size}), got {tuple(x.shape)}")
+
+
+def _safe_norm(x: Tensor, dim: int = -1) -> Tensor:
+    """Euclidean norm whose gradient is finite (zero) at the origin."""
+    sq = (x * x).sum(dim)
+    nonzero = sq > _EPS * _EPS
+    safe = torch.where(nonzero, sq, torch.ones_like(sq))
+    return torch.where(nonzero, safe.sqrt(), torch.zeros_like(sq))
+
+
+# --------------------------------------------------------------------------- quaternions
+
+
+def quaternion_normalize(q: Tensor, eps: float = 1e-12) -> Tensor:
+    """Unit quaternion ``q / |q|``. Shapes: ``(*, 4) -> (*, 4)``."""
+    _check_last(q, 4, "q")
+    return q / q.norm(dim=-1, keepdim=True).clamp_min(eps)
+
+
+def quaternion_canonical(q: Tensor) -> Tensor:
+    """Sign-canonical quaternion (``w >= 0``); ``q`` and ``-q`` are the same rotation."""
+    _check_last(q, 4, "q")
+    sign = torch.where(q[..., :1] < 0, -torch.ones_like(q[..., :1]), torch.ones_like(q[..., :1]))
+    return q * sign
+
+
+def quaternion_conjugate(q: Tensor) -> Tensor:
+    """``(w, -x, -y, -z)``: the inverse rotation of a unit quaternion."""
+    _check_last(q, 4, "q")
+    return q * q.new_tensor([1.0, -1.0, -1.0, -1.0])
+
+
+def quaternion_multiply(a: Tensor, b: Tensor) -> Tensor:
+    """Hamilton product ``a * b`` (apply ``b`` first, then ``a``). Shapes: ``(*, 4)``."""
+    _check_last(a, 4, "a")
+    _check_last(b, 4, "b")
+    aw, ax, ay, az = a.unbind(-1)
+    bw, bx, by, bz = b.unbind(-1)
+    return torch.stack(
+        (
+            aw * bw - ax * bx - ay * by - az * bz,
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+        ),
+        dim=-1,
+    )
+
+
+def quaternion_rotate(q: Tensor, v: Tensor) -> Tensor:
+    """Rotate vectors ``v (*, 3)`` by unit quaternions ``q (*, 4)``."""
+    _check_last(q, 4, "q")
+    _check_last(v, 3, "v")
+    w, u = q[..., :1], q[..., 1:]
+    uv = torch.linalg.cross(u, v, dim=-1)
+    return v + 2.0 * (w * uv + torch.linalg.cross(u, uv, dim=-1))
+
+
+def quaternion_to_rotation_matrix(q: Tensor) -> Tensor:
+    """Rotation matrix of a quaternion ``(w, x, y, z)``; ``q`` is normalised first.
+
+    Shapes: ``(*, 4) -> (*, 3, 3)``. ``[1, 0, 0, 0]`` is the identity, ``[0, 0, 0, 1]`` a half
+    turn about z.
+    """
+    _check_last(q, 4, "q")
+    w, x, y, z = quaternion_normalize(q).unbind(-1)
+    xx, yy, zz = x * x, y * y, z * z
+    xy, xz, yz = x * y, x * z, y * z
+    wx, wy, wz = w * x, w * y, w * z
+    rows = (
+        1 - 2 * (yy + zz), 2 * (xy - wz), 2 * (xz + wy),
+        2 * (xy + wz), 1 - 2 * (xx + zz), 2 * (yz - wx),
+        2 * (xz - wy), 2 * (yz + wx), 1 - 2 * (xx + yy),
+    )  # fmt: skip
+    return torch.stack(rows, dim=-1).reshape(*q.shape[:-1], 3, 3)
+
+
+def rotation_matrix_to_quaternion(R: Tensor) -> Tensor:
+    """Unit, sign-canonical quaternion ``(w, x, y, z)`` of rotation matrices.
+
+    Shepperd's method, batched: of the four algebraically equivalent formulas the one with the
+    largest denominator is picked per element, so the result is accurate for every rotation,
+    180-degree turns included. Shapes: ``(*, 3, 3) -> (*, 4)``.
+    """
+    _check_mat(R, 3, "R")
+    m00, m01, m02 = R[..., 0, 0], R[..., 0, 1], R[..., 0, 2]
+    m10, m11, m12 = R[..., 1, 0], R[..., 1, 1], R[..., 1, 2]
+    m20, m21, m22 = R[..., 2, 0], R[..., 2, 1], R[..., 2, 2]
+    # 4 w^2, 4 x^2, 4 y^2, 4 z^2 (each >= 0 for a rotation; clamp guards round-off).
+    sq = torch.stack(
+        (
+            1 + m00 + m11 + m22,
+            1 + m00 - m11 - m22,
+            1 - m00 + m11 - m22,
+            1 - m00 - m11 + m22,
+        ),
+        dim=-1,
+    )
+    # Candidate quaternions, each scaled by 4 * (its large component).
+    cand = torch.stack(
+        (
+            torch.stack((sq[..., 0], m21 - m12, m02 - m20, m10 - m01), -1),
+            torch.stack((m21 - m12, sq[..., 1], m10 + m01, m02 + m20), -1),
+            torch.stack((m02 - m20, m10 + m01, sq[..., 2], m21 + m12), -1),
+            torch.stack((m10 - m01, m20 + m02, m12 + m21, sq[..., 3]), -1),
+        ),
+        dim=-2,
+    )  # (*, 4, 4)
+    best = sq.argmax(dim=-1)
+    denom = 2.0 * sq.gather(-1, best[..., None]).clamp_min(_EPS).sqrt()
+    q = cand.gather(-2, best[..., None, None].expand(*best.shape, 1, 4)).squeeze(-2) / denom
+    return quaternion_canonical(quaternion_normalize(q))
+
+
+def quaternion_angle(q_est: Tensor, q_gt: Tensor) -> Tensor:
+    """Rotation angle (radians) of ``q_gt^* q_est``, i.e. ``2 acos(|<q_est, q_gt>|)``.
+
+    Sign invariant, accepts non-unit inputs (both are normalised) and has finite gradients at
+    0 and 180 degrees (``atan2`` of a safe norm instead of ``acos``). Shapes: ``(*, 4) -> (*)``.
+    """
+    _check_last(q_est, 4, "q_est")
+    _check_last(q_gt, 4, "q_gt")
+    d = quaternion_multiply(quaternion_conjugate(quaternion_normalize(q_gt)),
+                            quaternion_normalize(q_est))
+    return 2.0 * torch.atan2(_safe_norm(d[..., 1:]), d[..., 0].abs())
+
+
+# --------------------------------------------------------------------------- axis-angle
+
+
+def axis_angle_to_rotation_matrix(v: Tensor) -> Tensor:
+    """Rodrigues: rotation vector ``v = angle * axis`` (*, 3) -> (*, 3, 3)."""
+    _check_last(v, 3, "v")
+    theta = _safe_norm(v)[..., None]
+    half = 0.5 * theta
+    # sin(half)/theta -> 1/2 as theta -> 0 (Taylor branch keeps gradients exact near 0).
+    small = theta < 1e-4
+    safe_theta = torch.where(small, torch.ones_like(theta), theta)
+    k = torch.where(small, 0.5 - theta * theta / 48.0, torch.sin(half) / safe_theta)
+    q = torch.cat((torch.cos(half), k * v), dim=-1)
+    return quaternion_to_rotation_matrix(q)
+
+
+def rotation_angle(R: Tensor) -> Tensor:
+    """Rotation angle (radians, in [0, pi]) of rotation matrices (*, 3, 3) -> (*).
+
+    ``atan2(|vee(R - R^T)| / 2, (tr R - 1) / 2)``: accurate near 0 and near pi, unlike acos.
+    """
+    _check_mat(R, 3, "R")
+    vee = torch.stack(
+        (R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]),
+        dim=-1,
+    )
+    tr = R[..., 0, 0] + R[..., 1, 1] + R[..., 2, 2]
+    return torch.atan2(0.5 * _safe_norm(vee), 0.5 * (tr - 1.0))
+
+
+def rotation_matrix_to_axis_angle(R: Tensor) -> Tensor:
+    """Rotation vector (*, 3) of rotation matrices (*, 3, 3), via the quaternion (robust at pi)."""
+    q = rotation_matrix_to_quaternion(R)
+    vec = q[..., 1:]
+    s = _safe_norm(vec)[..., None]
+    angle = 2.0 * torch.atan2(s, q[..., :1])
+    small = s < 1e-8
+    scale = torch.where(small, 2.0 * torch.ones_like(s), angle / torch.where(small, 1.0, s))
+    return vec * scale
+
+
+# --------------------------------------------------------------------------- SE(3) matrices
+
+
+def make_se3(R: Tensor, t: Tensor) -> Tensor:
+    """Homogeneous 4x4 from ``R (*, 3, 3)`` and ``t (*, 3)``."""
+    _check_mat(R, 3, "R")
+    _check_last(t, 3, "t")
+    batch = torch.broadcast_shapes(R.shape[:-2], t.shape[:-1])
+    T = R.new_zeros(*batch, 4, 4)
+    T[..., :3, :3] = R
+    T[..., :3, 3] = t
+    T[..., 3, 3] = 1.0
+    return T
+
+
+def invert_se3(T: Tensor) -> Tensor:
+    """Inverse of rigid transforms (*, 4, 4) using ``R^T`` (no general matrix inverse)."""
+    _check_mat(T, 4, "T")
+    Rt = T[..., :3, :3].transpose(-1, -2)
+    return make_se3(Rt, -(Rt @ T[..., :3, 3:]).squeeze(-1))
+
+
+def world_to_camera(c2w: Tensor) -> Tensor:
+    """World-to-camera pose from a camera-to-world pose (*, 4, 4) (7-Scenes stores the latter)."""
+    return invert_se3(c2w)
+
+
+def camera_to_world(w2c: Tensor) -> Tensor:
+    """Camera-to-world pose from a world-to-camera pose (*, 4, 4)."""
+    return invert_se3(w2c)
+
+
+def relative_pose(T_i: Tensor, T_j: Tensor) -> Tensor:
+    """Pose of edge ``i -> j`` from absolute world-to-camera poses: ``T_j T_i^{-1}`` (*, 4, 4)."""
+    return T_j @ invert_se3(T_i)
+
+
+# --------------------------------------------------------------------------- pose vectors
+
+
+def pose_vec_to_matrix(p: Tensor) -> Tensor:
+    """``[q, t]`` (*, 7) -> 4x4 (*, 4, 4); the quaternion is normalised."""
+    _check_last(p, 7, "pose")
+    return make_se3(quaternion_to_rotation_matrix(p[..., :4]), p[..., 4:])
+
+
+def matrix_to_pose_vec(T: Tensor) -> Tensor:
+    """4x4 (*, 4, 4) -> ``[q, t]`` (*, 7) with a unit, sign-canonical quaternion."""
+    _check_mat(T, 4, "T")
+    return torch.cat((rotation_matrix_to_quaternion(T[..., :3, :3]), T[..., :3, 3]), dim=-1)
+
+
+def invert_pose_vec(p: Tensor) -> Tensor:
+    """Inverse pose vector: ``[q^*, -R^T t]`` (*, 7), the reverse direction of an edge."""
+    _check_last(p, 7, "pose")
+    qc = quaternion_conjugate(quaternion_normalize(p[..., :4]))
+    return torch.cat((quaternion_canonical(qc), -quaternion_rotate(qc, p[..., 4:])), dim=-1)
+
+
+def compose_pose_vec(a: Tensor, b: Tensor) -> Tensor:
+    """``a o b`` (apply ``b`` first): ``[q_a q_b, R_a t_b + t_a]`` (*, 7)."""
+    _check_last(a, 7, "a")
+    _check_last(b, 7, "b")
+    qa = quaternion_normalize(a[..., :4])
+    q = quaternion_multiply(qa, quaternion_normalize(b[..., :4]))
+    t = quaternion_rotate(qa, b[..., 4:]) + a[..., 4:]
+    return torch.cat((quaternion_canonical(q), t), dim=-1)
+
+
+def relative_pose_vec(T_i: Tensor, T_j: Tensor) -> Tensor:
+    """Pose vector (*, 7) of edge ``i -> j`` from absolute world-to-camera 4x4 poses."""
+    return matrix_to_pose_vec(relative_pose(T_i, T_j))
+
+
+# --------------------------------------------------------------------------- errors
+
+
+def angle_between_vectors(a: Tensor, b: Tensor) -> Tensor:
+    """Angle (radians, [0, pi]) between 3-vectors, ``atan2(|a x b|, a . b)``. (*, 3) -> (*)."""
+    _check_last(a, 3, "a")
+    _check_last(b, 3, "b")
+    cross = torch.linalg.cross(a, b, dim=-1)
+    return torch.atan2(_safe_norm(cross), (a * b).sum(-1))
+
+
+def rotation_error_deg(q_est: Tensor, q_gt: Tensor) -> Tensor:
+    """Relative rotation error in degrees between quaternions (*, 4) (sign invariant)."""
+    return torch.rad2deg(quaternion_angle(q_est, q_gt))
+
+
+def translation_direction_error_deg(t_est: Tensor, t_gt: Tensor) -> Tensor:
+    """Angle in degrees between translation directions (*, 3) (scale ignored)."""
+    return angle_between_vectors(t_est, t_gt) * (180.0 / math.pi)
