@@ -1,0 +1,199 @@
+"""Lightning training module for PoserNet.
+
+:class:`PoserNetModule` takes plain hyper-parameters and builds the network itself, so
+``PoserNetModule.load_from_checkpoint(path)`` works without Hydra. One shared step serves
+train / val / test; logged names read ``split/metric``:
+
+* ``train/loss``, ``val/loss``, ``test/loss`` (and the four loss terms);
+* ``val/rot_err_deg``, ``val/tdir_err_deg`` (and ``test/...``): median over graphs of each
+  graph's mean edge error, as in the paper's tables; ``..._init`` the same for the input poses.
+
+Optimiser: Adam with reduce-on-plateau on ``val/loss`` (paper: patience 3 epochs).
+"""
+
+from __future__ import annotations
+
+import os
+from typing import Any
+
+import lightning as L
+import torch
+from torch import Tensor
+
+from . import __version__
+from .graph import GraphBatch
+from .metrics import per_graph_mean, relative_pose_errors
+from .nn import PoserNet, posernet_loss
+from .nn.model import CHECKPOINT_TAG, CheckpointError
+from .nn.model import read_checkpoint as read_posernet_checkpoint
+
+__all__ = ["CHECKPOINT_TAG", "CheckpointError", "PoserNetModule", "load_posernet_checkpoint",
+           "read_posernet_checkpoint"]
+
+
+
+class PoserNetModule(L.LightningModule):
+    """PoserNet + its loss + optimiser, for Lightning.
+
+    Args:
+        depth, node_hidden, edge_hidden, mlp_hidden, mlp_layers, negative_slope,
+        shared_weights, residual, unit_output, nested_mean: see :class:`posernet.nn.PoserNet`.
+        alpha: weight of the normalisation terms of the loss (default 0.1).
+        lr: Adam learning rate (default 1e-3; the paper uses 1e-2 for large graphs).
+        weight_decay: Adam weight decay (default 0).
+        lr_patience: epochs without ``val/loss`` improvement before the lr is reduced (3).
+        lr_factor: multiplicative lr reduction (default 0.316).
+        min_lr: lower bound of the learning rate (default 1e-6).
+    """
+
+    def __init__(
+        self,
+        depth: int = 2,
+        node_hidden: int = 32,
+        edge_hidden: int = 0,
+        mlp_hidden: int = 32,
+        mlp_layers: int = 3,
+        negative_slope: float = 0.01,
+        shared_weights: bool = False,
+        residual: bool = False,
+        unit_output: bool = False,
+        nested_mean: bool = True,
+        alpha: float = 0.1,
+        lr: float = 1e-3,
+        weight_decay: float = 0.0,
+        lr_patience: int = 3,
+        lr_factor: float = 0.316,
+        min_lr: float = 1e-6,
+    ) -> None:
+        super().__init__()
+        self.save_hyperparameters()
+        self.model = PoserNet(
+            depth=depth, node_hidden=node_hidden, edge_hidden=edge_hidden,
+            mlp_hidden=mlp_hidden, mlp_layers=mlp_layers, negative_slope=negative_slope,
+            shared_weights=shared_weights, residual=residual, unit_output=unit_output,
+            nested_mean=nested_mean,
+        )
+        self._errors: dict[str, list[Tensor]] = {}
+
+    # ------------------------------------------------------------------ inference
+    def forward(self, batch: GraphBatch, edge_pose: Tensor | None = None) -> Tensor:
+        """Refined relative poses ``[E, 7]`` of a ``GraphBatch`` (its ``edge_pose`` by default)."""
+        return self.model(batch, edge_pose=edge_pose)
+
+    def transfer_batch_to_device(self, batch: Any, device: torch.device,
+                                 dataloader_idx: int) -> Any:
+        # GraphBatch is a dataclass with non-tensor fields; move it with its own method.
+        if isinstance(batch, GraphBatch):
+            return batch.to(device)
+        return super().transfer_batch_to_device(batch, device, dataloader_idx)
+
+    # ------------------------------------------------------------------ steps
+    def _step(self, batch: GraphBatch, split: str) -> Tensor:
+        if batch.edge_pose_gt is None:
+            raise ValueError(f"{split} batch has no 'edge_pose_gt': cannot compute the loss")
+        pred = self(batch)
+        out = posernet_loss(pred, batch.edge_pose_gt, self.hparams.alpha)
+        n = batch.num_graphs
+        on_step = split == "train"
+        self.log(f"{split}/loss", out.loss, batch_size=n, on_step=on_step, on_epoch=True,
+                 prog_bar=True, sync_dist=split != "train")
+        for name in ("orient", "tr_dir", "q_norm", "t_norm"):
+            self.log(f"{split}/loss_{name}", getattr(out, name), batch_size=n, on_step=False,
+                     on_epoch=True, sync_dist=split != "train")
+        if split != "train":
+            self._collect(split, batch, pred.detach())
+        return out.loss
+
+    def training_step(self, batch: GraphBatch, batch_idx: int) -> Tensor:
+        return self._step(batch, "train")
+
+    def validation_step(self, batch: GraphBatch, batch_idx: int) -> Tensor:
+        return self._step(batch, "val")
+
+    def test_step(self, batch: GraphBatch, batch_idx: int) -> Tensor:
+        return self._step(batch, "test")
+
+    def predict_step(self, batch: GraphBatch, batch_idx: int) -> Tensor:
+        return self(batch)
+
+    # ------------------------------------------------------------------ per-graph metrics
+    def _collect(self, split: str, batch: GraphBatch, pred: Tensor) -> None:
+        """Store each graph's mean edge errors (refined and initial) for the epoch's median."""
+        n = batch.num_graphs
+        rows = []
+        for pose in (pred, batch.edge_pose):
+            rot, tdir = relative_pose_errors(pose, batch.edge_pose_gt)
+            rows += [per_graph_mean(rot, batch.edge_batch, n),
+                     per_graph_mean(tdir, batch.edge_batch, n)]
+        self._errors.setdefault(split, []).append(torch.stack(rows, dim=-1))  # [B, 4]
+
+    def _log_medians(self, split: str) -> None:
+        chunks = self._errors.pop(split, [])
+        if not chunks:
+            return
+        errs = torch.cat(chunks)
+        if self.trainer is not None and self.trainer.world_size > 1:
+            # Pad to a common length so every rank can all_gather, then drop the padding.
+            n = torch.tensor(errs.shape[0], device=errs.device)
+            max_n = int(self.all_gather(n).max())
+            pad = errs.new_full((max_n - errs.shape[0], errs.shape[1]), float("nan"))
+            errs = self.all_gather(torch.cat((errs, pad))).reshape(-1, errs.shape[1])
+        errs = errs.float()
+        names = ("rot_err_deg", "tdir_err_deg", "rot_err_deg_init", "tdir_err_deg_init")
+        for k, name in enumerate(names):
+            col = errs[:, k]
+            col = col[~torch.isnan(col)]
+            if col.numel():
+                # Every rank holds the gathered errors, so no further sync is needed.
+                self.log(f"{split}/{name}", col.quantile(0.5), prog_bar=k < 2)
+
+    def on_validation_epoch_start(self) -> None:
+        self._errors.pop("val", None)
+
+    def on_validation_epoch_end(self) -> None:
+        self._log_medians("val")
+
+    def on_test_epoch_start(self) -> None:
+        self._errors.pop("test", None)
+
+    def on_test_epoch_end(self) -> None:
+        self._log_medians("test")
+
+    # ------------------------------------------------------------------ optimiser
+    def configure_optimizers(self) -> dict[str, Any]:
+        hp = self.hparams
+        opt = torch.optim.Adam(self.parameters(), lr=hp.lr, weight_decay=hp.weight_decay)
+        sched = torch.optim.lr_scheduler.ReduceLROnPlateau(
+            opt, mode="min", factor=hp.lr_factor, patience=hp.lr_patience, min_lr=hp.min_lr)
+        # strict=False: runs without validation (e.g. limit_val_batches=0) only warn.
+        return {"optimizer": opt,
+                "lr_scheduler": {"scheduler": sched, "monitor": "val/loss", "interval": "epoch",
+                                 "strict": False}}
+
+    # ------------------------------------------------------------------ checkpoints
+    def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        checkpoint["posernet"] = {"tag": CHECKPOINT_TAG, "version": __version__}
+
+    @property
+    def num_parameters(self) -> int:
+        """Number of trainable parameters of the network."""
+        return sum(p.numel() for p in self.model.parameters() if p.requires_grad)
+
+
+# --------------------------------------------------------------------------- loading
+
+
+def load_posernet_checkpoint(path: str | os.PathLike[str],
+                             map_location: str | torch.device = "cpu") -> PoserNetModule:
+    """:class:`PoserNetModule` from a checkpoint, in eval mode, with clear errors.
+
+    Equivalent to ``PoserNetModule.load_from_checkpoint(path)`` for good files; a missing file,
+    another model's checkpoint or mismatching weights raise :class:`CheckpointError`.
+    """
+    ckpt = read_posernet_checkpoint(path)
+    try:
+        module = PoserNetModule(**dict(ckpt.get("hyper_parameters", {})))
+        module.load_state_dict(ckpt["state_dict"])
+    except (TypeError, RuntimeError, KeyError, ValueError) as exc:
+        raise CheckpointError(f"{path}: checkpoint does not fit this PoserNet ({exc})") from exc
+    return module.to(map_location).eval()

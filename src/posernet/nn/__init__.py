@@ -1,0 +1,31 @@
+"""PoserNet's network: pure-torch scatter ops, the ``PoserConv`` layer, the model and the loss.
+
+Nothing here imports Lightning or Hydra: another GNN can import :class:`PoserConv` for the
+price of torch alone.
+"""
+
+from .conv import PoserConv, PoserConvOutput, graph_inputs, invert_pose_raw, symmetric_pose_mean
+from .loss import PoserLoss, PoserNetLoss, posernet_loss
+from .mlp import MLP
+from .model import CHECKPOINT_TAG, CheckpointError, PoserNet, read_checkpoint
+from .scatter import scatter_count, scatter_max, scatter_mean, scatter_sum
+
+__all__ = [
+    "CHECKPOINT_TAG",
+    "MLP",
+    "CheckpointError",
+    "PoserConv",
+    "PoserConvOutput",
+    "PoserLoss",
+    "PoserNet",
+    "PoserNetLoss",
+    "graph_inputs",
+    "invert_pose_raw",
+    "posernet_loss",
+    "read_checkpoint",
+    "scatter_count",
+    "scatter_max",
+    "scatter_mean",
+    "scatter_sum",
+    "symmetric_pose_mean",
+]

@@ -1,0 +1,393 @@
+"""``PoserConv``: one round of PoserNet message passing over matched detection pairs.
+
+The paper (Sec. 3.2) sends one message per matched detection pair ("layer" ``l``) on an edge
+``(i, j)``. This module implements that round with plain tensors so that any GNN can use it:
+``edge_index [2, E]`` (row 0 source, row 1 target, as in PyG) and one row per matched pair
+(``pair_edge [M]`` plus the two boxes of the pair). It also accepts a
+:class:`posernet.graph.ViewGraph` / :class:`posernet.graph.GraphBatch` directly.
+
+Direction awareness
+-------------------
+Each image pair is stored once, ``i -> j`` with pose ``e_ij``; the reverse direction is the
+inverse pose ``e_ji = e_ij^{-1}`` with the boxes of every pair swapped. Refining a relative pose
+must not depend on which direction happens to be stored, so the round runs every message in
+*both* directions ("views") of every edge and fuses them:
+
+* forward view of edge ``i -> j``:  ``(h_i, h_j, e_ij, g_ij, bb_i^l, bb_j^l)``,
+* backward view (as ``j`` sees it): ``(h_j, h_i, e_ji, g_ji, bb_j^l, bb_i^l)``,
+
+where ``g`` is an optional hidden edge state kept per direction. The same ``Psi_E`` applied to
+the forward view predicts the new pose ``P_ij``; applied to the backward view it predicts
+``P_ji``. The new pose of ``i -> j`` is the inverse-equivariant mean
+``mu(P_ij, P_ji^{-1})`` (:func:`symmetric_pose_mean`), which satisfies
+``mu(a, b)^{-1} = mu(a^{-1}, b^{-1})`` and ``mu(a, b) = mu(b, a)`` exactly. Storing the edge the
+other way round swaps the two views, so the refined pose of the flipped edge is *exactly* the
+inverse of the refined pose of the original edge (up to float round-off), whatever the weights.
+The hidden states ``g_ij``, ``g_ji`` simply swap. A node hears each neighbour through the view
+that starts at itself, as the paper prescribes, so node states do not depend on the stored
+direction either.
+
+Update rule of one round (``k -> k+1``), with ``L_ij`` the matched pairs of edge ``(i, j)``:
+
+.. math::
+
+    m^E_{ij,l} = \\Psi_E(h_i, h_j, e_{ij}, g_{ij}, bb_{i,l}, bb_{j,l}), \\qquad
+    [P_{ij}, g'_{ij}] = \\frac{1}{|L_{ij}|} \\sum_{l \\in L_{ij}} m^E_{ij,l}
+
+    e'_{ij} = \\mu(P_{ij}, P_{ji}^{-1})
+
+    m^N_{ij,l} = \\Psi_N(h_i, h_j, e_{ij}, g_{ij}, bb_{i,l}, bb_{j,l}), \\qquad
+    h'_i = \\frac{1}{|\\mathcal N_i|} \\sum_{j \\in \\mathcal N_i}
+           \\frac{1}{|L_{ij}|} \\sum_{l \\in L_{ij}} m^N_{ij,l}
+
+(the paper's nested mean; ``nested_mean=False`` gives the flat mean over all pairs of all
+neighbours). With ``residual=True`` the pose part of ``Psi_E`` is a correction
+``delta = [1 + d_q, d_t]`` composed with the current pose, ``P_ij = delta o e_ij``; otherwise
+the pose is regressed directly, as in the paper. Edges without any matched pair keep their
+pose and hidden state, and nodes without neighbours get a zero state.
+"""
+
+from __future__ import annotations
+
+from typing import Any, NamedTuple
+
+import torch
+from torch import Tensor, nn
+
+from ..geometry import (
+    compose_pose_vec,
+    quaternion_canonical,
+    quaternion_conjugate,
+    quaternion_normalize,
+    quaternion_rotate,
+)
+from .mlp import MLP
+from .scatter import scatter_count, scatter_mean, scatter_sum
+
+__all__ = [
+    "PoserConv",
+    "PoserConvOutput",
+    "graph_inputs",
+    "invert_pose_raw",
+    "symmetric_pose_mean",
+]
+
+BOX_DIM = 4
+POSE_DIM = 7
+
+
+class PoserConvOutput(NamedTuple):
+    """Result of one :class:`PoserConv` round.
+
+    ``x [N, node_out]`` new node states, ``edge_pose [E, 7]`` new pose of every stored
+    direction ``i -> j``, ``edge_state [E, 2, edge_dim]`` hidden state of the forward (index 0)
+    and backward (index 1) direction, or ``None`` when ``edge_dim == 0``.
+    """
+
+    x: Tensor
+    edge_pose: Tensor
+    edge_state: Tensor | None
+
+
+# --------------------------------------------------------------------------- pose helpers
+
+
+def invert_pose_raw(p: Tensor) -> Tensor:
+    """Inverse of a pose vector that may have a non-unit quaternion: ``[q^*, -R(q/|q|)^T t]``.
+
+    Unlike :func:`posernet.geometry.invert_pose_vec` the quaternion keeps its norm and sign, so
+    the map is an exact involution on raw network outputs. Shapes: ``(*, 7) -> (*, 7)``.
+    """
+    qc = quaternion_conjugate(p[..., :4])
+    t = -quaternion_rotate(quaternion_normalize(qc), p[..., 4:])
+    return torch.cat((qc, t), dim=-1)
+
+
+def _sign(x: Tensor) -> Tensor:
+    """+1 where ``x >= 0`` else -1 (never 0, unlike ``torch.sign``)."""
+    return torch.where(x >= 0, torch.ones_like(x), -torch.ones_like(x))
+
+
+def symmetric_pose_mean(a: Tensor, b: Tensor, ref: Tensor) -> Tensor:
+    """Mean ``mu(a, b)`` of two estimates of the same relative pose, equivariant to inversion.
+
+    Rotation: the quaternions are sign-aligned and averaged, ``q = (q_a + s q_b) / 2`` with
+    ``s = sign<q_a, q_b>``, then given the sign of ``ref``'s quaternion. Translation: the mean of
+    the target-frame average and the source-frame average mapped back by the mean rotation,
+
+    .. math::
+
+        t = \\tfrac12 \\Big[\\tfrac{t_a + t_b}{2}
+            + R \\, \\tfrac{R_a^\\top t_a + R_b^\\top t_b}{2}\\Big],
+
+    (rotations ``R`` of the normalised quaternions). Then ``mu(a, a) = a``, ``mu(a, b) =
+    mu(b, a)`` and ``mu(a, b)^{-1} = mu(a^{-1}, b^{-1})`` with ``ref -> ref^{-1}`` (inverses
+    as in :func:`invert_pose_raw`), exactly: the quaternion part is linear in conjugation and
+    the two translation averages swap into each other under inversion.
+
+    Shapes: ``a, b, ref (*, 7) -> (*, 7)``; quaternions may be non-unit (their norms average).
+    """
+    qa, qb = a[..., :4], b[..., :4]
+    s = _sign((qa * qb).sum(-1, keepdim=True))
+    q = 0.5 * (qa + s * qb)
+    q = q * _sign((q * ref[..., :4]).sum(-1, keepdim=True))
+    ta, tb = a[..., 4:], b[..., 4:]
+    back_a = quaternion_rotate(quaternion_conjugate(quaternion_normalize(qa)), ta)
+    back_b = quaternion_rotate(quaternion_conjugate(quaternion_normalize(qb)), tb)
+    t = 0.25 * (ta + tb + quaternion_rotate(quaternion_normalize(q), back_a + back_b))
+    return torch.cat((q, t), dim=-1)
+
+
+# --------------------------------------------------------------------------- inputs
+
+
+def graph_inputs(graph: Any) -> dict[str, Tensor]:
+    """Plain-tensor inputs of :class:`PoserConv` / ``PoserNet`` from a ``ViewGraph``/``GraphBatch``.
+
+    Returns ``x = node_attr [N, 4]``, ``edge_index [2, E]``, ``edge_pose [E, 7]``,
+    ``pair_edge [M]``, ``pair_box_src = det_box[pair_src] [M, 4]`` and
+    ``pair_box_dst = det_box[pair_dst] [M, 4]``.
+    """
+    for name in ("node_attr", "edge_index", "edge_pose", "pair_edge", "pair_src", "pair_dst",
+                 "det_box"):
+        if getattr(graph, name, None) is None:
+            raise ValueError(f"graph {getattr(graph, 'name', '?')!r} has no field {name!r}")
+    return {
+        "x": graph.node_attr,
+        "edge_index": graph.edge_index,
+        "edge_pose": graph.edge_pose,
+        "pair_edge": graph.pair_edge,
+        "pair_box_src": graph.det_box[graph.pair_src],
+        "pair_box_dst": graph.det_box[graph.pair_dst],
+    }
+
+
+def _is_graph(x: Any) -> bool:
+    return not isinstance(x, Tensor) and hasattr(x, "edge_index") and hasattr(x, "det_box")
+
+
+def _shape(t: Any) -> str:
+    return str(tuple(t.shape)) if isinstance(t, Tensor) else type(t).__name__
+
+
+def check_module_inputs(module: nn.Module, x: Tensor) -> None:
+    """Inputs must share the parameters' dtype and device (clear message instead of a deep one)."""
+    p = next(module.parameters(), None)
+    if p is None:
+        return
+    who = type(module).__name__
+    if x.dtype != p.dtype:
+        raise ValueError(f"{who}: inputs are {x.dtype} but the parameters are {p.dtype}; "
+                         f"convert the model (.to({x.dtype})) or the graph")
+    if x.device != p.device:
+        raise ValueError(f"{who}: inputs are on {x.device} but the parameters on {p.device}; "
+                         f"move the graph (.to(device)) or the model")
+
+
+def validate_inputs(
+    who: str,
+    x: Tensor,
+    edge_index: Tensor,
+    edge_pose: Tensor,
+    pair_edge: Tensor,
+    pair_box_src: Tensor,
+    pair_box_dst: Tensor,
+    node_dim: int | None = None,
+) -> None:
+    """Check shapes, dtypes and index ranges; raise ``ValueError`` naming the argument."""
+
+    def fail(msg: str) -> None:
+        raise ValueError(f"{who}: {msg}")
+
+    for name, t in (("x", x), ("edge_index", edge_index), ("edge_pose", edge_pose),
+                    ("pair_edge", pair_edge), ("pair_box_src", pair_box_src),
+                    ("pair_box_dst", pair_box_dst)):
+        if not isinstance(t, Tensor):
+            fail(f"{name} must be a torch.Tensor, got {type(t).__name__}")
+    if x.ndim != 2 or not x.is_floating_point():
+        fail(f"x (node features) must be a float tensor [N, F], got {_shape(x)} {x.dtype}")
+    if node_dim is not None and x.shape[1] != node_dim:
+        fail(f"x has {x.shape[1]} features per node, the layer expects {node_dim}")
+    N = x.shape[0]
+    if edge_index.ndim != 2 or edge_index.shape[0] != 2:
+        fail(f"edge_index must have shape [2, E], got {_shape(edge_index)}")
+    E = edge_index.shape[1]
+    if edge_pose.shape != (E, POSE_DIM):
+        fail(f"edge_pose must have shape [E, 7] = [{E}, 7], got {_shape(edge_pose)}")
+    if edge_pose.dtype != x.dtype:
+        fail(f"edge_pose dtype {edge_pose.dtype} differs from x dtype {x.dtype}")
+    if pair_edge.ndim != 1:
+        fail(f"pair_edge must be 1-D [M], got {_shape(pair_edge)}")
+    M = pair_edge.shape[0]
+    for name, t in (("pair_box_src", pair_box_src), ("pair_box_dst", pair_box_dst)):
+        if t.shape != (M, BOX_DIM):
+            fail(f"{name} must have shape [M, 4] = [{M}, 4], got {_shape(t)}")
+        if t.dtype != x.dtype:
+            fail(f"{name} dtype {t.dtype} differs from x dtype {x.dtype}")
+    for name, t, size, what in (("edge_index", edge_index, N, "nodes"),
+                                ("pair_edge", pair_edge, E, "edges")):
+        if t.dtype != torch.long:
+            fail(f"{name} must be torch.long, got {t.dtype}")
+        if t.numel() and (int(t.min()) < 0 or int(t.max()) >= size):
+            fail(f"{name} values must lie in [0, {size}) ({size} {what}), "
+                 f"got [{int(t.min())}, {int(t.max())}]")
+    if E and bool((edge_index[0] == edge_index[1]).any()):
+        fail("edge_index has a self loop (source == target)")
+
+
+# --------------------------------------------------------------------------- the layer
+
+
+class PoserConv(nn.Module):
+    """One round of PoserNet message passing (see the module docstring for the update rule).
+
+    Args:
+        node_in: size of the incoming node state ``h`` (4 for the raw camera attributes).
+        node_out: size of the new node state (default 32).
+        edge_dim: size of the hidden edge state kept per direction (default 0: the edge
+            state is the 7-vector pose only, as in the paper).
+        hidden: units of the hidden layers of ``Psi_E`` and ``Psi_N`` (default 32).
+        num_layers: linear layers per MLP (default 3).
+        negative_slope: leaky ReLU slope (default 0.01).
+        residual: predict a correction composed with the current pose instead of the pose
+            itself (default False, the paper's direct regression).
+        nested_mean: node update = mean over neighbours of the mean over their pairs (default
+            True, the paper's equation); False = flat mean over all incoming pair messages.
+
+    Shapes:
+        ``x [N, node_in]``, ``edge_index [2, E]`` (long), ``edge_pose [E, 7]``,
+        ``pair_edge [M]`` (long), ``pair_box_src, pair_box_dst [M, 4]``,
+        ``edge_state [E, 2, edge_dim]`` (optional) ->
+        :class:`PoserConvOutput` ``(x [N, node_out], edge_pose [E, 7], edge_state)``.
+    """
+
+    def __init__(
+        self,
+        node_in: int,
+        node_out: int = 32,
+        edge_dim: int = 0,
+        hidden: int = 32,
+        num_layers: int = 3,
+        negative_slope: float = 0.01,
+        residual: bool = False,
+        nested_mean: bool = True,
+    ) -> None:
+        super().__init__()
+        if node_in < 1 or node_out < 1 or edge_dim < 0:
+            raise ValueError(f"PoserConv sizes must be positive: node_in={node_in}, "
+                             f"node_out={node_out}, edge_dim={edge_dim}")
+        self.node_in, self.node_out, self.edge_dim = node_in, node_out, edge_dim
+        self.residual, self.nested_mean = residual, nested_mean
+        in_dim = 2 * node_in + POSE_DIM + edge_dim + 2 * BOX_DIM
+        # Psi_E regresses signed pose values: no activation after its last layer.
+        self.psi_edge = MLP(in_dim, POSE_DIM + edge_dim, hidden, num_layers, negative_slope,
+                            act_last=False)
+        # Psi_N: every layer followed by a leaky ReLU (paper, supplementary).
+        self.psi_node = MLP(in_dim, node_out, hidden, num_layers, negative_slope,
+                            act_last=True)
+
+    def reset_parameters(self) -> None:
+        self.psi_edge.reset_parameters()
+        self.psi_node.reset_parameters()
+
+    def __repr__(self) -> str:
+        return (f"{type(self).__name__}(node {self.node_in} -> {self.node_out}, "
+                f"edge_dim={self.edge_dim}, hidden={self.psi_edge.hidden}, "
+                f"layers={self.psi_edge.num_layers}, residual={self.residual}, "
+                f"nested_mean={self.nested_mean})")
+
+    def forward(
+        self,
+        x: Tensor | Any,
+        edge_index: Tensor | None = None,
+        edge_pose: Tensor | None = None,
+        pair_edge: Tensor | None = None,
+        pair_box_src: Tensor | None = None,
+        pair_box_dst: Tensor | None = None,
+        edge_state: Tensor | None = None,
+    ) -> PoserConvOutput:
+        """Run one round.
+
+        ``x`` may be a ``ViewGraph``/``GraphBatch`` instead of tensors; its fields are then used
+        (``edge_pose`` and ``edge_state`` may still be given to override / continue).
+        """
+        if _is_graph(x):
+            inputs = graph_inputs(x)
+            if edge_pose is not None:
+                inputs["edge_pose"] = edge_pose
+            x, edge_index, edge_pose, pair_edge, pair_box_src, pair_box_dst = (
+                inputs[k] for k in ("x", "edge_index", "edge_pose", "pair_edge", "pair_box_src",
+                                    "pair_box_dst"))
+        validate_inputs(type(self).__name__, x, edge_index, edge_pose, pair_edge,
+                        pair_box_src, pair_box_dst, node_dim=self.node_in)
+        check_module_inputs(self, x)
+        E = edge_index.shape[1]
+        if self.edge_dim:
+            if edge_state is None:
+                edge_state = x.new_zeros(E, 2, self.edge_dim)
+            elif edge_state.shape != (E, 2, self.edge_dim):
+                raise ValueError(f"{type(self).__name__}: edge_state must have shape "
+                                 f"[E, 2, {self.edge_dim}], got {_shape(edge_state)}")
+        return self._propagate(x, edge_index, edge_pose, pair_edge, pair_box_src,
+                               pair_box_dst, edge_state)
+
+    def _propagate(
+        self,
+        x: Tensor,
+        edge_index: Tensor,
+        edge_pose: Tensor,
+        pair_edge: Tensor,
+        box_src: Tensor,
+        box_dst: Tensor,
+        edge_state: Tensor | None,
+    ) -> PoserConvOutput:
+        N, E = x.shape[0], edge_index.shape[1]
+        src, dst = edge_index
+        # Directed views: rows [0, E) are i -> j as stored, rows [E, 2E) the reverse j -> i.
+        own = torch.cat((src, dst))
+        other = torch.cat((dst, src))
+        pose_view = torch.cat((edge_pose, invert_pose_raw(edge_pose)))
+        # The network sees sign-canonical quaternions (q and -q are one rotation);
+        # canonical(conj q) = conj(canonical q), so this keeps the two views consistent.
+        pose_in = torch.cat((quaternion_canonical(pose_view[:, :4]), pose_view[:, 4:]), dim=-1)
+        view_pair = torch.cat((pair_edge, pair_edge + E))  # [2M] directed edge of each row
+        box_own = torch.cat((box_src, box_dst))
+        box_other = torch.cat((box_dst, box_src))
+        feats = [x[own[view_pair]], x[other[view_pair]], pose_in[view_pair]]
+        if self.edge_dim:
+            state_view = torch.cat((edge_state[:, 0], edge_state[:, 1]))
+            feats.append(state_view[view_pair])
+        feats += [box_own, box_other]
+        z = torch.cat(feats, dim=-1)  # [2M, in_dim]
+
+        # ---- edge update: mean over the edge's pairs, per direction, then fuse the directions.
+        n_pairs = scatter_count(view_pair, 2 * E)  # [2E]
+        has = (n_pairs > 0)[:, None]
+        m_edge = scatter_mean(self.psi_edge(z), view_pair, 0, 2 * E)  # [2E, 7 + edge_dim]
+        out = m_edge[:, :POSE_DIM]
+        if self.residual:
+            one = torch.zeros_like(out)
+            one[:, 0] = 1.0
+            delta = out + one  # zero output = identity correction
+            pred = compose_pose_vec(delta, pose_view)
+        else:
+            pred = out
+        pred = torch.where(has, pred, pose_view)  # edges without pairs keep their pose
+        fwd, bwd = pred[:E], pred[E:]
+        new_pose = symmetric_pose_mean(fwd, invert_pose_raw(bwd), edge_pose)
+        new_state = None
+        if self.edge_dim:
+            s = torch.where(has, m_edge[:, POSE_DIM:], state_view)
+            new_state = torch.stack((s[:E], s[E:]), dim=1)
+
+        # ---- node update: each node hears every neighbour through the view starting at itself.
+        m_node = self.psi_node(z)  # [2M, node_out]
+        if self.nested_mean:
+            per_view = scatter_mean(m_node, view_pair, 0, 2 * E)  # mean over the pairs
+            w = has.to(x.dtype)  # views without pairs are not neighbours
+            total = scatter_sum(per_view * w, own, 0, N)
+            count = scatter_sum(w, own, 0, N).clamp_min(1.0)
+            h = total / count
+        else:
+            h = scatter_mean(m_node, own[view_pair], 0, N)
+        return PoserConvOutput(h, new_pose, new_state)

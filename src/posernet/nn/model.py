@@ -1,0 +1,200 @@
+"""``PoserNet``: ``depth`` rounds of :class:`PoserConv`, refined relative pose per edge.
+
+.. math::
+
+    (h^{0}, e^{0}) = (\\text{node\\_attr}, \\text{edge\\_pose}), \\qquad
+    (h^{k+1}, e^{k+1}, g^{k+1}) = \\mathrm{PoserConv}_k(h^{k}, e^{k}, g^{k}),
+    \\qquad \\hat e = e^{\\text{depth}}
+
+Every round refines the pose of every stored edge ``i -> j``; the output is the 7-vector
+``[qw, qx, qy, qz, tx, ty, tz]`` of the last round (sign-canonical quaternion; unit quaternion
+and unit translation when ``unit_output=True``). See :mod:`posernet.nn.conv` for the round and
+for why the output of a flipped edge is exactly the inverse pose.
+"""
+
+from __future__ import annotations
+
+import inspect
+import os
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import Tensor, nn
+
+from ..geometry import quaternion_canonical, quaternion_normalize
+from .conv import PoserConv, _is_graph, check_module_inputs, graph_inputs, validate_inputs
+
+__all__ = ["CHECKPOINT_TAG", "CheckpointError", "PoserNet", "read_checkpoint"]
+
+# Written into every checkpoint by ``posernet.lit.PoserNetModule`` so that loaders can tell a
+# PoserNet checkpoint from others. The helpers below read those checkpoints with torch alone.
+CHECKPOINT_TAG = "posernet.PoserNetModule"
+
+
+class CheckpointError(ValueError):
+    """A checkpoint file is missing, unreadable or not a PoserNet checkpoint."""
+
+
+def read_checkpoint(path: str | os.PathLike[str]) -> dict[str, Any]:
+    """Load a checkpoint dict on the CPU and check that ``PoserNetModule`` wrote it.
+
+    Uses ``torch.load(weights_only=True)``: no pickled code runs. Raises
+    :class:`CheckpointError` naming the file for a missing, unreadable or foreign checkpoint.
+    """
+    p = Path(path)
+    if not p.is_file():
+        raise CheckpointError(f"checkpoint not found: {p}")
+    try:
+        ckpt = torch.load(p, map_location="cpu", weights_only=True)
+    except Exception as exc:  # torch raises many types for corrupt or foreign files
+        first = (str(exc).strip().splitlines() or [""])[0]
+        raise CheckpointError(f"{p}: not a readable checkpoint ({type(exc).__name__}: "
+                              f"{first})") from exc
+    if not isinstance(ckpt, dict) or "state_dict" not in ckpt:
+        raise CheckpointError(f"{p}: not a Lightning checkpoint (no 'state_dict')")
+    tag = ckpt.get("posernet", {}).get("tag") if isinstance(ckpt.get("posernet"), dict) else None
+    if tag != CHECKPOINT_TAG:
+        writer = ckpt.get("hparams_name") or "another model"
+        raise CheckpointError(f"{p}: not a PoserNet checkpoint (written by {writer}, "
+                              f"no {CHECKPOINT_TAG!r} tag)")
+    return ckpt
+
+
+class PoserNet(nn.Module):
+    """The PoserNet graph network (paper Sec. 3.2).
+
+    Args:
+        depth: number of message-passing rounds (default 2, the paper's best).
+        node_in: size of the node input (default 4: width, height, focal, k1).
+        node_hidden: size of the node state after each round (default 32).
+        edge_hidden: size of the hidden edge state per direction (default 0: pose only).
+        mlp_hidden: units of each hidden layer of ``Psi_E`` / ``Psi_N`` (default 32).
+        mlp_layers: linear layers per MLP (default 3).
+        negative_slope: leaky ReLU slope (default 0.01).
+        shared_weights: one :class:`PoserConv` reused by every round (default False). The node
+            input is then first embedded to ``node_hidden`` by a linear layer so every round
+            sees the same sizes.
+        residual: each round predicts a correction composed with the current pose (default
+            False: direct regression, as in the paper).
+        unit_output: normalise the output quaternion and translation (default False: the paper
+            leaves the norms to the loss' normalisation terms).
+        nested_mean: the paper's nested mean for the node update (default True).
+
+    Shapes:
+        ``forward(graph)`` with a ``ViewGraph``/``GraphBatch``, or
+        ``forward(x [N, node_in], edge_index [2, E], edge_pose [E, 7], pair_edge [M],
+        pair_box_src [M, 4], pair_box_dst [M, 4])`` -> refined ``edge_pose [E, 7]``
+        (a list of ``depth`` of them, one per round, with ``return_all=True``).
+    """
+
+    def __init__(
+        self,
+        depth: int = 2,
+        node_in: int = 4,
+        node_hidden: int = 32,
+        edge_hidden: int = 0,
+        mlp_hidden: int = 32,
+        mlp_layers: int = 3,
+        negative_slope: float = 0.01,
+        shared_weights: bool = False,
+        residual: bool = False,
+        unit_output: bool = False,
+        nested_mean: bool = True,
+    ) -> None:
+        super().__init__()
+        if depth < 1:
+            raise ValueError(f"PoserNet depth must be >= 1, got {depth}")
+        self.depth, self.node_in, self.node_hidden = depth, node_in, node_hidden
+        self.shared_weights, self.residual, self.unit_output = shared_weights, residual, unit_output
+
+        def conv(n_in: int) -> PoserConv:
+            return PoserConv(n_in, node_hidden, edge_hidden, mlp_hidden, mlp_layers,
+                             negative_slope, residual=residual, nested_mean=nested_mean)
+
+        if shared_weights:
+            self.encoder: nn.Module = nn.Linear(node_in, node_hidden)
+            self.convs = nn.ModuleList([conv(node_hidden)])
+        else:
+            self.encoder = nn.Identity()
+            self.convs = nn.ModuleList([conv(node_in)] +
+                                       [conv(node_hidden) for _ in range(depth - 1)])
+
+    @classmethod
+    def from_checkpoint(cls, path: str | os.PathLike[str],
+                        map_location: str | torch.device = "cpu") -> PoserNet:
+        """The network of a ``PoserNetModule`` checkpoint, in eval mode, without Lightning.
+
+        Raises :class:`CheckpointError` for a missing, foreign or mismatching checkpoint.
+        """
+        ckpt = read_checkpoint(path)
+        hp = dict(ckpt.get("hyper_parameters") or {})
+        names = set(inspect.signature(cls).parameters)
+        prefix = "model."
+        state = {k[len(prefix):]: v for k, v in ckpt["state_dict"].items()
+                 if k.startswith(prefix)}
+        try:
+            model = cls(**{k: v for k, v in hp.items() if k in names})
+            model.load_state_dict(state)
+        except (TypeError, RuntimeError, ValueError) as exc:
+            raise CheckpointError(f"{path}: checkpoint does not fit this PoserNet ({exc})") from exc
+        return model.to(map_location).eval()
+
+    def reset_parameters(self) -> None:
+        if isinstance(self.encoder, nn.Linear):
+            self.encoder.reset_parameters()
+        for c in self.convs:
+            c.reset_parameters()
+
+    def forward(
+        self,
+        x: Tensor | Any,
+        edge_index: Tensor | None = None,
+        edge_pose: Tensor | None = None,
+        pair_edge: Tensor | None = None,
+        pair_box_src: Tensor | None = None,
+        pair_box_dst: Tensor | None = None,
+        return_all: bool = False,
+    ) -> Tensor | list[Tensor]:
+        """Refine every edge's relative pose; ``x`` may be a ``ViewGraph``/``GraphBatch``."""
+        if _is_graph(x):
+            inputs = graph_inputs(x)
+            if edge_pose is not None:
+                inputs["edge_pose"] = edge_pose
+        else:
+            inputs = {"x": x, "edge_index": edge_index, "edge_pose": edge_pose,
+                      "pair_edge": pair_edge, "pair_box_src": pair_box_src,
+                      "pair_box_dst": pair_box_dst}
+        validate_inputs(type(self).__name__, node_dim=self.node_in, **inputs)
+        check_module_inputs(self, inputs["x"])
+        h = self.encoder(inputs["x"])
+        pose = inputs["edge_pose"]
+        state = None
+        outputs = []
+        for k in range(self.depth):
+            conv = self.convs[0 if self.shared_weights else k]
+            h, pose, state = conv._propagate(
+                h, inputs["edge_index"], pose, inputs["pair_edge"], inputs["pair_box_src"],
+                inputs["pair_box_dst"], self._initial_state(conv, pose) if state is None
+                else state,
+            )
+            outputs.append(self._finalise(pose))
+        return outputs if return_all else outputs[-1]
+
+    @staticmethod
+    def _initial_state(conv: PoserConv, pose: Tensor) -> Tensor | None:
+        if not conv.edge_dim:
+            return None
+        return pose.new_zeros(pose.shape[0], 2, conv.edge_dim)
+
+    def _finalise(self, pose: Tensor) -> Tensor:
+        q, t = pose[:, :4], pose[:, 4:]
+        if self.unit_output:
+            q = quaternion_normalize(q)
+            t = nn.functional.normalize(t, dim=-1, eps=1e-12)
+        return torch.cat((quaternion_canonical(q), t), dim=-1)
+
+    def __repr__(self) -> str:
+        return (f"{type(self).__name__}(depth={self.depth}, node_hidden={self.node_hidden}, "
+                f"shared_weights={self.shared_weights}, residual={self.residual}, "
+                f"unit_output={self.unit_output}, convs={list(self.convs)})")

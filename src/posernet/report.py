@@ -1,0 +1,216 @@
+"""Paper-style result tables (markdown + CSV) built from :class:`posernet.metrics.ThresholdRow`.
+
+The layout follows the paper's Table 1: label columns (e.g. input and stage), then one block
+per metric group, each with the percentage of graphs below every threshold and the median over
+graphs (``eta``)::
+
+    | input | stage    | rot 3 | rot 5 | ... | rot η | tdir 3 | ... | tdir η |
+    | KP    | Initial  |  0.00 |  0.12 | ... | 36.26 |   0.00 | ... |  87.23 |
+    | KP    | PoserNet | ...
+
+Rows may carry a standard deviation (mean +- std over seeds, see :func:`mean_std_row`).
+Files are written atomically (:func:`posernet.io.atomic_write_text`).
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import math
+import os
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import torch
+from torch import Tensor
+
+from .io import atomic_write_text
+from .metrics import ANGLE_THRESHOLDS_DEG, METRE_THRESHOLDS, ThresholdRow, threshold_row
+
+__all__ = [
+    "ABSOLUTE_GROUPS",
+    "RELATIVE_GROUPS",
+    "MetricGroup",
+    "ResultTable",
+    "TableRow",
+    "mean_std_row",
+    "relative_row",
+]
+
+
+@dataclass(frozen=True)
+class MetricGroup:
+    """A block of columns: ``key`` (CSV prefix and short header), ``title``, ``thresholds``."""
+
+    key: str
+    title: str
+    thresholds: tuple[float, ...]
+
+
+RELATIVE_GROUPS: tuple[MetricGroup, ...] = (
+    MetricGroup("rot", "Orientation error (deg)", ANGLE_THRESHOLDS_DEG),
+    MetricGroup("tdir", "Translation direction error (deg)", ANGLE_THRESHOLDS_DEG),
+)
+ABSOLUTE_GROUPS: tuple[MetricGroup, ...] = (
+    MetricGroup("rot", "Rotation error (deg)", ANGLE_THRESHOLDS_DEG),
+    MetricGroup("trans", "Translation error (m)", METRE_THRESHOLDS),
+)
+
+
+@dataclass(frozen=True)
+class TableRow:
+    """One table row: its labels and one :class:`ThresholdRow` per metric group key.
+
+    ``std`` (same keys) holds standard deviations when the row is a mean over seeds;
+    ``runs`` is the number of runs averaged (1 for a single run).
+    """
+
+    labels: tuple[str, ...]
+    cells: Mapping[str, ThresholdRow]
+    std: Mapping[str, ThresholdRow] | None = None
+    runs: int = 1
+
+
+def relative_row(labels: Sequence[str], rot_per_graph: Tensor | Sequence[float],
+                 tdir_per_graph: Tensor | Sequence[float],
+                 thresholds: Sequence[float] = ANGLE_THRESHOLDS_DEG) -> TableRow:
+    """Row of a relative-pose table from per-graph mean errors (degrees)."""
+    return TableRow(tuple(labels), {"rot": threshold_row(rot_per_graph, thresholds),
+                                    "tdir": threshold_row(tdir_per_graph, thresholds)})
+
+
+def mean_std_row(rows: Sequence[TableRow], labels: Sequence[str] | None = None) -> TableRow:
+    """Mean and sample standard deviation (``ddof=1``; 0 for one run) of rows over seeds.
+
+    All rows must have the same group keys and thresholds. Counts are averaged too.
+    """
+    rows = list(rows)
+    if not rows:
+        raise ValueError("mean_std_row: no rows to aggregate")
+    keys = list(rows[0].cells)
+    cells: dict[str, ThresholdRow] = {}
+    std: dict[str, ThresholdRow] = {}
+    for key in keys:
+        parts = [r.cells[key] for r in rows]
+        ths = parts[0].thresholds
+        if any(p.thresholds != ths for p in parts):
+            raise ValueError(f"mean_std_row: group {key!r} has different thresholds across rows")
+        vals = torch.tensor([[*p.percent_below, p.median] for p in parts], dtype=torch.float64)
+        mean = vals.mean(0)
+        sd = vals.std(0, correction=1) if len(parts) > 1 else torch.zeros_like(mean)
+        count = round(sum(p.count for p in parts) / len(parts))
+        cells[key] = ThresholdRow(ths, tuple(mean[:-1].tolist()), float(mean[-1]), count)
+        std[key] = ThresholdRow(ths, tuple(sd[:-1].tolist()), float(sd[-1]), count)
+    return TableRow(tuple(labels) if labels is not None else rows[0].labels, cells, std,
+                    runs=len(rows))
+
+
+def _fmt(v: float, digits: int) -> str:
+    return "nan" if math.isnan(v) else f"{v:.{digits}f}"
+
+
+@dataclass
+class ResultTable:
+    """A paper-style table: label columns + metric groups; renders markdown and CSV.
+
+    Args:
+        rows: the rows, in display order.
+        label_names: header of each label column (default ``("input", "stage")``).
+        groups: the metric groups (default :data:`RELATIVE_GROUPS`).
+        title: optional title printed above the markdown table.
+        note: optional line printed below it (e.g. the alignment used).
+    """
+
+    rows: list[TableRow] = field(default_factory=list)
+    label_names: tuple[str, ...] = ("input", "stage")
+    groups: tuple[MetricGroup, ...] = RELATIVE_GROUPS
+    title: str | None = None
+    note: str | None = None
+
+    def _check(self) -> None:
+        for r in self.rows:
+            if len(r.labels) != len(self.label_names):
+                raise ValueError(f"row {r.labels} has {len(r.labels)} labels, the table "
+                                 f"has {len(self.label_names)} label columns")
+            for g in self.groups:
+                if g.key not in r.cells:
+                    raise ValueError(f"row {r.labels} has no values for group {g.key!r}")
+
+    def _cell(self, row: TableRow, key: str, k: int | None, digits: int) -> str:
+        """Value ``k`` (a threshold index, or None for the median) with its std if any."""
+        cell = row.cells[key]
+        v = cell.median if k is None else cell.percent_below[k]
+        text = _fmt(v, digits)
+        if row.std is not None and row.runs > 1:
+            s = row.std[key]
+            text += f" ± {_fmt(s.median if k is None else s.percent_below[k], digits)}"
+        return text
+
+    def to_markdown(self, digits: int = 2) -> str:
+        """Markdown table; threshold columns are % of graphs below, ``η`` the median."""
+        self._check()
+        header = list(self.label_names)
+        for g in self.groups:
+            header += [f"{g.key} {t:g}" for t in g.thresholds] + [f"{g.key} η"]
+        lines = []
+        if self.title:
+            lines += [f"**{self.title}**", ""]
+        lines.append("| " + " | ".join(header) + " |")
+        lines.append("|" + "|".join(["---"] * len(self.label_names) +
+                                    ["---:"] * (len(header) - len(self.label_names))) + "|")
+        for r in self.rows:
+            cells = list(r.labels)
+            for g in self.groups:
+                cells += [self._cell(r, g.key, k, digits) for k in range(len(g.thresholds))]
+                cells.append(self._cell(r, g.key, None, digits))
+            lines.append("| " + " | ".join(cells) + " |")
+        legend = "; ".join(f"{g.key}: {g.title}" for g in self.groups)
+        lines += ["", f"{legend}. Columns: % of graphs whose error is below each threshold; "
+                      "η: median over graphs."]
+        counts = sorted({c.count for r in self.rows for c in r.cells.values()})
+        if counts:
+            lines.append(f"Graphs per row: {', '.join(str(c) for c in counts)}.")
+        if any(r.runs > 1 for r in self.rows):
+            runs = sorted({r.runs for r in self.rows if r.runs > 1})
+            lines.append(f"Values are mean ± sample std over {', '.join(map(str, runs))} runs.")
+        if self.note:
+            lines.append(self.note)
+        return "\n".join(lines) + "\n"
+
+    def to_csv(self) -> str:
+        """CSV with one column per label, threshold, median and count (plus ``_std`` columns)."""
+        self._check()
+        with_std = any(r.std is not None for r in self.rows)
+        header = list(self.label_names)
+        for g in self.groups:
+            names = [f"{g.key}_lt{t:g}" for t in g.thresholds] + [f"{g.key}_median"]
+            header += names
+            if with_std:
+                header += [n + "_std" for n in names]
+            header.append(f"{g.key}_count")
+        header.append("runs")
+        buf = io.StringIO()
+        w = csv.writer(buf, lineterminator="\n")
+        w.writerow(header)
+        for r in self.rows:
+            out: list[object] = list(r.labels)
+            for g in self.groups:
+                c = r.cells[g.key]
+                out += [*c.percent_below, c.median]
+                if with_std:
+                    s = r.std[g.key] if r.std is not None else None
+                    out += ([*s.percent_below, s.median] if s is not None
+                            else [0.0] * (len(g.thresholds) + 1))
+                out.append(c.count)
+            out.append(r.runs)
+            w.writerow(out)
+        return buf.getvalue()
+
+    def write(self, out_dir: str | os.PathLike[str], stem: str = "table",
+              digits: int = 2) -> tuple[Path, Path]:
+        """Write ``{stem}.md`` and ``{stem}.csv`` into ``out_dir`` atomically; return both paths."""
+        out = Path(out_dir)
+        md = atomic_write_text(out / f"{stem}.md", self.to_markdown(digits))
+        cs = atomic_write_text(out / f"{stem}.csv", self.to_csv())
+        return md, cs
