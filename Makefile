@@ -30,9 +30,8 @@ test: $(STAMP)  ## run the whole test suite (unit + slow end-to-end)
 test-fast: $(STAMP)  ## run the unit tests only (skips tests marked slow)
 	$(PY) -m pytest -q -m "not slow"
 
-lint: $(STAMP)  ## ruff check + format check
+lint: $(STAMP)  ## ruff check (style and common bugs)
 	$(VENV)/bin/ruff check src tests benchmarks
-	$(VENV)/bin/ruff format --check src tests benchmarks
 
 demo: $(STAMP)  ## run the main job on the built-in synthetic default
 	$(VENV)/bin/posernet-demo out_dir=$(DEMO_DIR)

@@ -16,12 +16,15 @@ from .graph import (
     save_graphs,
 )
 from .metrics import per_graph_mean, relative_pose_errors, threshold_row
+from .nn import PoserConv, PoserNet, posernet_loss
 
 __version__ = "0.1.0"
 
 __all__ = [
     "GraphBatch",
     "GraphValidationError",
+    "PoserConv",
+    "PoserNet",
     "ViewGraph",
     "__version__",
     "denormalize_boxes",
@@ -30,6 +33,7 @@ __all__ = [
     "node_attributes",
     "normalize_boxes",
     "per_graph_mean",
+    "posernet_loss",
     "relative_pose_errors",
     "save_graphs",
     "threshold_row",
