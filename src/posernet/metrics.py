@@ -13,15 +13,19 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from .geometry import rotation_error_deg, translation_direction_error_deg
+from .geometry import rotation_angle, rotation_error_deg, translation_direction_error_deg
 
 __all__ = [
+    "ALIGNMENTS",
     "ANGLE_THRESHOLDS_DEG",
     "METRE_THRESHOLDS",
     "ThresholdRow",
+    "absolute_pose_errors",
+    "absolute_pose_errors_per_camera",
     "per_graph_mean",
     "relative_pose_errors",
     "threshold_row",
+    "umeyama_alignment",
 ]
 
 ANGLE_THRESHOLDS_DEG: tuple[float, ...] = (3.0, 5.0, 10.0, 30.0, 45.0)
@@ -92,3 +96,169 @@ def threshold_row(per_graph: Tensor | Sequence[float],
     # The median of an even count is the mean of the two middle values (numpy convention).
     median = float(x.quantile(0.5))
     return ThresholdRow(tuple(float(t) for t in thresholds), pct, median, n)
+
+
+# --------------------------------------------------------------------------- absolute poses
+#
+# Absolute poses have a gauge freedom (a global rigid or similarity transform), so the estimate
+# is aligned to the ground truth before measuring (DESIGN.md sections 3 and 8): Umeyama on the
+# camera centres (similarity when the scale is unknown, rigid when it is metric), then
+#   rotation error of camera i = angle(R_gt_i^T Q R_est_i) on camera-to-world rotations,
+#   position error of camera i = | s Q c_est_i + t - c_gt_i |.
+
+ALIGNMENTS: tuple[str, ...] = ("similarity", "rigid")
+
+
+def _group_layout(group: Tensor, num_groups: int) -> tuple[Tensor, Tensor, int]:
+    """Padded layout of ``K`` items in ``num_groups`` groups: ``(row [K], col [K], width)``."""
+    count = torch.bincount(group, minlength=num_groups)
+    order = torch.argsort(group, stable=True)
+    start = torch.cumsum(count, 0) - count
+    col = torch.empty_like(group)
+    col[order] = torch.arange(group.numel(), device=group.device) - start[group[order]]
+    return group, col, int(count.max()) if count.numel() else 0
+
+
+def _proper_rotation_from_cov(C: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """``R = U diag(1, 1, d) V^T`` maximising ``tr(R^T C)``; returns ``(R, S, d)``."""
+    U, S, Vh = torch.linalg.svd(C)
+    d = torch.sign(torch.linalg.det(U) * torch.linalg.det(Vh))
+    d = torch.where(d == 0, torch.ones_like(d), d)
+    D = torch.ones_like(S)
+    D[..., 2] = d
+    return (U * D[..., None, :]) @ Vh, S, D
+
+
+def umeyama_alignment(src: Tensor, dst: Tensor, with_scale: bool = True,
+                      mask: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
+    """Least-squares similarity (or rigid) transform with ``dst ~ s R src + t`` (Umeyama 1991).
+
+    Shapes: ``src, dst [..., K, 3]``, ``mask [..., K]`` (True = use the point) ->
+    ``s [...]``, ``R [..., 3, 3]`` (a proper rotation), ``t [..., 3]``. Batched over the leading
+    dims. ``s`` is 1 when ``with_scale`` is False or when the masked source points coincide.
+    With fewer than 3 points, or collinear points, ``R`` is one of several minimisers.
+    """
+    if src.shape != dst.shape or src.ndim < 2 or src.shape[-1] != 3:
+        raise ValueError(f"src and dst must both be [..., K, 3], got {tuple(src.shape)} and "
+                         f"{tuple(dst.shape)}")
+    if mask is None:
+        mask = torch.ones(src.shape[:-1], dtype=torch.bool, device=src.device)
+    w = mask.to(src.dtype)[..., None]
+    cnt = w.sum(-2).clamp_min(1.0)  # [..., 1]
+    mu_s = (w * src).sum(-2) / cnt
+    mu_d = (w * dst).sum(-2) / cnt
+    xs = (src - mu_s[..., None, :]) * w
+    xd = (dst - mu_d[..., None, :]) * w
+    C = xd.mT @ xs / cnt[..., None]  # [..., 3, 3] covariance dst x src
+    R, S, D = _proper_rotation_from_cov(C)
+    var_s = (xs * xs).sum((-1, -2)) / cnt[..., 0]
+    if with_scale:
+        s = torch.where(var_s > 1e-300, (S * D).sum(-1) / var_s.clamp_min(1e-300),
+                        torch.ones_like(var_s))
+    else:
+        s = torch.ones_like(var_s)
+    t = mu_d - s[..., None] * (R @ mu_s[..., None]).squeeze(-1)
+    return s, R, t
+
+
+def absolute_pose_errors_per_camera(
+    pose_est: Tensor,
+    pose_gt: Tensor,
+    group: Tensor,
+    num_groups: int,
+    alignment: str = "similarity",
+    valid: Tensor | None = None,
+    degenerate_tol: float = 1e-9,
+) -> tuple[Tensor, Tensor]:
+    """Per-camera rotation error (deg) and position error (m) after aligning each group.
+
+    ``pose_est, pose_gt [N, 4, 4]`` world-to-camera; ``group [N]`` the alignment group of each
+    camera (its graph, or its connected component), ``0..num_groups-1``; ``valid [N]`` cameras
+    to use (others get NaN and take no part in the alignment). Each group is aligned on its
+    camera centres (Umeyama; ``alignment`` ``"similarity"`` or ``"rigid"``). When the centres
+    cannot fix the rotation (fewer than 3 cameras, or collinear ones: second singular value of
+    the covariance below ``degenerate_tol`` times the first), the rotation is taken from the
+    cameras' rotations (chordal mean of ``R_gt_c2w R_est_c2w^T``) and scale and offset from the
+    centres given it. Batched: one padded ``[G, K, 3]`` problem, no loop over groups.
+    """
+    if alignment not in ALIGNMENTS:
+        raise ValueError(f"alignment={alignment!r}; choose one of {list(ALIGNMENTS)}")
+    if pose_est.shape != pose_gt.shape or pose_est.ndim != 3 or pose_est.shape[-2:] != (4, 4):
+        raise ValueError(f"pose_est and pose_gt must both be [N, 4, 4], got "
+                         f"{tuple(pose_est.shape)} and {tuple(pose_gt.shape)}")
+    N = pose_est.shape[0]
+    if group.shape != (N,):
+        raise ValueError(f"group must be [N] = [{N}], got {tuple(group.shape)}")
+    dt = torch.float64
+    est, gt = pose_est.to(dt), pose_gt.to(dt)
+    for name, p in (("pose_est", est), ("pose_gt", gt)):
+        if not bool(torch.isfinite(p).all()):
+            raise ValueError(f"{name} has a NaN/inf value")
+    if valid is None:
+        valid = torch.ones(N, dtype=torch.bool, device=est.device)
+    # Camera-to-world rotations and camera centres c = -R^T t.
+    Re, Rg = est[:, :3, :3].mT, gt[:, :3, :3].mT
+    ce = (Re @ -est[:, :3, 3:]).squeeze(-1)
+    cg = (Rg @ -gt[:, :3, 3:]).squeeze(-1)
+    row, col, width = _group_layout(group, num_groups)
+    G = num_groups
+    P_e = torch.zeros(G, max(width, 1), 3, dtype=dt, device=est.device)
+    P_g = torch.zeros_like(P_e)
+    msk = torch.zeros(G, max(width, 1), dtype=torch.bool, device=est.device)
+    P_e[row, col], P_g[row, col], msk[row, col] = ce, cg, valid
+    s, Q, t = umeyama_alignment(P_e, P_g, with_scale=alignment == "similarity", mask=msk)
+    # Degenerate centre configurations: rotation from the rotations instead.
+    cnt = msk.sum(1)
+    w = msk.to(dt)[..., None]
+    mu_e = (w * P_e).sum(1) / cnt.clamp_min(1)[:, None]
+    mu_g = (w * P_g).sum(1) / cnt.clamp_min(1)[:, None]
+    xe, xg = (P_e - mu_e[:, None]) * w, (P_g - mu_g[:, None]) * w
+    sv = torch.linalg.svdvals(xg.mT @ xe)
+    degenerate = (cnt < 3) | (sv[:, 1] <= degenerate_tol * sv[:, 0].clamp_min(1e-300))
+    if bool(degenerate.any()):
+        M = torch.zeros(G, 3, 3, dtype=dt, device=est.device)
+        M.index_add_(0, group[valid], (Rg @ Re.mT)[valid])
+        Qr, _, _ = _proper_rotation_from_cov(M)
+        var_e = (xe * xe).sum((1, 2))
+        if alignment == "similarity":
+            sr = torch.where(var_e > 1e-300,
+                             (xg * (xe @ Qr.mT)).sum((1, 2)) / var_e.clamp_min(1e-300),
+                             torch.ones_like(var_e))
+        else:
+            sr = torch.ones_like(var_e)
+        tr = mu_g - sr[:, None] * (Qr @ mu_e[..., None]).squeeze(-1)
+        s = torch.where(degenerate, sr, s)
+        Q = torch.where(degenerate[:, None, None], Qr, Q)
+        t = torch.where(degenerate[:, None], tr, t)
+    Qn = Q[group]
+    rot = torch.rad2deg(rotation_angle(Rg.mT @ Qn @ Re))
+    pos = (s[group, None] * (Qn @ ce[..., None]).squeeze(-1) + t[group] - cg).norm(dim=-1)
+    nan = torch.full_like(rot, float("nan"))
+    return torch.where(valid, rot, nan), torch.where(valid, pos, nan)
+
+
+def absolute_pose_errors(
+    pose_est: Tensor,
+    pose_gt: Tensor,
+    node_batch: Tensor,
+    num_graphs: int,
+    alignment: str = "similarity",
+    component: Tensor | None = None,
+    valid: Tensor | None = None,
+) -> tuple[Tensor, Tensor]:
+    """Per-graph mean rotation error (deg) and camera position error (m), ``[B]`` each.
+
+    Each graph is aligned to its ground truth (see :func:`absolute_pose_errors_per_camera`);
+    with ``component [N]`` (global component ids, e.g. ``SyncResult.component``) each connected
+    component is aligned on its own. Cameras outside ``valid`` are left out of alignment and
+    means; a graph with no valid camera gives NaN (excluded by :func:`threshold_row`).
+    """
+    if component is not None:
+        _, grp = torch.unique(component, return_inverse=True)
+        ng = int(grp.max()) + 1 if grp.numel() else 0
+    else:
+        grp, ng = node_batch, num_graphs
+    rot, pos = absolute_pose_errors_per_camera(pose_est, pose_gt, grp, ng, alignment, valid)
+    keep = ~torch.isnan(rot)
+    return (per_graph_mean(rot[keep], node_batch[keep], num_graphs),
+            per_graph_mean(pos[keep], node_batch[keep], num_graphs))
