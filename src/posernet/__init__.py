@@ -4,7 +4,7 @@ then average them into absolute camera poses.
 The public API is re-exported here; see the README for a tour.
 """
 
-from . import geometry
+from . import geometry, sync
 from .graph import (
     GraphBatch,
     GraphValidationError,
@@ -15,7 +15,13 @@ from .graph import (
     normalize_boxes,
     save_graphs,
 )
-from .metrics import per_graph_mean, relative_pose_errors, threshold_row
+from .metrics import (
+    absolute_pose_errors,
+    per_graph_mean,
+    relative_pose_errors,
+    threshold_row,
+    umeyama_alignment,
+)
 from .nn import PoserConv, PoserNet, posernet_loss
 
 __version__ = "0.1.0"
@@ -27,6 +33,7 @@ __all__ = [
     "PoserNet",
     "ViewGraph",
     "__version__",
+    "absolute_pose_errors",
     "denormalize_boxes",
     "geometry",
     "load_graphs",
@@ -36,5 +43,7 @@ __all__ = [
     "posernet_loss",
     "relative_pose_errors",
     "save_graphs",
+    "sync",
     "threshold_row",
+    "umeyama_alignment",
 ]
