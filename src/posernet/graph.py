@@ -30,6 +30,7 @@ meta            dict        plain scalars: ``name``, ``scene``, ``split`` ...
 from __future__ import annotations
 
 import dataclasses
+import io
 import os
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -461,8 +462,10 @@ def save_graphs(path: str | os.PathLike[str], graphs: Sequence[ViewGraph],
         "metas": batch.metas,
         "extra": dict(extra or {}),
     }
+    buf = io.BytesIO()
+    torch.save(payload, buf)  # a buffer keeps the archive name fixed: same graphs => same bytes
     with atomic_path(path) as tmp:
-        torch.save(payload, tmp)
+        tmp.write_bytes(buf.getvalue())
     return Path(path)
 
 

@@ -1,0 +1,174 @@
+"""LightningDataModule over a ``posernet-make-data`` dataset directory (usable without Hydra).
+
+Batches are :class:`~posernet.graph.GraphBatch` objects whose ``edge_pose`` is the chosen
+initial estimate (``kp`` or ``bb``). Validation graphs come from the held-out tail of the
+training sequences, never from the test split.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import lightning as L
+import torch
+from torch.utils.data import DataLoader
+
+from ..graph import GraphBatch, ViewGraph
+from .store import SIZES, DatasetError, available_scenes, open_split, read_manifest
+
+__all__ = ["PoserDataModule", "collate_graphs"]
+
+ESTIMATES = ("kp", "bb")
+
+
+def collate_graphs(graphs: Sequence[ViewGraph]) -> GraphBatch:
+    """DataLoader collate: concatenate graphs into one :class:`GraphBatch`."""
+    return GraphBatch.from_graphs(graphs)
+
+
+class PoserDataModule(L.LightningDataModule):
+    """Train / val / test loaders over ``root``.
+
+    Args:
+        root: dataset directory (``manifest.json`` + ``<size>/<split>/<scene>.pt``).
+        estimate: initial relative poses fed as ``edge_pose``: ``"kp"`` or ``"bb"``.
+        size: graph size for training and validation (``"small"`` / ``"large"``).
+        batch_size: graphs per batch.
+        num_workers: DataLoader worker processes.
+        leave_out_scene: train and validate on the other scenes, test on this one only.
+        test_size: graph size of the test split (default: ``size``).
+        val_size: graph size of the validation split (default: ``size``); e.g. ``"small"``
+            when training on large graphs, which have no validation split in the paper preset.
+        shuffle: shuffle the training graphs each epoch (seeded by ``seed``).
+        seed: seed of the shuffling.
+    """
+
+    def __init__(
+        self,
+        root: str | os.PathLike[str],
+        estimate: str = "kp",
+        size: str = "small",
+        batch_size: int = 32,
+        num_workers: int = 0,
+        leave_out_scene: str | None = None,
+        test_size: str | None = None,
+        shuffle: bool = True,
+        seed: int = 0,
+        val_size: str | None = None,
+    ) -> None:
+        super().__init__()
+        if estimate not in ESTIMATES:
+            raise ValueError(f"estimate must be one of {list(ESTIMATES)}, got {estimate!r}")
+        for name, v in (("size", size), ("test_size", test_size), ("val_size", val_size)):
+            if v is not None and v not in SIZES:
+                raise ValueError(f"{name} must be one of {list(SIZES)}, got {v!r}")
+        if isinstance(batch_size, bool) or not isinstance(batch_size, int) or batch_size < 1:
+            raise ValueError(f"batch_size must be an integer >= 1, got {batch_size!r}")
+        if isinstance(num_workers, bool) or not isinstance(num_workers, int) or num_workers < 0:
+            raise ValueError(f"num_workers must be an integer >= 0, got {num_workers!r}")
+        self.root = Path(root)
+        self.manifest = read_manifest(self.root)  # fail early on a bad directory
+        self.estimate = estimate
+        self.size = size
+        self.test_size = test_size or size
+        self.val_size = val_size or size
+        self.batch_size = batch_size
+        self.num_workers = num_workers
+        self.shuffle = shuffle
+        self.seed = int(seed)
+        self.leave_out_scene = leave_out_scene
+        if leave_out_scene is not None:
+            scenes = set()
+            for s in SIZES:
+                for p in ("train", "val", "test"):
+                    scenes.update(available_scenes(self.root, s, p))
+            if leave_out_scene not in scenes:
+                raise DatasetError(
+                    f"{self.root}: leave_out_scene {leave_out_scene!r} is not in "
+                    f"the dataset (scenes: {sorted(scenes)})"
+                )
+        self.save_hyperparameters(
+            {
+                "root": str(self.root),
+                "estimate": estimate,
+                "size": size,
+                "test_size": self.test_size,
+                "val_size": self.val_size,
+                "batch_size": batch_size,
+                "leave_out_scene": leave_out_scene,
+                "seed": self.seed,
+            }
+        )
+        self.train_graphs: list[ViewGraph] | None = None
+        self.val_graphs: list[ViewGraph] | None = None
+        self.test_graphs: list[ViewGraph] | None = None
+
+    # ------------------------------------------------------------------ loading
+
+    def _scenes(self, size: str, split: str) -> list[str]:
+        have = available_scenes(self.root, size, split)
+        if self.leave_out_scene is None:
+            return have
+        if split == "test":
+            return [s for s in have if s == self.leave_out_scene]
+        return [s for s in have if s != self.leave_out_scene]
+
+    def _load(self, size: str, split: str) -> list[ViewGraph]:
+        graphs = open_split(self.root, size, split, self._scenes(size, split))
+        if not graphs:
+            extra = f" (leave_out_scene={self.leave_out_scene!r})" if self.leave_out_scene else ""
+            hint = " or pass val_size='small'" if split == "val" and size == "large" else ""
+            raise DatasetError(
+                f"{self.root}: no {size} {split} graphs{extra}; generate them "
+                f"(dataset.{size}.{split} > 0){hint}"
+            )
+        return [g.with_estimate(self.estimate) for g in graphs]
+
+    def setup(self, stage: str | None = None) -> None:
+        """Load the splits a stage needs (``fit``, ``validate``, ``test``, ``predict``)."""
+        if stage in (None, "fit"):
+            if self.train_graphs is None:
+                self.train_graphs = self._load(self.size, "train")
+        if stage in (None, "fit", "validate") and self.val_graphs is None:
+            self.val_graphs = self._load(self.val_size, "val")
+        if stage in (None, "test", "predict") and self.test_graphs is None:
+            self.test_graphs = self._load(self.test_size, "test")
+
+    # ------------------------------------------------------------------ loaders
+
+    def _loader(self, graphs: list[ViewGraph] | None, shuffle: bool, what: str) -> DataLoader:
+        if graphs is None:
+            raise RuntimeError(f"call setup() before {what}_dataloader()")
+        gen = torch.Generator().manual_seed(self.seed) if shuffle else None
+        return DataLoader(
+            graphs,
+            batch_size=self.batch_size,
+            shuffle=shuffle,
+            generator=gen,
+            collate_fn=collate_graphs,
+            num_workers=self.num_workers,
+            persistent_workers=self.num_workers > 0,
+        )
+
+    def train_dataloader(self) -> DataLoader:
+        return self._loader(self.train_graphs, self.shuffle, "train")
+
+    def val_dataloader(self) -> DataLoader:
+        return self._loader(self.val_graphs, False, "val")
+
+    def test_dataloader(self) -> DataLoader:
+        return self._loader(self.test_graphs, False, "test")
+
+    def predict_dataloader(self) -> DataLoader:
+        return self._loader(self.test_graphs, False, "predict")
+
+    def transfer_batch_to_device(
+        self, batch: Any, device: torch.device, dataloader_idx: int
+    ) -> Any:
+        """Move a :class:`GraphBatch` (all tensors, estimates included) to ``device``."""
+        if isinstance(batch, ViewGraph):
+            return batch.to(device)
+        return super().transfer_batch_to_device(batch, device, dataloader_idx)

@@ -1,0 +1,402 @@
+"""Write a synthetic dataset directory: graph files per size/split/scene, then the manifest.
+
+Layout::
+
+    ROOT/manifest.json                 written last: its presence means "complete"
+    ROOT/.make_data.json               what is being generated (config, seed), for resume
+    ROOT/<size>/<split>/<scene>.pt     graphs (``posernet.graph.save_graphs``), atomic
+    ROOT/json/<size>.json              optional export in the authors' JSON schema
+
+Chunks (one file each) run in worker processes (spawn-safe); each chunk is seeded from
+``(seed, scene, split, size)``, so the files are bit-identical for any number of workers.
+An interrupted run leaves only complete files (atomic rename) and no manifest; ``resume``
+keeps the complete files and makes the rest.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import multiprocessing as mp
+import os
+import queue as queue_mod
+import time
+from collections.abc import Callable, Mapping
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from ...graph import load_graphs, save_graphs
+from ...io import atomic_write_json
+from .chunks import Chunk, plan_chunks, simulate_chunk
+from .config import SIZES, SPLITS, ConfigError, DatasetOptions, resolve_options
+from .summary import aggregate_stats, composition_row, error_table, format_summary
+
+__all__ = [
+    "JOB_FILE",
+    "MANIFEST",
+    "DatasetExistsError",
+    "GenerationError",
+    "export_json",
+    "generate_dataset",
+]
+
+MANIFEST = "manifest.json"
+JOB_FILE = ".make_data.json"
+FORMAT = "posernet-synthetic-dataset"
+VERSION = 1
+
+
+class DatasetExistsError(FileExistsError):
+    """The output directory holds something and neither overwrite nor resume was asked."""
+
+
+class GenerationError(RuntimeError):
+    """Generation failed (e.g. resume with a different config); the message says why."""
+
+
+# --------------------------------------------------------------------------- helpers
+
+
+def _spec(opts: DatasetOptions, seed: int) -> dict[str, Any]:
+    spec = {
+        "format": FORMAT,
+        "version": VERSION,
+        "preset": opts.name,
+        "seed": int(seed),
+        "config": opts.to_dict(),
+    }
+    blob = json.dumps(spec, sort_keys=True).encode()
+    spec["spec_hash"] = hashlib.sha256(blob).hexdigest()[:16]
+    return spec
+
+
+def _our_files(root: Path) -> list[Path]:
+    """Files this generator may have written under ``root`` (never anything else)."""
+    out = [root / MANIFEST, root / JOB_FILE]
+    for size in SIZES:
+        for split in SPLITS:
+            d = root / size / split
+            if d.is_dir():
+                out += [
+                    p
+                    for p in d.iterdir()
+                    if p.suffix == ".pt" or (p.name.startswith(".") and p.suffix == ".tmp")
+                ]
+    j = root / "json"
+    if j.is_dir():
+        out += [
+            p
+            for p in j.iterdir()
+            if p.suffix == ".json" or (p.name.startswith(".") and p.suffix == ".tmp")
+        ]
+    return [p for p in out if p.is_file()]
+
+
+def _remove_ours(root: Path, temp_only: bool = False) -> None:
+    for p in _our_files(root):
+        if not temp_only or p.suffix == ".tmp":
+            p.unlink()
+    for size in SIZES:  # tidy empty folders we made
+        for split in SPLITS:
+            d = root / size / split
+            if d.is_dir() and not any(d.iterdir()):
+                d.rmdir()
+        if (root / size).is_dir() and not any((root / size).iterdir()):
+            (root / size).rmdir()
+
+
+def _read_json(path: Path) -> dict[str, Any]:
+    try:
+        return json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, json.JSONDecodeError) as exc:
+        raise GenerationError(f"{path}: cannot read ({exc})") from exc
+
+
+def _prepare(root: Path, spec: dict[str, Any], overwrite: bool, resume: bool) -> None:
+    """Make ``root`` ready, honouring overwrite / resume; write the job file."""
+    if root.exists() and not root.is_dir():
+        raise DatasetExistsError(f"output path {root} exists and is not a directory")
+    if root.is_dir() and any(root.iterdir()):
+        if overwrite:
+            # manifest first: from this moment the directory no longer looks complete
+            (root / MANIFEST).unlink(missing_ok=True)
+            _remove_ours(root)
+        elif resume:
+            job = root / JOB_FILE
+            src = job if job.is_file() else root / MANIFEST
+            if not src.is_file():
+                raise GenerationError(
+                    f"cannot resume in {root}: it holds no {JOB_FILE} or {MANIFEST} (not made "
+                    f"by posernet-make-data); use another out_dir or overwrite=true"
+                )
+            old = _read_json(src)
+            if old.get("spec_hash") != spec["spec_hash"]:
+                diff = _diff(old.get("config", {}), spec["config"])
+                if old.get("seed") != spec["seed"]:
+                    diff.insert(0, f"seed {old.get('seed')} -> {spec['seed']}")
+                raise GenerationError(
+                    f"cannot resume in {root}: it was started with a different configuration "
+                    f"({'; '.join(diff[:5]) or 'format changed'}); use overwrite=true"
+                )
+            (root / MANIFEST).unlink(missing_ok=True)
+            _remove_ours(root, temp_only=True)  # temp files of a killed run
+        else:
+            raise DatasetExistsError(
+                f"output directory {root} already exists and is not empty; pass overwrite=true "
+                f"to replace the dataset or resume=true to finish an interrupted run"
+            )
+    root.mkdir(parents=True, exist_ok=True)
+    atomic_write_json(root / JOB_FILE, spec)
+
+
+def _diff(a: Any, b: Any, path: str = "dataset") -> list[str]:
+    if isinstance(a, Mapping) and isinstance(b, Mapping):
+        out = []
+        for k in sorted(set(a) | set(b)):
+            out += _diff(a.get(k), b.get(k), f"{path}.{k}")
+        return out
+    return [] if a == b else [f"{path}: {a!r} -> {b!r}"]
+
+
+def _chunk_extra(path: Path) -> dict[str, Any]:
+    try:
+        payload = torch.load(path, map_location="cpu", weights_only=True)
+        return dict(payload["extra"])
+    except Exception as exc:  # corrupt or foreign file
+        raise GenerationError(f"{path}: unreadable graph file ({exc}); use overwrite=true") from exc
+
+
+# --------------------------------------------------------------------------- workers
+
+_QUEUE: Any = None
+
+
+def _init_worker(q: Any) -> None:
+    global _QUEUE
+    _QUEUE = q
+    import cv2
+
+    cv2.setNumThreads(1)  # one process per core; OpenCV threads would oversubscribe
+    torch.set_num_threads(1)
+
+
+def _report(k: int) -> None:
+    if _QUEUE is not None:
+        _QUEUE.put(k)
+
+
+def _run_chunk(
+    options: dict[str, Any],
+    chunk: Chunk,
+    seed: int,
+    root: str,
+    spec_hash: str,
+    progress: Callable[[int], None] | None = None,
+) -> tuple[str, dict[str, Any]]:
+    """Simulate one chunk and write its file atomically; returns its path and statistics."""
+    from .config import options_from_dict
+
+    opts = options_from_dict(options)
+    graphs, stats = simulate_chunk(opts, chunk, seed, progress=progress or _report)
+    extra = {"stats": stats, "chunk": dataclasses.asdict(chunk), "spec_hash": spec_hash}
+    save_graphs(Path(root) / chunk.relpath, graphs, extra=extra)
+    return chunk.relpath, stats
+
+
+def _run_all(
+    todo: list[Chunk],
+    opts: DatasetOptions,
+    seed: int,
+    root: Path,
+    spec_hash: str,
+    workers: int,
+    progress: bool,
+) -> dict[str, dict[str, Any]]:
+    from tqdm.auto import tqdm
+
+    total = sum(c.count for c in todo)
+    bar = tqdm(
+        total=total,
+        unit="graph",
+        desc="make-data",
+        disable=not progress or not total,
+        dynamic_ncols=True,
+    )
+    results: dict[str, dict[str, Any]] = {}
+    args = [(opts.to_dict(), c, seed, str(root), spec_hash) for c in todo]
+    try:
+        if workers <= 1 or len(todo) <= 1:
+            import cv2
+
+            threads = cv2.getNumThreads()
+            cv2.setNumThreads(1)
+            try:
+                for a in args:
+                    rel, st = _run_chunk(*a, progress=bar.update)
+                    results[rel] = st
+            finally:
+                cv2.setNumThreads(threads)
+            return results
+        ctx = mp.get_context("spawn")
+        q = ctx.Queue()
+        with ctx.Pool(
+            processes=min(workers, len(todo)), initializer=_init_worker, initargs=(q,)
+        ) as pool:
+            pending = [pool.apply_async(_run_chunk, a) for a in args]
+            while pending:
+                try:
+                    bar.update(q.get(timeout=0.2))
+                except queue_mod.Empty:
+                    pass
+                still = []
+                for r in pending:
+                    if r.ready():
+                        rel, st = r.get()  # re-raises a worker's exception here
+                        results[rel] = st
+                    else:
+                        still.append(r)
+                pending = still
+            while True:  # progress ticks still queued
+                try:
+                    bar.update(q.get_nowait())
+                except queue_mod.Empty:
+                    break
+        return results
+    finally:
+        bar.close()
+
+
+# --------------------------------------------------------------------------- export
+
+
+def export_json(root: str | os.PathLike[str]) -> dict[str, str]:
+    """Write ``ROOT/json/<size>.json`` in the authors' schema for every size with graphs."""
+    from posernet.data.posernet_json import save_posernet_json
+
+    root = Path(root)
+    out: dict[str, str] = {}
+    for size in SIZES:
+        splits: dict[str, list] = {}
+        for split in SPLITS:
+            d = root / size / split
+            if d.is_dir():
+                files = sorted(d.glob("*.pt"))
+                if files:
+                    splits[split] = [g for f in files for g in load_graphs(f)]
+        if splits:
+            path = save_posernet_json(root / "json" / f"{size}.json", splits)
+            out[size] = str(Path(path).relative_to(root))
+    return out
+
+
+# --------------------------------------------------------------------------- public
+
+
+def generate_dataset(
+    options: DatasetOptions | str | Mapping[str, Any],
+    out_dir: str | os.PathLike[str],
+    *,
+    seed: int = 0,
+    workers: int = 2,
+    overwrite: bool = False,
+    resume: bool = False,
+    export_json_files: bool = False,
+    progress: bool = True,
+    echo: Callable[[str], None] | None = print,
+) -> dict[str, Any]:
+    """Generate a dataset directory (see the module docstring); returns the manifest.
+
+    ``options``: preset name (``paper``, ``easy``, ``demo``, ``tiny``), a mapping or
+    :class:`DatasetOptions`. ``echo`` receives the summary (``None``: silent).
+    """
+    opts = resolve_options(options)
+    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
+        raise ConfigError(f"invalid option seed: must be a non-negative integer, got {seed!r}")
+    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
+        raise ConfigError(f"invalid option workers: must be an integer >= 1, got {workers!r}")
+    if overwrite and resume:
+        raise ConfigError("invalid options: overwrite=true and resume=true exclude each other")
+    chunks = plan_chunks(opts)
+    if not chunks:
+        raise ConfigError(
+            "invalid dataset options: every graph count (dataset.small.* and "
+            "dataset.large.*) is 0, nothing to generate"
+        )
+    root = Path(out_dir)
+    spec = _spec(opts, seed)
+    _prepare(root, spec, overwrite, resume)
+
+    t0 = time.perf_counter()
+    results: dict[str, dict[str, Any]] = {}
+    todo: list[Chunk] = []
+    for c in chunks:
+        path = root / c.relpath
+        if resume and path.is_file():
+            extra = _chunk_extra(path)
+            if extra.get("spec_hash") != spec["spec_hash"]:
+                raise GenerationError(
+                    f"{path} was made with a different configuration; use overwrite=true"
+                )
+            results[c.relpath] = extra["stats"]
+        else:
+            todo.append(c)
+    todo.sort(key=lambda c: -c.cost)  # biggest first: better load balance
+    results.update(_run_all(todo, opts, seed, root, spec["spec_hash"], workers, progress))
+    elapsed = time.perf_counter() - t0
+
+    manifest = _manifest(root, spec, chunks, results)
+    if export_json_files:
+        manifest["json"] = export_json(root)
+    atomic_write_json(root / MANIFEST, manifest)  # last: the dataset is now complete
+    if echo is not None:
+        shown = dict(manifest, root=str(root))
+        echo(format_summary(shown))
+        echo(
+            f"generated {sum(c.count for c in todo)} graphs in {elapsed:.1f} s "
+            f"({len(todo)} of {len(chunks)} files, workers={workers})"
+        )
+    return manifest
+
+
+def _manifest(
+    root: Path, spec: dict[str, Any], chunks: list[Chunk], results: dict[str, dict[str, Any]]
+) -> dict[str, Any]:
+    files: dict[str, Any] = {}
+    splits: dict[str, dict[str, list[str]]] = {}
+    grouped: dict[tuple[str, str], list[dict[str, Any]]] = {}
+    for c in chunks:
+        st = results[c.relpath]
+        files[c.relpath] = {
+            "size": c.size,
+            "split": c.split,
+            "scene": c.scene,
+            "graphs": st["graphs"],
+            "nodes": st["nodes"],
+            "edges": st["edges"],
+            "graph_size": c.graph_size,
+        }
+        splits.setdefault(c.size, {}).setdefault(c.split, []).append(c.scene)
+        grouped.setdefault((c.size, c.split), []).append(st)
+    composition: dict[str, dict[str, Any]] = {}
+    statistics: dict[str, dict[str, Any]] = {}
+    for (size, split), sts in grouped.items():
+        agg = aggregate_stats(sts)
+        composition.setdefault(size, {})[split] = composition_row(agg)
+        statistics.setdefault(size, {})[split] = error_table(agg["errors"])
+    m = {k: v for k, v in spec.items()}
+    m.update(files=files, splits=splits, composition=composition, statistics=statistics)
+    return _json_safe(m)
+
+
+def _json_safe(x: Any) -> Any:
+    """NaN/inf -> None so the manifest is strict JSON."""
+    if isinstance(x, float):
+        return x if x == x and abs(x) != float("inf") else None
+    if isinstance(x, Mapping):
+        return {k: _json_safe(v) for k, v in x.items()}
+    if isinstance(x, list | tuple):
+        return [_json_safe(v) for v in x]
+    return x

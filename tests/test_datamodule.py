@@ -1,0 +1,142 @@
+"""PoserDataModule: batches of GraphBatch, estimate choice, leave-one-scene-out, device moves."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import torch
+
+from posernet.data.datamodule import PoserDataModule
+from posernet.data.store import DatasetError
+from posernet.data.synthetic import generate_dataset, load_preset
+from posernet.graph import GraphBatch
+
+
+@pytest.fixture(scope="module")
+def root(tmp_path_factory) -> Path:
+    d = load_preset("tiny").to_dict()
+    d["small"].update(graph_size=4, train=3, val=1, test=2)
+    d["large"].update(graph_size=5, train=1, val=0, test=1, scenes=["chess"])
+    r = tmp_path_factory.mktemp("dm") / "ds"
+    generate_dataset(d, r, seed=3, workers=1, progress=False, echo=None)
+    return r
+
+
+def test_loaders_yield_graph_batches_with_the_chosen_estimate(root: Path):
+    for est in ("kp", "bb"):
+        dm = PoserDataModule(root, estimate=est, batch_size=2, shuffle=False)
+        dm.setup("fit")
+        batches = list(dm.train_dataloader())
+        assert sum(b.num_graphs for b in batches) == 6
+        for b in batches:
+            assert isinstance(b, GraphBatch)
+            assert torch.equal(b.edge_pose, b.estimates[est])
+            assert b.edge_pose_gt is not None and b.pose_gt is not None
+        val = list(dm.val_dataloader())
+        assert {m["split"] for b in val for m in b.metas} == {"val"}
+    dm.setup("test")
+    assert {m["split"] for b in dm.test_dataloader() for m in b.metas} == {"test"}
+
+
+def test_kp_and_bb_differ(root: Path):
+    kp = PoserDataModule(root, estimate="kp", shuffle=False)
+    bb = PoserDataModule(root, estimate="bb", shuffle=False)
+    kp.setup("test")
+    bb.setup("test")
+    a, b = next(iter(kp.test_dataloader())), next(iter(bb.test_dataloader()))
+    assert torch.equal(a.edge_pose_gt, b.edge_pose_gt)
+    assert not torch.equal(a.edge_pose, b.edge_pose)
+
+
+def test_leave_one_scene_out(root: Path):
+    dm = PoserDataModule(root, leave_out_scene="chess", batch_size=8)
+    dm.setup()
+    assert {g.meta["scene"] for g in dm.train_graphs} == {"fire"}
+    assert {g.meta["scene"] for g in dm.val_graphs} == {"fire"}
+    assert {g.meta["scene"] for g in dm.test_graphs} == {"chess"}
+    with pytest.raises(DatasetError, match="kitchen"):
+        PoserDataModule(root, leave_out_scene="kitchen")
+
+
+def test_shuffle_is_seeded(root: Path):
+    def order(seed):
+        dm = PoserDataModule(root, batch_size=1, seed=seed)
+        dm.setup("fit")
+        return [b.metas[0]["name"] for b in dm.train_dataloader()]
+
+    assert order(0) == order(0)
+    assert sorted(order(0)) == sorted(order(1))
+
+
+def test_sizes_and_missing_splits(root: Path):
+    dm = PoserDataModule(root, size="small", test_size="large")
+    dm.setup("test")
+    assert [g.num_nodes for g in dm.test_graphs] == [5]
+    with pytest.raises(DatasetError, match="val_size='small'"):
+        PoserDataModule(root, size="large").setup("fit")
+    dm = PoserDataModule(root, size="large", val_size="small")
+    dm.setup("fit")
+    assert dm.train_graphs[0].num_nodes == 5 and dm.val_graphs[0].num_nodes == 4
+
+
+def test_bad_arguments(root: Path, tmp_path: Path):
+    with pytest.raises(ValueError, match="estimate"):
+        PoserDataModule(root, estimate="free")
+    with pytest.raises(ValueError, match="batch_size"):
+        PoserDataModule(root, batch_size=0)
+    with pytest.raises(ValueError, match="size"):
+        PoserDataModule(root, size="medium")
+    with pytest.raises(DatasetError, match="not found"):
+        PoserDataModule(tmp_path / "nothing")
+    dm = PoserDataModule(root)
+    with pytest.raises(RuntimeError, match="setup"):
+        dm.train_dataloader()
+
+
+def test_transfer_batch_to_device_moves_everything(root: Path):
+    dm = PoserDataModule(root, batch_size=3)
+    dm.setup("fit")
+    batch = next(iter(dm.train_dataloader()))
+    moved = dm.transfer_batch_to_device(batch, torch.device("meta"), 0)
+    assert isinstance(moved, GraphBatch)
+    assert moved.edge_pose.device.type == "meta" and moved.ptr.device.type == "meta"
+    assert all(v.device.type == "meta" for v in moved.estimates.values())
+    assert moved.metas == batch.metas
+    back = dm.transfer_batch_to_device(batch, torch.device("cpu"), 0)
+    assert torch.equal(back.edge_index, batch.edge_index)
+
+
+@pytest.mark.filterwarnings(
+    "ignore::DeprecationWarning", "ignore::FutureWarning", "ignore:.*LeafSpec"
+)
+def test_works_with_a_lightning_trainer(root: Path):
+    import lightning as L
+
+    class Probe(L.LightningModule):
+        def __init__(self):
+            super().__init__()
+            self.w = torch.nn.Parameter(torch.zeros(7))
+            self.seen = []
+
+        def training_step(self, batch, _):
+            self.seen.append(batch.num_graphs)
+            return ((batch.edge_pose - self.w) ** 2).mean()
+
+        def validation_step(self, batch, _):
+            return None
+
+        def configure_optimizers(self):
+            return torch.optim.SGD(self.parameters(), lr=0.1)
+
+    model = Probe()
+    trainer = L.Trainer(
+        max_epochs=1,
+        accelerator="cpu",
+        logger=False,
+        enable_checkpointing=False,
+        enable_progress_bar=False,
+        enable_model_summary=False,
+    )
+    trainer.fit(model, datamodule=PoserDataModule(root, batch_size=4))
+    assert sum(model.seen) == 6
