@@ -123,3 +123,14 @@ def test_batching_equals_one_by_one():
         sl = slice(int(b.ptr[k]), int(b.ptr[k + 1]))
         np.testing.assert_allclose(rel_to_first(poses[sl]), rel_to_first(be.solve(gr)),
                                    atol=1e-9)
+
+
+def test_vanishing_robust_weights_do_not_make_the_solve_singular(monkeypatch):
+    # A Cauchy weight can underflow to 0 (e.g. on a bridge edge with a large early residual),
+    # disconnecting the weighted graph; the weight floor keeps every Laplacian invertible.
+    import posernet.sync.rotation_translation as rt
+
+    monkeypatch.setattr(rt, "mad_cauchy_weights", lambda r, mask, theta: torch.zeros_like(r))
+    g = make_graph(8, 4, seed=3)
+    poses = get_backend("rotation_translation", robust=True).solve(g, g.edge_pose)
+    assert bool(torch.isfinite(poses).all())

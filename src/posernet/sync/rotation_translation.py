@@ -95,9 +95,15 @@ class RotationTranslationOptions(SyncOptions):
             raise ValueError(f"solver={self.solver!r}; choose one of {list(SOLVERS)}")
 
 
+# Robust weights are floored at this value on real edges: a Cauchy weight can underflow to 0
+# on a bridge edge, which would disconnect the weighted graph and make its Laplacian singular.
+WEIGHT_FLOOR = 1e-6
+
+
 def _laplacian(prob: PaddedProblem, w: Tensor) -> Tensor:
     """Weighted graph Laplacian ``[G, n, n]`` plus ``11^T / n`` on the valid block (gauge:
-    the solution has zero mean) and the identity on padded nodes (their unknowns stay 0)."""
+    the solution has zero mean) and the identity on padded nodes (their unknowns stay 0).
+    ``w`` must already be floored (:data:`WEIGHT_FLOOR`) on real edges."""
     G, n = prob.G, prob.n
     L = torch.zeros(G, n, n, dtype=w.dtype, device=w.device)
     gi = torch.arange(G, device=w.device)[:, None].expand(G, prob.m)
@@ -138,6 +144,7 @@ def refine_rotations(prob: PaddedProblem, R: Tensor, iters: int, robust: bool,
         ang = w_e.norm(dim=-1)
         c = (mad_cauchy_weights(ang, prob.edge_mask, theta) if robust
              else prob.edge_mask.to(R.dtype))
+        c = torch.maximum(c, WEIGHT_FLOOR * prob.edge_mask.to(c.dtype))
         L = _laplacian(prob, c)
         d = torch.linalg.solve(L, _incidence_rhs(prob, c, w_e))
         d = d * prob.node_mask[..., None]
@@ -167,6 +174,7 @@ def translations_metric(prob: PaddedProblem, R: Tensor, iters: int, robust: bool
             break
         r = (_gather(c, prob.dst) - _gather(c, prob.src) - u).norm(dim=-1)
         w = mad_cauchy_weights(r, prob.edge_mask, theta)
+        w = torch.maximum(w, WEIGHT_FLOOR * prob.edge_mask.to(w.dtype))
         if change < 1e-12 * max(1.0, float(c.abs().max())):
             break
     return c
