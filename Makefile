@@ -8,7 +8,7 @@ STAMP  := $(VENV)/.installed
 DEMO_DIR ?= outputs/demo
 
 .DEFAULT_GOAL := help
-.PHONY: help install test test-fast lint demo clean
+.PHONY: help install test test-fast lint demo paper paper-quick clean
 
 help:  ## list the targets
 	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-10s %s\n", $$1, $$2}'
@@ -35,6 +35,12 @@ lint: $(STAMP)  ## ruff check (style and common bugs)
 
 demo: $(STAMP)  ## run the main job on the built-in synthetic default
 	$(VENV)/bin/posernet-demo out_dir=$(DEMO_DIR)
+
+paper: $(STAMP)  ## run every paper experiment at full size (long on a CPU) into results/paper
+	$(PY) -m posernet.experiments --scale paper --out results/paper
+
+paper-quick: $(STAMP)  ## the same experiments at a tiny scale (under a minute) into outputs/paper-quick
+	$(PY) -m posernet.experiments --scale quick --out outputs/paper-quick
 
 clean:  ## remove the virtual environment and generated outputs
 	rm -rf $(VENV) outputs .pytest_cache .ruff_cache
