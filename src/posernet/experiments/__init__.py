@@ -1,0 +1,14 @@
+"""The paper's experiments, one command each: ``python -m posernet.experiments``.
+
+``table1`` (KP/BB refinement), ``table2`` (small/large graphs), ``table3`` (motion averaging),
+``depth`` (GNN depth and alpha sweeps), ``loo`` (leave-one-scene-out) and ``plots`` (the
+supplementary's figures), at scale ``quick`` (tiny synthetic data, minutes on a CPU) or
+``paper`` (the ``paper`` synthetic preset, three seeds, the paper's epochs). See
+:func:`run_experiments`.
+"""
+
+from __future__ import annotations
+
+from .runner import EXPERIMENTS, SCALES, Scale, parse_only, run_experiments
+
+__all__ = ["EXPERIMENTS", "SCALES", "Scale", "parse_only", "run_experiments"]

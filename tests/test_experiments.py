@@ -1,0 +1,110 @@
+"""Experiment runner: argument checks (fast) and the whole quick scale end to end (slow)."""
+
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+
+import pytest
+
+from posernet.experiments import EXPERIMENTS, parse_only, run_experiments
+from posernet.experiments.__main__ import main
+from posernet.experiments.runner import table3_backends
+
+
+def test_parse_only_defaults_and_subsets() -> None:
+    assert parse_only(None) == list(EXPERIMENTS)
+    assert parse_only("") == list(EXPERIMENTS)
+    assert parse_only("table3, table1,table3") == ["table3", "table1"]
+
+
+def test_unknown_experiment_lists_valid_names() -> None:
+    with pytest.raises(ValueError, match="valid: .*table1.*loo.*plots"):
+        parse_only("table1,tabel9")
+
+
+def test_cli_rejects_bad_arguments(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as exc:
+        main(["--out", str(tmp_path), "--only", "nope"])
+    assert exc.value.code == 2
+    assert "valid:" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["--out", str(tmp_path), "--scale", "huge"])
+    with pytest.raises(ValueError, match="unknown scale"):
+        run_experiments("huge", tmp_path)
+
+
+@pytest.fixture(scope="module")
+def quick_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict]:
+    out = tmp_path_factory.mktemp("experiments")
+    status = run_experiments("quick", out, echo=None)
+    return out, status
+
+
+def _rows(path: Path) -> list[dict[str, str]]:
+    with path.open(newline="") as f:
+        return list(csv.DictReader(f))
+
+
+@pytest.mark.slow
+def test_quick_scale_runs_every_experiment(quick_run: tuple[Path, dict]) -> None:
+    out, status = quick_run
+    assert all(status[name]["ok"] for name in EXPERIMENTS), status
+    summary = (out / "summary.md").read_text()
+    for name in EXPERIMENTS:
+        assert f"| {name} | ok |" in summary
+    assert "Total wall time" in summary
+    for name in ("table1", "table2", "table3", "depth", "loo"):
+        assert (out / name / "table.md").is_file() and (out / name / "table.csv").is_file()
+    assert not list(out.rglob("*.tmp*"))  # atomic writes leave no temporary files
+
+
+@pytest.mark.slow
+def test_quick_tables_have_paper_and_our_rows(quick_run: tuple[Path, dict]) -> None:
+    out, _ = quick_run
+    t1 = {(r["source"], r["input"], r["stage"]): r for r in _rows(out / "table1" / "table.csv")}
+    for src in ("paper", "ours"):
+        for inp in ("KP", "BB"):
+            for stage in ("Initial", "PoserNet"):
+                assert (src, inp, stage) in t1
+    assert float(t1[("paper", "KP", "PoserNet")]["rot_median"]) == pytest.approx(7.31)
+    assert t1[("ours", "KP", "PoserNet")]["runs"] == "2"
+    assert "± " in (out / "table1" / "table.md").read_text()
+
+    t2 = {(r["source"], r["train"], r["test"]) for r in _rows(out / "table2" / "table.csv")}
+    for train in ("Raw", "Small", "Large"):
+        for test in ("Small", "Large"):
+            assert ("ours", train, test) in t2 and ("paper", train, test) in t2
+
+    t3 = {(r["source"], r["method"], r["init"]) for r in _rows(out / "table3" / "table.csv")}
+    assert ("paper", "EIG-SE3 + PoserNet", "KP") in t3
+    for inp in ("KP", "BB"):
+        assert ("ours", "EIG-SE3", inp) in t3 and ("ours", "EIG-SE3 + PoserNet", inp) in t3
+    assert "rotation_translation" in table3_backends()
+    assert ("ours", "RotTrans + PoserNet", "KP") in t3
+
+    depth = {r["depth"]: r for r in _rows(out / "depth" / "table.csv")}
+    assert set(depth) == {"2", "3", "4", "5"}
+    assert float(depth["4"]["rot_median_paper"]) == pytest.approx(9.4)
+    assert {r["alpha"] for r in _rows(out / "depth" / "alpha.csv")} == {"0.1", "0.5", "1"}
+
+    loo = {r["test scene"]: r for r in _rows(out / "loo" / "table.csv")}
+    assert {"chess", "fire", "heads", "median"} <= set(loo)
+    assert float(loo["median"]["rot_median_paper"]) == pytest.approx(8.04)
+
+
+@pytest.mark.slow
+def test_quick_plots_exist(quick_run: tuple[Path, dict]) -> None:
+    out, _ = quick_run
+    plots = out / "plots"
+    for est in ("kp", "bb"):
+        assert (plots / f"errors_sorted_{est}.png").stat().st_size > 1000
+        assert (plots / f"cameras_{est}_0.png").stat().st_size > 1000
+    assert "errors_sorted_kp.png" in (plots / "index.md").read_text()
+
+
+@pytest.mark.slow
+def test_rerun_reuses_models(quick_run: tuple[Path, dict]) -> None:
+    out, _ = quick_run
+    status = run_experiments("quick", out, only="table1", echo=None)
+    assert status["table1"]["ok"] and status["table1"]["trained"] == []
