@@ -106,7 +106,12 @@ class GtsamBackend(SyncBackend):
         params = gtsam.ShonanAveragingParameters3(self._lm())
         params.setUseHuber(o.huber)
         shonan = gtsam.ShonanAveraging3(meas, params)
-        values, _ = shonan.run(shonan.initializeRandomly(), o.p_min, o.p_max)
+        try:
+            values, _ = shonan.run(shonan.initializeRandomly(), o.p_min, o.p_max)
+        except RuntimeError as exc:  # the staircase found no certified optimum up to p_max
+            raise ValueError(f"gtsam Shonan averaging did not converge on a component of {n} "
+                             f"cameras with p_max={o.p_max} ({exc}); raise sync.p_max or use "
+                             "another backend") from exc
         R = np.stack([values.atRot3(k).matrix().T for k in range(n)])  # world-to-camera
         u = -np.einsum("mba,mb->ma", R[dst], t_e)  # world baselines c_j - c_i
         norm = np.linalg.norm(u, axis=1)
