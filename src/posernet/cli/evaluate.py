@@ -35,31 +35,11 @@ def _device(name: str) -> torch.device:
     return torch.device(name)
 
 
-def _graph_files(path: Path) -> list[Path]:
-    if path.is_dir():
-        files = sorted(path.rglob("*.pt"))
-        if not files:
-            raise FileNotFoundError(f"no graph files (*.pt) under {path}")
-        return files
-    if not path.is_file():
-        raise FileNotFoundError(f"graph file not found: {path}")
-    return [path]
-
-
 def _batches_from_files(path: Path, estimate: str | None, batch_size: int) -> Iterator[Any]:
-    from ..graph import GraphBatch, GraphValidationError, load_graphs
+    from ..graph import GraphBatch
+    from ..pipeline import load_input_graphs
 
-    graphs = []
-    for f in _graph_files(path):
-        for g in load_graphs(f):
-            if estimate:
-                if estimate not in g.estimates:
-                    raise GraphValidationError(
-                        f"{f}: graph {g.name!r} has no initial estimate {estimate!r} "
-                        f"(available: {sorted(g.estimates)}); set estimate=null to use its "
-                        f"stored edge_pose")
-                g = g.with_estimate(estimate)
-            graphs.append(g)
+    graphs = load_input_graphs(path, estimate=estimate)
     for i in range(0, len(graphs), batch_size):
         yield GraphBatch.from_graphs(graphs[i:i + batch_size])
 
