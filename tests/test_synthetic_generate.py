@@ -165,6 +165,7 @@ def test_resume_refuses_a_foreign_directory(tmp_path: Path):
         ({"detector": {"max_area": 0.0}}, "dataset.detector.max_area"),
         ({"detector": {"box_jiter": 0.1}}, "dataset.detector.box_jiter"),
         ({"matching": {"min_boxes": 0}}, "dataset.matching.min_boxes"),
+        ({"matching": {"kp_boxes": -1}}, "dataset.matching.kp_boxes"),
         ({"pose": {"method": "magic"}}, "dataset.pose.method"),
         ({"scenes": ["chess", "kitchen"]}, "dataset.scenes"),
         ({"small": {"train": "many"}}, "dataset.small.train"),

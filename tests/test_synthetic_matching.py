@@ -11,7 +11,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from posernet.data.synthetic import SceneWorld, load_preset, simulate_graphs
-from posernet.data.synthetic.config import KeypointOptions
+from posernet.data.synthetic.config import KeypointOptions, MatchOptions
 from posernet.data.synthetic.matching import (
     boxes_contain,
     is_connected,
@@ -206,3 +206,28 @@ def test_every_matched_image_pair_of_a_graph_is_an_edge(graphs):
         for a in range(len(frames)):
             for b in range(a + 1, len(frames)):
                 assert world.pair(frames[a], frames[b]).is_edge == ((a, b) in edges)
+
+
+def test_kp_boxes_feeds_only_the_best_matched_box_pairs_to_the_kp_five_point():
+    """``matching.kp_boxes`` keeps the KP input to the box pairs sharing the most matches and
+    leaves the box matching and the BB estimate untouched; 0 (the default) keeps them all."""
+    import dataclasses
+
+    assert MatchOptions().kp_boxes == 0
+    for name in ("easy", "demo", "tiny"):
+        assert load_preset(name).matching.kp_boxes == 0
+    base = load_preset("tiny")
+    one = dataclasses.replace(base, matching=dataclasses.replace(base.matching, kp_boxes=1))
+    w0, w1 = SceneWorld(base, "chess", seed=0), SceneWorld(one, "chess", seed=0)
+    checked = 0
+    for a, b in [(i, i + d) for i in range(0, 120, 7) for d in (2, 5)]:
+        r0, r1 = w0.pair(a, b), w1.pair(a, b)
+        assert r0.status == r1.status or "failed" in r0.status + r1.status
+        assert r0.box_a.tolist() == r1.box_a.tolist() and r0.box_b.tolist() == r1.box_b.tolist()
+        if r0.status != "edge" or r1.status != "edge":
+            continue
+        np.testing.assert_array_equal(r0.bb[0], r1.bb[0])
+        # the single best pair holds at least min_keypoints and fewer than all matched pairs
+        assert base.matching.min_keypoints <= r1.n_kp < r0.n_kp
+        checked += 1
+    assert checked >= 3

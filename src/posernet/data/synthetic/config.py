@@ -126,6 +126,11 @@ class MatchOptions:
     # KP 5-point input: keypoints inside a matched box pair ("matched") or inside any box of
     # each image ("boxes")
     kp_source: str = "matched"
+    # With ``kp_source: matched``: only the keypoints of the ``kp_boxes`` matched box pairs that
+    # share the most matches feed the KP 5-point (0: all matched pairs). Real SuperGlue matches
+    # concentrate on the one or two most textured objects (a poster, a screen, a chessboard):
+    # a small, clustered point set on few faces, which leaves 5-point ill-conditioned.
+    kp_boxes: int = 0
 
 
 @dataclass
@@ -293,6 +298,7 @@ def _validate(o: DatasetOptions) -> None:
     if m.kp_source not in ("matched", "boxes"):
         _fail(f"{p}.matching.kp_source", f"must be 'matched' or 'boxes', got {m.kp_source!r}")
     _check_float(f"{p}.matching.wrong_match_rate", m.wrong_match_rate, lo=0.0, hi=1.0)
+    _check_int(f"{p}.matching.kp_boxes", m.kp_boxes, lo=0)
     q = o.pose
     if q.method not in ("usac", "ransac"):
         _fail(f"{p}.pose.method", f"must be 'usac' or 'ransac', got {q.method!r}")

@@ -191,7 +191,13 @@ class SceneWorld:
         in_a = boxes_contain(fa.det.boxes, m.uv_a)
         in_b = boxes_contain(fb.det.boxes, m.uv_b)
         if o.matching.kp_source == "matched":
-            inside = (in_a[:, ia] & in_b[:, ib]).any(1)
+            both = in_a[:, ia] & in_b[:, ib]  # (M, pairs)
+            if 0 < o.matching.kp_boxes < ia.size:
+                # matches concentrate on the most textured region: only the box pairs that
+                # share the most keypoints feed the 5-point (ties: first pair first)
+                top = np.argsort(-both.sum(0), kind="stable")[: o.matching.kp_boxes]
+                both = both[:, top]
+            inside = both.any(1)
         else:
             inside = in_a.any(1) & in_b.any(1)
         p1, p2 = m.uv_a[inside], m.uv_b[inside]
