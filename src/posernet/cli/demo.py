@@ -69,6 +69,7 @@ def demo(cfg: DictConfig) -> dict[str, Any]:
     """Run the demo described by ``cfg``; returns the written files."""
     from ..data.store import open_split
     from ..data.synthetic import generate_dataset
+    from ..data.synthetic.generate import GenerationError
     from ..pipeline import evaluate_result, refine_graphs, result_tables
     from ..plots import plot_cameras, plot_sorted_errors
     from ..sync import backend_from_config
@@ -80,9 +81,15 @@ def demo(cfg: DictConfig) -> dict[str, Any]:
     out = Path(cfg.out_dir)
     data_dir = out / "data"
     print(f"[1/4] synthetic dataset '{cfg.dataset.name}' -> {data_dir}")
-    generate_dataset(OmegaConf.to_container(cfg.dataset, resolve=True), data_dir,
-                     seed=int(cfg.seed), workers=int(cfg.workers),
-                     resume=data_dir.exists())  # reuse what an earlier run made
+    options = OmegaConf.to_container(cfg.dataset, resolve=True)
+    kw = {"seed": int(cfg.seed), "workers": int(cfg.workers)}
+    try:  # reuse what an earlier run made
+        generate_dataset(options, data_dir, resume=data_dir.exists(), **kw)
+    except GenerationError as exc:
+        # The demo owns this folder: data from another configuration (an older posernet, other
+        # overrides) is replaced rather than mixed.
+        print(f"{exc}\n-> regenerating {data_dir}")
+        generate_dataset(options, data_dir, overwrite=True, **kw)
     graphs = [g.with_estimate(str(cfg.estimate)) for g in open_split(data_dir, "small", "test")]
     print("[2/4] model")
     model, source = _model(cfg, data_dir, out, device)
