@@ -102,12 +102,13 @@ def test_known_errors_and_rigid_vs_similarity():
     assert float(rot[0]) < 1e-9 and float(pos[0]) < 1e-12
     _, pos_rigid = absolute_pose_errors(est, gt, batch, 1, "rigid")
     assert float(pos_rigid[0]) > 0.1
-    # One camera rotated by 10 degrees about its own centre: its rotation error is 10 deg.
+    # One camera rotated by 10 degrees about its own centre: with the centres' alignment its
+    # rotation error is 10 deg (the rotation gauge would spread part of it over the others).
     est = gt.clone()
     est[0] = make_se3(axis_angle_to_rotation_matrix(torch.tensor([0, 0, math.radians(10)],
                                                                  dtype=F64)),
                       torch.zeros(3, dtype=F64)) @ gt[0]
-    r, p = absolute_pose_errors_per_camera(est, gt, batch, 1, "rigid")
+    r, p = absolute_pose_errors_per_camera(est, gt, batch, 1, "rigid", rotation_gauge="centres")
     assert abs(float(r[0]) - 10.0) < 1e-6 and float(r[1:].max()) < 1e-6
     assert float(p.max()) < 1e-9
 
@@ -163,3 +164,25 @@ def test_bad_inputs():
     bad[1, 0, 3] = float("nan")
     with pytest.raises(ValueError, match="pose_est has a NaN"):
         absolute_pose_errors(bad, gt, b, 1)
+
+
+def test_rotation_gauge_rotations_ignores_bad_positions():
+    # Exact rotations but scrambled camera centres: the centre alignment turns the rotation
+    # error large, the rotation gauge measures the rotations alone (zero error).
+    from posernet.metrics import absolute_pose_errors
+
+    gen = torch.Generator().manual_seed(0)
+    gt = random_absolute_poses(8, gen, torch.float64)
+    Q = make_se3(torch.linalg.qr(torch.randn(3, 3, generator=gen, dtype=torch.float64))[0],
+                 torch.zeros(3, dtype=torch.float64))
+    Q[:3, :3] *= torch.sign(torch.linalg.det(Q[:3, :3]))
+    est = gt @ Q  # same cameras in a rotated world frame
+    est[:, :3, 3] = torch.randn(8, 3, generator=gen, dtype=torch.float64) * 3  # bad positions
+    nb = torch.zeros(8, dtype=torch.long)
+    rot_c, _ = absolute_pose_errors(est, gt, nb, 1, rotation_gauge="centres")
+    rot_r, pos_r = absolute_pose_errors(est, gt, nb, 1)  # default: rotations
+    assert float(rot_r[0]) < 1e-6
+    assert float(rot_c[0]) > 5.0
+    assert float(pos_r[0]) > 0.1
+    with pytest.raises(ValueError, match="rotation_gauge"):
+        absolute_pose_errors(est, gt, nb, 1, rotation_gauge="mean")

@@ -159,11 +159,13 @@ def _global_components(per_graph: Sequence[Tensor]) -> Tensor:
     return torch.cat(out)
 
 
-def evaluate_result(result: RefineResult) -> dict[str, Any]:
+def evaluate_result(result: RefineResult, rotation_gauge: str = "rotations") -> dict[str, Any]:
     """Per-graph errors and threshold rows for every stage present (needs ground truth).
 
     Returns ``{"relative": {stage: {"rot": ThresholdRow, "tdir": ThresholdRow}},
     "absolute": {stage: {"rot": ..., "trans": ...}}, "per_graph": {...}, "alignment": str}``.
+    ``rotation_gauge`` (``centres`` or ``rotations``) picks how absolute rotations are aligned
+    (:func:`posernet.metrics.absolute_pose_errors`).
     Relative errors need ``edge_pose_gt``; absolute ones ``pose_gt`` and a backend. Graphs
     without the needed ground truth raise a :class:`GraphValidationError` naming the graph.
     """
@@ -185,11 +187,13 @@ def evaluate_result(result: RefineResult) -> dict[str, Any]:
     if result.absolute and batch.pose_gt is not None:
         metric = bool(result.backend and result.backend.get("scale") in ("given", "oracle"))
         out["alignment"] = "rigid" if metric else "similarity"
+        out["rotation_gauge"] = rotation_gauge
         for s, poses in result.absolute.items():
             comp = _global_components(result.component[s])
             rot, pos = absolute_pose_errors(
                 torch.cat(poses).double(), batch.pose_gt.double(), batch.node_batch, B,
-                alignment=out["alignment"], component=comp, valid=torch.cat(result.solved[s]))
+                alignment=out["alignment"], component=comp, valid=torch.cat(result.solved[s]),
+                rotation_gauge=rotation_gauge)
             out["per_graph"][f"abs_rot_{s}"], out["per_graph"][f"abs_pos_{s}"] = rot, pos
             out["absolute"][s] = {"rot": threshold_row(rot, ANGLE_THRESHOLDS_DEG),
                                   "trans": threshold_row(pos, METRE_THRESHOLDS)}
@@ -259,9 +263,11 @@ def result_tables(evaluation: dict[str, Any], label: str = "KP",
     if evaluation.get("absolute"):
         bname = (backend or {}).get("backend", "sync")
         stage = {"initial": bname, "refined": f"{bname} + PoserNet"}
+        gauge = ("rotations aligned by the rotations" if evaluation.get("rotation_gauge") ==
+                 "rotations" else "rotations aligned with the centres")
         note = (f"Scale: {(backend or {}).get('scale_label', 'unknown')}; alignment: "
                 f"{evaluation.get('alignment')} (Umeyama on camera centres) per connected "
-                "component")
+                f"component; {gauge}")
         tables["absolute"] = ResultTable(
             rows=[TableRow((label, stage[s]), cells) for s, cells in
                   evaluation["absolute"].items()],

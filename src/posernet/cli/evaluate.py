@@ -137,7 +137,8 @@ def _collect_absolute(sync: Any, batch: Any, refined: torch.Tensor,
         out.setdefault("rot" + tag, []).append(t["per_graph"]["rotation_deg"].cpu())
         out.setdefault("trans" + tag, []).append(t["per_graph"]["position_m"].cpu())
         out["note"] = (f"Scale: {t['backend'].get('scale_label', t['scale'])}; alignment: "
-                       f"{t['alignment']} per connected component"
+                       f"{t['alignment']} per connected component; rotations aligned by the "
+                       f"{t['rotation_gauge']}"
                        + (" -- ORACLE scale" if t["oracle"] else ""))
 
 

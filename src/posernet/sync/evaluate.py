@@ -30,7 +30,8 @@ __all__ = ["absolute_table", "format_absolute_table"]
 
 def absolute_table(batch: GraphBatch | ViewGraph, edge_pose: Tensor | None = None,
                    backend: SyncBackend | str = "eig_se3", alignment: str = "auto",
-                   per_component: bool = True, **backend_options: Any) -> dict[str, Any]:
+                   per_component: bool = True, rotation_gauge: str = "rotations",
+                   **backend_options: Any) -> dict[str, Any]:
     """Absolute-pose errors of ``backend`` on ``batch`` in the paper's table format.
 
     ``edge_pose [E, 7]`` relative poses (default ``batch.edge_pose``); ``backend`` an instance
@@ -62,7 +63,7 @@ def absolute_table(batch: GraphBatch | ViewGraph, edge_pose: Tensor | None = Non
     rot, pos = absolute_pose_errors(res.poses, gt, struct["node_batch"], B,
                                     alignment=alignment,
                                     component=res.component if per_component else None,
-                                    valid=res.solved)
+                                    valid=res.solved, rotation_gauge=rotation_gauge)
     comps_per_graph = torch.zeros(B, dtype=torch.long, device=res.component.device)
     comps_per_graph.scatter_reduce_(0, struct["node_batch"], res.component, reduce="amax")
     first = torch.full((B,), res.component.numel(), dtype=torch.long,
@@ -72,6 +73,7 @@ def absolute_table(batch: GraphBatch | ViewGraph, edge_pose: Tensor | None = Non
         "rotation_deg": threshold_row(rot, ANGLE_THRESHOLDS_DEG),
         "position_m": threshold_row(pos, METRE_THRESHOLDS),
         "alignment": alignment,
+        "rotation_gauge": rotation_gauge,
         "per_component": per_component,
         "scale": res.scale,
         "oracle": res.scale == "oracle",
@@ -97,6 +99,7 @@ def format_absolute_table(table: dict[str, Any], title: str | None = None) -> st
     lines = [
         f"**{head}** -- scale: {b['scale_label']}; alignment: {table['alignment']}"
         + (" per connected component" if table.get("per_component") else "")
+        + f"; rotations aligned by the {table.get('rotation_gauge', 'rotations')}"
         + (" -- **ORACLE**" if table["oracle"] else ""),
         "",
         "| error | " + " | ".join(f"<{t:g}" for t in table["rotation_deg"].thresholds)
