@@ -20,7 +20,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from . import CONFIG_DIR
-from .train import _user_errors, report_error, set_threads
+from .common import report_error, set_threads, user_errors
 
 __all__ = ["demo", "main"]
 
@@ -143,7 +143,7 @@ def demo(cfg: DictConfig) -> dict[str, Any]:
 def _hydra_main(cfg: DictConfig) -> None:
     try:
         demo(cfg)
-    except (*_user_errors(), ValueError) as exc:
+    except (*user_errors(), ValueError) as exc:
         report_error("posernet-demo", exc)
         sys.exit(1)
 

@@ -24,7 +24,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from . import CONFIG_DIR
-from .train import _user_errors, quiet_lightning, report_error, set_threads
+from .common import quiet_lightning, report_error, set_threads, user_errors
 
 __all__ = ["evaluate", "main"]
 
@@ -165,7 +165,7 @@ def _absolute_table(abs_errs: dict[str, Any], label: str, sync_name: str,
 def _hydra_main(cfg: DictConfig) -> None:
     try:
         evaluate(cfg)
-    except _user_errors() as exc:
+    except user_errors() as exc:
         report_error("posernet-eval", exc)
         sys.exit(1)
 

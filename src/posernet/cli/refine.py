@@ -19,7 +19,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from . import CONFIG_DIR
-from .train import _user_errors, report_error, set_threads
+from .common import report_error, set_threads, user_errors
 
 __all__ = ["main", "refine"]
 
@@ -71,7 +71,7 @@ def refine(cfg: DictConfig) -> dict[str, Any]:
 def _hydra_main(cfg: DictConfig) -> None:
     try:
         refine(cfg)
-    except (*_user_errors(), ValueError) as exc:
+    except (*user_errors(), ValueError) as exc:
         report_error("posernet-refine", exc)
         sys.exit(1)
 
