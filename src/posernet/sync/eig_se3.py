@@ -85,22 +85,20 @@ _PAD_EIG = -2.0  # eigenvalue given to padded rows of N (N's spectrum lies in [-
 
 
 @dataclass(frozen=True)
-class EigSE3Options(SyncOptions):
-    """``robust``: IRLS on (Cauchy weights, MAD threshold); ``max_iters``: most eigen-solves;
-    ``tol``: IRLS stop on the relative weight change; ``theta``: MAD multiplier (2 as in the
-    SIIMS paper); ``solver``: ``auto`` (dense up to ``dense_max_nodes`` nodes per component,
-    block Krylov above), ``dense`` or ``krylov``; ``krylov_tol``: eigen-residual tolerance;
-    ``krylov_max_cycles``: restarts per solve; ``seed``: Krylov start vectors."""
+class SpectralOptions(SyncOptions):
+    """Options of the robust spectral (rotation) solve shared by EIG-SE3 and
+    ``rotation_translation``: ``robust``: IRLS on (Cauchy weights, MAD threshold);
+    ``max_iters``: most eigen-solves; ``tol``: IRLS stop on the relative weight change;
+    ``theta``: MAD multiplier (2 as in the SIIMS paper); ``solver``: ``auto`` (dense up to
+    ``dense_max_nodes`` nodes per component, block Krylov above), ``dense`` or ``krylov``;
+    ``seed``: Krylov start vectors."""
 
-    scale: str = "unit"
     robust: bool = True
     max_iters: int = 50
     tol: float = 1e-5
     theta: float = 2.0
     solver: str = "auto"
     dense_max_nodes: int = 64
-    krylov_tol: float = 1e-12
-    krylov_max_cycles: int = 500
     seed: int = 0
 
     def check(self) -> None:
@@ -111,12 +109,25 @@ class EigSE3Options(SyncOptions):
         check_positive("tol", self.tol)
         check_positive("theta", self.theta)
         check_positive("dense_max_nodes", self.dense_max_nodes, integer=True)
-        check_positive("krylov_tol", self.krylov_tol)
-        check_positive("krylov_max_cycles", self.krylov_max_cycles, integer=True)
         if self.solver not in SOLVERS:
             raise ValueError(f"solver={self.solver!r}; choose one of {list(SOLVERS)}")
         if not isinstance(self.seed, int):
             raise ValueError(f"seed must be an integer, got {self.seed!r}")
+
+
+@dataclass(frozen=True)
+class EigSE3Options(SpectralOptions):
+    """:class:`SpectralOptions` plus ``krylov_tol`` (eigen-residual tolerance) and
+    ``krylov_max_cycles`` (restarts per solve); default scale ``unit``."""
+
+    scale: str = "unit"
+    krylov_tol: float = 1e-12
+    krylov_max_cycles: int = 500
+
+    def check(self) -> None:
+        super().check()
+        check_positive("krylov_tol", self.krylov_tol)
+        check_positive("krylov_max_cycles", self.krylov_max_cycles, integer=True)
 
 
 # --------------------------------------------------------------------------- the operator

@@ -47,7 +47,6 @@ from .base import (
     Components,
     PaddedProblem,
     SyncBackend,
-    SyncOptions,
     SyncResult,
     apply_scale_policy,
     build_padded,
@@ -56,43 +55,27 @@ from .base import (
     mad_cauchy_weights,
     mad_huber_weights,
 )
-from .eig_se3 import SOLVERS, assemble, rotation_irls, split_by_size
+from .eig_se3 import SpectralOptions, assemble, rotation_irls, split_by_size
 
 __all__ = ["RotationTranslation", "RotationTranslationOptions", "refine_rotations",
            "translations_from_directions", "translations_metric"]
 
 
 @dataclass(frozen=True)
-class RotationTranslationOptions(SyncOptions):
-    """``robust``: IRLS in every stage; ``max_iters``/``tol``/``theta``: the spectral rotation
-    IRLS (as EIG-SE3); ``refine_iters``: geodesic refinement steps (0 = off);
-    ``translation_iters``: IRLS steps of the translation stage; ``solver``,
-    ``dense_max_nodes``: eigen-solver choice as in EIG-SE3."""
+class RotationTranslationOptions(SpectralOptions):
+    """:class:`~posernet.sync.eig_se3.SpectralOptions` for the spectral rotation IRLS (as
+    EIG-SE3), plus ``refine_iters``: geodesic refinement steps (0 = off) and
+    ``translation_iters``: IRLS steps of the translation stage; default scale ``free``."""
 
     scale: str = "free"
-    robust: bool = True
-    max_iters: int = 50
-    tol: float = 1e-5
-    theta: float = 2.0
     refine_iters: int = 20
     translation_iters: int = 20
-    solver: str = "auto"
-    dense_max_nodes: int = 64
-    seed: int = 0
 
     def check(self) -> None:
         super().check()
-        if not isinstance(self.robust, bool):
-            raise ValueError(f"robust must be true/false, got {self.robust!r}")
-        check_positive("max_iters", self.max_iters, integer=True)
-        check_positive("tol", self.tol)
-        check_positive("theta", self.theta)
         check_positive("translation_iters", self.translation_iters, integer=True)
-        check_positive("dense_max_nodes", self.dense_max_nodes, integer=True)
         if not isinstance(self.refine_iters, int) or self.refine_iters < 0:
             raise ValueError(f"refine_iters must be an integer >= 0, got {self.refine_iters!r}")
-        if self.solver not in SOLVERS:
-            raise ValueError(f"solver={self.solver!r}; choose one of {list(SOLVERS)}")
 
 
 # Robust weights are floored at this value on real edges: a Cauchy weight can underflow to 0
