@@ -8,7 +8,7 @@ STAMP  := $(VENV)/.installed
 DEMO_DIR ?= outputs/demo
 
 .DEFAULT_GOAL := help
-.PHONY: help install test test-fast lint demo paper paper-quick clean
+.PHONY: help install test test-fast lint demo paper paper-medium paper-quick clean
 
 help:  ## list the targets
 	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-10s %s\n", $$1, $$2}'
@@ -38,6 +38,12 @@ demo: $(STAMP)  ## run the main job on the built-in synthetic default
 
 paper: $(STAMP)  ## run every paper experiment at full size (long on a CPU) into results/paper
 	$(PY) -m posernet.experiments --scale paper --out results/paper
+
+paper-medium: $(STAMP)  ## the same at a tenth of the small graphs (~1 h, 2 processes) into results/medium
+	$(PY) -m posernet.experiments --scale medium --out results/medium \
+		--only table1,table2,table3,plots,depth & pid=$$!; \
+	$(PY) -m posernet.experiments --scale medium --out results/medium --only loo,depth; \
+	rc=$$?; wait $$pid && exit $$rc
 
 paper-quick: $(STAMP)  ## the same experiments at a tiny scale (under a minute) into outputs/paper-quick
 	$(PY) -m posernet.experiments --scale quick --out outputs/paper-quick

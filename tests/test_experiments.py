@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import os
 from pathlib import Path
 
 import pytest
@@ -108,3 +109,63 @@ def test_rerun_reuses_models(quick_run: tuple[Path, dict]) -> None:
     out, _ = quick_run
     status = run_experiments("quick", out, only="table1", echo=None)
     assert status["table1"]["ok"] and status["table1"]["trained"] == []
+
+
+def test_train_lock_skips_live_owner_and_takes_over_stale(tmp_path: Path) -> None:
+    import subprocess
+    import sys
+
+    from posernet.experiments.runner import SCALES, Context, ModelSpec, _TrainLock
+
+    lock = tmp_path / "m" / "lock"
+    with _TrainLock(lock) as first:
+        assert first.acquired and lock.read_text() == str(os.getpid())
+    assert not lock.exists()
+
+    sleeper = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    try:
+        ctx = Context(SCALES["quick"](), tmp_path)
+        spec = ModelSpec()
+        run_lock = tmp_path / "models" / spec.key / "seed0" / "lock"
+        run_lock.parent.mkdir(parents=True)
+        run_lock.write_text(str(sleeper.pid))
+        # another live process trains it: skipped without waiting, lock left alone
+        assert ctx.checkpoint(spec, 0, wait=False) is None
+        assert run_lock.read_text() == str(sleeper.pid)
+    finally:
+        sleeper.kill()
+        sleeper.wait()
+    with _TrainLock(run_lock) as taken:  # its owner died: the stale lock is taken over
+        assert taken.acquired
+
+
+def test_summary_merges_runs_into_one_table(tmp_path: Path) -> None:
+    from posernet.experiments.runner import SCALES, write_summary
+
+    scale = SCALES["quick"]()
+    ok = {"ok": True, "seconds": 1.5, "files": [str(tmp_path / "table1" / "table.md")],
+          "error": None, "trained": ["kp-small-d2-a0.1/seed0"]}
+    write_summary(tmp_path, scale, {"table1": ok}, 2.0, "cpu")
+    bad = {"ok": False, "seconds": 3.0, "files": [], "error": "ValueError: boom", "trained": []}
+    text = write_summary(tmp_path, scale, {"loo": bad}, 3.0, "cpu").read_text()
+    assert "| table1 | ok | 1.5 | 1 | table1/table.md |" in text
+    assert "| loo | FAILED (ValueError: boom) | 3.0 | 0 |" in text
+    assert "logical cores" in text and "torch" in text
+    # a different scale starts a fresh record
+    other = write_summary(tmp_path, SCALES["medium"](), {"loo": bad}, 3.0, "cpu").read_text()
+    assert "table1" not in other
+
+
+@pytest.mark.parametrize("name", ["quick", "medium", "paper"])
+def test_scale_datasets_resolve(name: str) -> None:
+    from posernet.data.synthetic.config import resolve_options
+    from posernet.experiments.runner import SCALES
+
+    scale = SCALES[name]()
+    opts = resolve_options(scale.dataset)
+    assert opts.small.test > 0 and opts.large.test > 0
+    if name == "medium":  # a tenth of the paper's small graphs, the same simulator settings
+        paper = resolve_options("paper")
+        assert (opts.small.train, opts.small.test) == (paper.small.train // 10,
+                                                       paper.small.test // 10)
+        assert opts.keypoints == paper.keypoints and opts.large == paper.large

@@ -1,4 +1,4 @@
-"""``python -m posernet.experiments --scale quick|paper --out DIR [--only table1,table3]``."""
+"""``python -m posernet.experiments --scale quick|medium|paper --out DIR [--only table1,loo]``."""
 
 from __future__ import annotations
 
@@ -18,8 +18,12 @@ def _parser() -> argparse.ArgumentParser:
                     "(DIR/<experiment>/table.md|.csv) and DIR/summary.md with wall times.")
     p.add_argument("--scale", choices=list(SCALES), default="quick",
                    help="quick: tiny synthetic data, 1-2 epochs (minutes on a CPU); "
+                        "medium: the 'paper' preset with a tenth of its small graphs, the "
+                        "paper's seeds and epochs (about an hour on 2 cores); "
                         "paper: the 'paper' preset, 3 seeds, the paper's epochs")
-    p.add_argument("--out", required=True, help="output folder (reruns reuse its data/models)")
+    p.add_argument("--out", required=True,
+                   help="output folder (reruns reuse its data/models; several processes may "
+                        "run different --only subsets into one folder at once)")
     p.add_argument("--only", default=None,
                    help=f"comma-separated subset of: {','.join(EXPERIMENTS)} (default: all)")
     p.add_argument("--device", default="cpu", choices=["cpu", "cuda", "auto"])

@@ -9,8 +9,12 @@ experiments (a model is trained by the first experiment that needs it, and a rer
 
 from __future__ import annotations
 
+import json
 import logging
+import os
+import platform
 import statistics
+import sys
 import time
 import traceback
 import warnings
@@ -38,6 +42,60 @@ __all__ = [
 ]
 
 log = logging.getLogger(__name__)
+
+
+_POLL_SECONDS = 5.0
+
+
+class _TrainLock:
+    """An exclusive lock file ``path`` (holding the owner's pid) across processes on one machine.
+
+    ``acquired`` is False when another live process holds it; a lock left by a dead process
+    (killed run) is taken over.
+    """
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self.acquired = False
+
+    def __enter__(self) -> _TrainLock:
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        for _ in range(2):
+            try:
+                fd = os.open(self.path, os.O_CREAT | os.O_EXCL | os.O_WRONLY)
+            except FileExistsError:
+                if _alive(self.path):
+                    return self
+                self.path.unlink(missing_ok=True)  # stale: its owner died
+                continue
+            with os.fdopen(fd, "w") as fh:
+                fh.write(str(os.getpid()))
+            self.acquired = True
+            break
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        if self.acquired:
+            self.path.unlink(missing_ok=True)
+
+
+def _alive(lock: Path) -> bool:
+    """Whether the process named in ``lock`` still runs (unreadable / empty: assume it does)."""
+    try:
+        pid = int(lock.read_text().strip())
+    except FileNotFoundError:
+        return False
+    except ValueError:  # being written right now
+        return True
+    if pid == os.getpid():
+        return False
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
 
 
 # --------------------------------------------------------------------------- configuration
@@ -79,10 +137,22 @@ def _quick_dataset() -> dict[str, Any]:
     return data
 
 
+def _medium_dataset() -> dict[str, Any]:
+    """The ``paper`` preset with a tenth of its small graphs and all its large graphs."""
+    from ..data.synthetic.config import load_preset
+
+    data = load_preset("paper").to_dict()
+    data["name"] = "medium"
+    data["small"] = {**data["small"], "train": 200, "val": 20, "test": 100}
+    return data
+
+
 SCALES: dict[str, Callable[[], Scale]] = {
     "quick": lambda: Scale("quick", _quick_dataset(), seeds=(0, 1), ablation_seeds=(0,),
                            epochs_small=2, epochs_large=1, batch_small=4, batch_large=1,
                            depths=(2, 3, 4, 5), camera_plots=2, progress_bar=False),
+    # every experiment of the paper on a 2-core CPU in about an hour
+    "medium": lambda: Scale("medium", _medium_dataset()),
     "paper": lambda: Scale("paper", "paper"),
 }
 
@@ -125,9 +195,15 @@ class Context:
         """Generate the scale's synthetic dataset (resumed / reused when already there)."""
         from ..data.synthetic import generate_dataset
 
-        generate_dataset(self.scale.dataset, self.data_root, seed=self.scale.data_seed,
-                         workers=workers, resume=self.data_root.exists(),
-                         progress=self.scale.progress_bar, echo=None)
+        while True:  # one process generates; parallel runners into one ``out`` wait for it
+            with _TrainLock(self.out / "data.lock") as lock:
+                if lock.acquired:
+                    generate_dataset(self.scale.dataset, self.data_root,
+                                     seed=self.scale.data_seed, workers=workers,
+                                     resume=self.data_root.exists(),
+                                     progress=self.scale.progress_bar, echo=None)
+                    return
+            time.sleep(_POLL_SECONDS)
 
     def graphs(self, size: str, estimate: str, scene: str | None = None) -> list[Any]:
         """Test graphs of ``size`` (optionally one scene) with ``estimate`` as initial poses."""
@@ -149,22 +225,42 @@ class Context:
         return list(available_scenes(self.data_root, "small", "test"))
 
     # ---------------------------------------------------------------- models
-    def checkpoint(self, spec: ModelSpec, seed: int) -> Path:
-        """Path of the trained model ``spec``/``seed``, training it first when not cached."""
+    def _finished(self, run_dir: Path) -> Path | None:
+        done = run_dir / "done.json"
+        if done.is_file():
+            path = Path(json.loads(done.read_text())["checkpoint"])
+            if path.is_file():
+                return path
+        return None
+
+    def checkpoint(self, spec: ModelSpec, seed: int, wait: bool = True) -> Path | None:
+        """Path of the trained model ``spec``/``seed``, training it first when not cached.
+
+        Several runners may share one ``out`` folder (e.g. ``--only table1`` and ``--only loo``
+        in two processes): a model being trained by another live process is waited for, or,
+        with ``wait=False``, skipped (``None``) so the caller can train something else first.
+        """
+        run_dir = self.out / "models" / spec.key / f"seed{seed}"
+        while True:
+            found = self._finished(run_dir)
+            if found is not None:
+                return found
+            with _TrainLock(run_dir / "lock") as lock:
+                if lock.acquired:
+                    found = self._finished(run_dir)  # finished while we were waiting
+                    return found if found is not None else self._train(spec, seed, run_dir)
+            if not wait:
+                return None
+            time.sleep(_POLL_SECONDS)
+
+    def _train(self, spec: ModelSpec, seed: int, run_dir: Path) -> Path:
         import lightning as L
         from lightning.pytorch.callbacks import ModelCheckpoint
 
         from ..data.datamodule import PoserDataModule
         from ..lit import PoserNetModule
 
-        run_dir = self.out / "models" / spec.key / f"seed{seed}"
         done = run_dir / "done.json"
-        if done.is_file():
-            import json
-
-            path = Path(json.loads(done.read_text())["checkpoint"])
-            if path.is_file():
-                return path
         s = self.scale
         large = spec.size == "large"
         L.seed_everything(seed, workers=True, verbose=False)
@@ -221,9 +317,18 @@ class Context:
 
 
 def _jobs(ctx: Context, jobs: Sequence[tuple[ModelSpec, int]], desc: str) -> None:
-    """Train (or find cached) every ``(spec, seed)`` with a progress bar."""
-    for spec, seed in tqdm(list(jobs), desc=f"{desc}: models", unit="model", leave=False):
-        ctx.checkpoint(spec, seed)
+    """Train (or find cached) every ``(spec, seed)`` with a progress bar.
+
+    Models another process is training are skipped on the first pass and waited for at the end.
+    """
+    pending = list(dict.fromkeys(jobs))
+    with tqdm(total=len(pending), desc=f"{desc}: models", unit="model", leave=False) as bar:
+        while pending:
+            busy = [job for job in pending if ctx.checkpoint(*job, wait=False) is None]
+            bar.update(len(pending) - len(busy))
+            if busy:
+                ctx.checkpoint(*busy[0])  # nothing left to do here: wait for the other process
+            pending = busy
 
 
 def _seed_row(evals: Sequence[dict[str, Any]], kind: str, stage: str,
@@ -553,23 +658,67 @@ def run_experiments(scale: str | Scale, out: str | Path, only: str | Sequence[st
     return status
 
 
+def machine_description(device: str) -> str:
+    """One line naming the machine: CPU, cores, torch threads, GPU when used, versions."""
+    cpu = platform.processor() or platform.machine()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    gpu = (f", GPU {torch.cuda.get_device_name(0)}"
+           if device == "cuda" and torch.cuda.is_available() else "")
+    return (f"{cpu}, {os.cpu_count()} logical cores, {torch.get_num_threads()} torch thread(s)"
+            f"{gpu}; Python {platform.python_version()}, torch {torch.__version__}, "
+            f"{platform.system()} {platform.release()}")
+
+
 def write_summary(out: Path, scale: Scale, status: dict[str, dict[str, Any]], total: float,
                   device: str) -> Path:
-    """``summary.md``: wall time, status, models trained and files of each experiment."""
-    lines = [f"# PoserNet experiments, scale `{scale.name}`", "",
-             f"Device {device}; seeds {list(scale.seeds)} (tables 1-3), "
-             f"{list(scale.ablation_seeds)} (depth, alpha, loo); epochs {scale.epochs_small} "
-             f"small / {scale.epochs_large} large. Models are shared: each is trained by the "
-             "first experiment that needs it (its wall time includes that training).", "",
-             "| experiment | status | wall time (s) | models trained | table |",
-             "|---|---|---:|---:|---|"]
+    """``summary.md`` (+ ``summary.json``): wall time, status, models and files of each experiment.
+
+    Runs into the same ``out`` (``--only`` subsets, possibly in parallel processes) are merged:
+    each experiment keeps the entry of the latest run that ran it, with its command and machine.
+    """
+    record = out / "summary.json"
+    try:
+        merged = json.loads(record.read_text()) if record.is_file() else {}
+    except json.JSONDecodeError:
+        merged = {}
+    if merged.get("scale") != scale.name:
+        merged = {}
+    runs = merged.get("runs", {})
+    command = "python -m posernet.experiments " + " ".join(sys.argv[1:]) \
+        if Path(sys.argv[0]).parent.name == "experiments" else " ".join(sys.argv)
+    stamp = time.strftime("%Y-%m-%d %H:%M:%S %Z")
     for name, st in status.items():
+        runs[name] = {**st, "command": command, "machine": machine_description(device),
+                      "finished": stamp, "run_total_seconds": total}
+    merged = {"scale": scale.name, "runs": runs}
+    atomic_write_json(record, merged)
+
+    lines = [f"# PoserNet experiments, scale `{scale.name}`", "",
+             f"Seeds {list(scale.seeds)} (tables 1-3), {list(scale.ablation_seeds)} (depth, "
+             f"alpha, loo); epochs {scale.epochs_small} small / {scale.epochs_large} large. "
+             "Models are shared: each is trained by the first experiment that needs it (its "
+             "wall time includes that training); runs in parallel processes share the models "
+             "and may wait for each other.", "",
+             "| experiment | status | wall time (s) | models trained | table | finished |",
+             "|---|---|---:|---:|---|---|"]
+    order = ["data", *EXPERIMENTS]
+    for name in sorted(runs, key=lambda n: order.index(n) if n in order else len(order)):
+        st = runs[name]
         table = next((Path(f).relative_to(out).as_posix() for f in st["files"]
                       if f.endswith(("table.md", "index.md"))), "")
         state = "ok" if st["ok"] else f"FAILED ({st['error']})"
         lines.append(f"| {name} | {state} | {st['seconds']:.1f} | {len(st['trained'])} | "
-                     f"{table} |")
-    lines += ["", f"Total wall time: {total:.1f} s."]
+                     f"{table} | {st['finished']} |")
+    commands = dict.fromkeys((st["command"], st["machine"]) for st in runs.values())
+    lines += ["", "Commands and machines:", ""]
+    lines += [f"- `{cmd}` on {machine}" for cmd, machine in commands]
+    lines += ["", f"Total wall time of the last run: {total:.1f} s."]
     return atomic_write_text(out / "summary.md", "\n".join(lines) + "\n")
 
 
