@@ -169,3 +169,37 @@ def test_scale_datasets_resolve(name: str) -> None:
         assert (opts.small.train, opts.small.test) == (paper.small.train // 10,
                                                        paper.small.test // 10)
         assert opts.keypoints == paper.keypoints and opts.large == paper.large
+
+
+@pytest.mark.slow
+def test_interrupted_model_resumes_from_last_epoch(quick_run: tuple[Path, dict],
+                                                   tmp_path: Path,
+                                                   monkeypatch: pytest.MonkeyPatch) -> None:
+    import json
+
+    import lightning as L
+
+    from posernet.experiments.runner import SCALES, Context, ModelSpec, scale_with
+
+    resumed_from: list[str | None] = []
+    fit = L.Trainer.fit
+
+    def recording_fit(self: L.Trainer, *args: object, **kwargs: object) -> None:
+        resumed_from.append(kwargs.get("ckpt_path"))  # type: ignore[arg-type]
+        fit(self, *args, **kwargs)
+
+    monkeypatch.setattr(L.Trainer, "fit", recording_fit)
+
+    src, _ = quick_run
+    (tmp_path / "data").symlink_to(src / "data", target_is_directory=True)
+    spec, run_dir = ModelSpec(), tmp_path / "models" / ModelSpec().key / "seed0"
+    one = Context(scale_with(SCALES["quick"](), epochs_small=1), tmp_path)
+    one.checkpoint(spec, 0)
+    assert json.loads((run_dir / "done.json").read_text())["epochs"] == 1
+    (run_dir / "done.json").unlink()  # as if killed after its first epoch
+    two = Context(scale_with(SCALES["quick"](), epochs_small=3), tmp_path)
+    path = two.checkpoint(spec, 0)
+    assert path is not None and path.is_file()
+    assert json.loads((run_dir / "done.json").read_text())["epochs"] == 3
+    assert resumed_from == [None, str(run_dir / "checkpoints" / "last.ckpt")]
+    assert not (run_dir / "lock").exists()

@@ -277,8 +277,10 @@ class Context:
                             deterministic=True, logger=False, callbacks=[ckpt_cb],
                             enable_model_summary=False, enable_progress_bar=s.progress_bar,
                             num_sanity_val_steps=0, default_root_dir=str(run_dir))
+        # an interrupted run resumes from its last epoch (weights, optimiser, best-so-far)
+        last = run_dir / "checkpoints" / "last.ckpt"
         t0 = time.perf_counter()
-        trainer.fit(module, datamodule=dm)
+        trainer.fit(module, datamodule=dm, ckpt_path=str(last) if last.is_file() else None)
         best = Path(ckpt_cb.best_model_path or ckpt_cb.last_model_path)
         atomic_write_json(done, {"checkpoint": str(best), "model": spec.key, "seed": seed,
                                  "epochs": int(trainer.current_epoch),
