@@ -228,7 +228,7 @@ class Context:
     def _finished(self, run_dir: Path) -> Path | None:
         done = run_dir / "done.json"
         if done.is_file():
-            path = Path(json.loads(done.read_text())["checkpoint"])
+            path = run_dir / json.loads(done.read_text())["checkpoint"]  # absolute in old runs
             if path.is_file():
                 return path
         return None
@@ -282,7 +282,8 @@ class Context:
         t0 = time.perf_counter()
         trainer.fit(module, datamodule=dm, ckpt_path=str(last) if last.is_file() else None)
         best = Path(ckpt_cb.best_model_path or ckpt_cb.last_model_path)
-        atomic_write_json(done, {"checkpoint": str(best), "model": spec.key, "seed": seed,
+        atomic_write_json(done, {"checkpoint": _relative_to(best, run_dir), "model": spec.key,
+                                 "seed": seed,
                                  "epochs": int(trainer.current_epoch),
                                  "best_val_loss": None if ckpt_cb.best_model_score is None
                                  else float(ckpt_cb.best_model_score),
@@ -316,6 +317,14 @@ class Context:
         if key not in self._evals:
             self._evals[key] = evaluate_result(self.result(spec, seed, size, backend, scene))
         return self._evals[key]
+
+
+def _relative_to(path: Path, root: Path) -> str:
+    """``path`` relative to ``root`` when inside it (so a moved ``out`` folder still works)."""
+    try:
+        return path.resolve().relative_to(root.resolve()).as_posix()
+    except ValueError:
+        return str(path.resolve())
 
 
 def _jobs(ctx: Context, jobs: Sequence[tuple[ModelSpec, int]], desc: str) -> None:
