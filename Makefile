@@ -8,7 +8,7 @@ STAMP  := $(VENV)/.installed
 DEMO_DIR ?= outputs/demo
 
 .DEFAULT_GOAL := help
-.PHONY: help install test test-fast lint demo paper paper-medium paper-quick clean
+.PHONY: help install test test-fast lint demo paper paper-medium paper-quick experiments clean
 
 help:  ## list the targets
 	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-10s %s\n", $$1, $$2}'
@@ -36,13 +36,17 @@ lint: $(STAMP)  ## ruff check (style and common bugs)
 demo: $(STAMP)  ## run the main job on the built-in synthetic default
 	$(VENV)/bin/posernet-demo out_dir=$(DEMO_DIR)
 
-paper: $(STAMP)  ## run every paper experiment at full size (long on a CPU) into results/paper
-	$(PY) -m posernet.experiments --scale paper --out results/paper
+paper: $(STAMP)  ## every paper experiment at full size (~6 h on 2 CPU cores) into results/paper
+	$(MAKE) --no-print-directory experiments SCALE=paper
 
-paper-medium: $(STAMP)  ## the same at a tenth of the small graphs (~1 h, 2 processes) into results/medium
-	$(PY) -m posernet.experiments --scale medium --out results/medium \
+paper-medium: $(STAMP)  ## the same with a tenth of the small graphs (~1 h on 2 cores) into results/medium
+	$(MAKE) --no-print-directory experiments SCALE=medium
+
+# two runner processes (one torch thread each) share the data and the models cache of one folder
+experiments: $(STAMP)
+	$(PY) -m posernet.experiments --scale $(SCALE) --out results/$(SCALE) \
 		--only table1,table2,table3,plots,depth & pid=$$!; \
-	$(PY) -m posernet.experiments --scale medium --out results/medium --only loo,depth; \
+	$(PY) -m posernet.experiments --scale $(SCALE) --out results/$(SCALE) --only loo,depth; \
 	rc=$$?; wait $$pid && exit $$rc
 
 paper-quick: $(STAMP)  ## the same experiments at a tiny scale (under a minute) into outputs/paper-quick
