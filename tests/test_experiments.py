@@ -7,6 +7,7 @@ import os
 from pathlib import Path
 
 import pytest
+import torch
 
 from posernet.experiments import EXPERIMENTS, parse_only, run_experiments
 from posernet.experiments.__main__ import main
@@ -71,6 +72,7 @@ def test_quick_tables_have_paper_and_our_rows(quick_run: tuple[Path, dict]) -> N
     assert float(t1[("paper", "KP", "PoserNet")]["rot_median"]) == pytest.approx(7.31)
     assert t1[("ours", "KP", "PoserNet")]["runs"] == "2"
     assert "± " in (out / "table1" / "table.md").read_text()
+    assert 0.0 <= float(t1[("ours", "-", "Constant prior")]["tdir_median"]) <= 180.0
 
     t2 = {(r["source"], r["train"], r["test"]) for r in _rows(out / "table2" / "table.csv")}
     for train in ("Raw", "Small", "Large"):
@@ -144,12 +146,16 @@ def test_summary_merges_runs_into_one_table(tmp_path: Path) -> None:
 
     scale = SCALES["quick"]()
     ok = {"ok": True, "seconds": 1.5, "files": [str(tmp_path / "table1" / "table.md")],
-          "error": None, "trained": ["kp-small-d2-a0.1/seed0"]}
+          "error": None, "trained": ["kp-small-d2-a0.1/seed0"],
+          "models": ["kp-small-d2-a0.1/seed0", "bb-small-d2-a0.1/seed0"]}
+    done = tmp_path / "models" / "kp-small-d2-a0.1" / "seed0" / "done.json"
+    done.parent.mkdir(parents=True)
+    done.write_text('{"checkpoint": "x.ckpt", "train_seconds": 12.4}')
     write_summary(tmp_path, scale, {"table1": ok}, 2.0, "cpu")
     bad = {"ok": False, "seconds": 3.0, "files": [], "error": "ValueError: boom", "trained": []}
     text = write_summary(tmp_path, scale, {"loo": bad}, 3.0, "cpu").read_text()
-    assert "| table1 | ok | 1.5 | 1 | table1/table.md |" in text
-    assert "| loo | FAILED (ValueError: boom) | 3.0 | 0 |" in text
+    assert "| table1 | ok | 1.5 | 1 | 2 (12) | table1/table.md |" in text
+    assert "| loo | FAILED (ValueError: boom) | 3.0 | 0 | 0 (0) |" in text
     assert "logical cores" in text and "torch" in text
     # a different scale starts a fresh record
     other = write_summary(tmp_path, SCALES["medium"](), {"loo": bad}, 3.0, "cpu").read_text()
@@ -205,3 +211,24 @@ def test_interrupted_model_resumes_from_last_epoch(quick_run: tuple[Path, dict],
     assert not Path(record["checkpoint"]).is_absolute()  # the out folder can be moved
     assert resumed_from == [None, str(run_dir / "checkpoints" / "last.ckpt")]
     assert not (run_dir / "lock").exists()
+
+
+def test_prior_pose_is_the_mean_ground_truth_pose() -> None:
+    from posernet.experiments.runner import prior_pose
+    from posernet.geometry import quaternion_angle
+    from posernet.testing import random_view_graph
+
+    gen = torch.Generator().manual_seed(0)
+    graphs = [random_view_graph(generator=gen, dtype=torch.float64) for _ in range(3)]
+    q = torch.tensor([0.9, 0.1, -0.3, 0.2], dtype=torch.float64)
+    q = q / q.norm()
+    t = torch.tensor([0.2, -0.4, 1.0], dtype=torch.float64)
+    for g in graphs:  # every edge the same motion, with varying baselines and quaternion signs
+        n = g.num_edges
+        sign = torch.where(torch.arange(n) % 2 == 0, 1.0, -1.0).double()[:, None]
+        g.edge_pose_gt = torch.cat([q * sign, t * torch.linspace(0.5, 3.0, n)[:, None]], 1)
+    pose = prior_pose(graphs)
+    assert quaternion_angle(pose[:4], q).item() == pytest.approx(0.0, abs=1e-6)
+    assert torch.allclose(pose[4:], t / t.norm(), atol=1e-9)
+    with pytest.raises(ValueError, match="no edges"):
+        prior_pose([])

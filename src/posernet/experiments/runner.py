@@ -186,6 +186,7 @@ class Context:
     _evals: dict[tuple[Any, ...], dict[str, Any]] = field(default_factory=dict)
     _results: dict[tuple[Any, ...], Any] = field(default_factory=dict)
     trained: list[str] = field(default_factory=list)
+    used: list[str] = field(default_factory=list)
 
     def __post_init__(self) -> None:
         self.data_root = self.out / "data"
@@ -333,6 +334,7 @@ def _jobs(ctx: Context, jobs: Sequence[tuple[ModelSpec, int]], desc: str) -> Non
     Models another process is training are skipped on the first pass and waited for at the end.
     """
     pending = list(dict.fromkeys(jobs))
+    ctx.used += [f"{spec.key}/seed{seed}" for spec, seed in pending]
     with tqdm(total=len(pending), desc=f"{desc}: models", unit="model", leave=False) as bar:
         while pending:
             busy = [job for job in pending if ctx.checkpoint(*job, wait=False) is None]
@@ -370,10 +372,44 @@ def table1(ctx: Context, out: Path) -> list[Path]:
         mine[(inp, "Initial")] = ours(TableRow((inp, "Initial"), evals[0]["relative"]["initial"]))
         mine[(inp, "PoserNet")] = ours(_seed_row(evals, "relative", "refined",
                                                  (inp, "PoserNet")))
+    mine[("-", "Constant prior")] = ours(prior_row(ctx, ("-", "Constant prior")))
     table = ResultTable(rows=interleave(paper, mine), label_names=("source", "input", "stage"),
                         title="Table 1: refinement of relative poses, small graphs",
-                        note=_note(ctx))
+                        note=_note(ctx, " Constant prior: every edge gets the training set's "
+                                   "mean relative pose (chordal mean rotation, mean translation "
+                                   "direction), a floor any useful model must beat."))
     return list(table.write(out))
+
+
+def prior_pose(train: Sequence[Any]) -> torch.Tensor:
+    """``[7]`` mean ground-truth edge pose of ``train`` graphs: chordal mean rotation, mean
+    translation direction (both projected back onto unit length)."""
+    from ..geometry import quaternion_to_rotation_matrix, rotation_matrix_to_quaternion
+
+    gt = torch.cat([g.edge_pose_gt for g in train]).double() if train else torch.zeros(0, 7)
+    if gt.shape[0] == 0:
+        raise ValueError("prior_pose: the training graphs have no edges")
+    M = quaternion_to_rotation_matrix(gt[:, :4]).sum(0)
+    U, _, Vh = torch.linalg.svd(M)
+    D = torch.diag(torch.tensor([1.0, 1.0, torch.det(U @ Vh).sign().item()], dtype=M.dtype))
+    t = gt[:, 4:] / gt[:, 4:].norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    t = t.mean(0)
+    return torch.cat([rotation_matrix_to_quaternion(U @ D @ Vh), t / t.norm().clamp_min(1e-12)])
+
+
+def prior_row(ctx: Context, labels: tuple[str, ...]) -> TableRow:
+    """Errors of the constant :func:`prior_pose` predictor on the small test graphs."""
+    from ..data.store import open_split
+    from ..metrics import ANGLE_THRESHOLDS_DEG, per_graph_mean, relative_pose_errors, threshold_row
+
+    pose = prior_pose(open_split(ctx.data_root, "small", "train", None))
+    test = ctx.graphs("small", "kp")
+    gt = torch.cat([g.edge_pose_gt for g in test]).double()
+    batch = torch.cat([torch.full((g.num_edges,), k) for k, g in enumerate(test)])
+    rot, tdir = relative_pose_errors(pose.expand_as(gt), gt)
+    return TableRow(labels, {
+        "rot": threshold_row(per_graph_mean(rot, batch, len(test)), ANGLE_THRESHOLDS_DEG),
+        "tdir": threshold_row(per_graph_mean(tdir, batch, len(test)), ANGLE_THRESHOLDS_DEG)})
 
 
 def table2(ctx: Context, out: Path) -> list[Path]:
@@ -644,11 +680,11 @@ def run_experiments(scale: str | Scale, out: str | Path, only: str | Sequence[st
     say(f"[data] synthetic dataset for scale '{scale.name}' -> {ctx.data_root}")
     ctx.ensure_data(workers)
     status["data"] = {"ok": True, "seconds": time.perf_counter() - t0, "files": [],
-                      "error": None, "trained": []}
+                      "error": None, "trained": [], "models": []}
     for name in names:
         say(f"[{name}] running")
         t0 = time.perf_counter()
-        before = len(ctx.trained)
+        before, used_before = len(ctx.trained), len(ctx.used)
         exp_dir = out / name
         exp_dir.mkdir(parents=True, exist_ok=True)
         try:
@@ -660,7 +696,8 @@ def run_experiments(scale: str | Scale, out: str | Path, only: str | Sequence[st
             say(f"[{name}] FAILED: {err}\n{traceback.format_exc()}")
         dt = time.perf_counter() - t0
         status[name] = {"ok": err is None, "seconds": dt, "files": [str(f) for f in files],
-                        "error": err, "trained": ctx.trained[before:]}
+                        "error": err, "trained": ctx.trained[before:],
+                        "models": list(dict.fromkeys(ctx.used[used_before:]))}
         if err is None:
             say(f"[{name}] done in {dt:.1f} s -> {exp_dir}/table.md"
                 if (exp_dir / "table.md").exists() else f"[{name}] done in {dt:.1f} s")
@@ -684,6 +721,14 @@ def machine_description(device: str) -> str:
     return (f"{cpu}, {os.cpu_count()} logical cores, {torch.get_num_threads()} torch thread(s)"
             f"{gpu}; Python {platform.python_version()}, torch {torch.__version__}, "
             f"{platform.system()} {platform.release()}")
+
+
+def _train_seconds(run_dir: Path) -> float:
+    """Training time recorded in a model's ``done.json`` (0 when missing)."""
+    try:
+        return float(json.loads((run_dir / "done.json").read_text()).get("train_seconds", 0.0))
+    except (OSError, ValueError):
+        return 0.0
 
 
 def write_summary(out: Path, scale: Scale, status: dict[str, dict[str, Any]], total: float,
@@ -716,16 +761,19 @@ def write_summary(out: Path, scale: Scale, status: dict[str, dict[str, Any]], to
              "Models are shared: each is trained by the first experiment that needs it (its "
              "wall time includes that training); runs in parallel processes share the models "
              "and may wait for each other.", "",
-             "| experiment | status | wall time (s) | models trained | table | finished |",
-             "|---|---|---:|---:|---|---|"]
+             "| experiment | status | wall time (s) | models trained | models used "
+             "(their training, s) | table | finished |",
+             "|---|---|---:|---:|---:|---|---|"]
     order = ["data", *EXPERIMENTS]
     for name in sorted(runs, key=lambda n: order.index(n) if n in order else len(order)):
         st = runs[name]
         table = next((Path(f).relative_to(out).as_posix() for f in st["files"]
                       if f.endswith(("table.md", "index.md"))), "")
         state = "ok" if st["ok"] else f"FAILED ({st['error']})"
+        models = st.get("models", [])
+        train_s = sum(_train_seconds(out / "models" / m) for m in models)
         lines.append(f"| {name} | {state} | {st['seconds']:.1f} | {len(st['trained'])} | "
-                     f"{table} | {st['finished']} |")
+                     f"{len(models)} ({train_s:.0f}) | {table} | {st['finished']} |")
     commands = dict.fromkeys((st["command"], st["machine"]) for st in runs.values())
     lines += ["", "Commands and machines:", ""]
     lines += [f"- `{cmd}` on {machine}" for cmd, machine in commands]
