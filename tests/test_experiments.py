@@ -73,6 +73,8 @@ def test_quick_tables_have_paper_and_our_rows(quick_run: tuple[Path, dict]) -> N
     assert t1[("ours", "KP", "PoserNet")]["runs"] == "2"
     assert "± " in (out / "table1" / "table.md").read_text()
     assert 0.0 <= float(t1[("ours", "-", "Constant prior")]["tdir_median"]) <= 180.0
+    digest = (out / "digest.md").read_text()
+    assert "Table 3" in digest and "Leave one scene out" in digest and "| KP | PoserNet |" in digest
 
     t2 = {(r["source"], r["train"], r["test"]) for r in _rows(out / "table2" / "table.csv")}
     for train in ("Raw", "Small", "Large"):
@@ -232,3 +234,24 @@ def test_prior_pose_is_the_mean_ground_truth_pose() -> None:
     assert torch.allclose(pose[4:], t / t.norm(), atol=1e-9)
     with pytest.raises(ValueError, match="no edges"):
         prior_pose([])
+
+
+def test_digest_pairs_ours_with_the_paper(tmp_path: Path) -> None:
+    from posernet.experiments.digest import digest_markdown, write_digest
+
+    with pytest.raises(FileNotFoundError, match="no experiment tables"):
+        digest_markdown(tmp_path)
+    (tmp_path / "table1").mkdir()
+    (tmp_path / "table1" / "table.csv").write_text(
+        "source,input,stage,rot_median,rot_median_std,tdir_median,tdir_median_std,runs\n"
+        "paper,KP,PoserNet,7.31,0.11,14.54,0.14,3\n"
+        "ours,KP,PoserNet,6.42,0.22,63.07,3.99,3\n"
+        "ours,KP,Initial,24.79,0,72.6,0,1\n")
+    (tmp_path / "loo").mkdir()
+    (tmp_path / "loo" / "table.csv").write_text(
+        "test scene,rot_median,rot_median_std,rot_median_paper,tdir_median,tdir_median_std,"
+        "tdir_median_paper,graphs,runs\nchess,6.05,0.0,7.27,58.1,0.0,21.03,100,1\n")
+    text = write_digest(tmp_path).read_text()
+    assert "| KP | PoserNet | 6.4 ± 0.2 | 7.3 ± 0.1 | 63.1 ± 4.0 | 14.5 ± 0.1 |" in text
+    assert "| KP | Initial | 24.8 |  | 72.6 |  |" in text  # no paper row: empty cells
+    assert "| chess | 6.0 | 7.3 | 58.1 | 21.0 |" in text

@@ -29,6 +29,7 @@ from tqdm.auto import tqdm
 from ..io import atomic_write_json, atomic_write_text
 from ..report import ABSOLUTE_GROUPS, ResultTable, TableRow, mean_std_row
 from . import paper_numbers as P
+from .digest import write_digest
 from .tables import MedianRow, MedianTable, interleave, ours
 
 __all__ = [
@@ -703,6 +704,8 @@ def run_experiments(scale: str | Scale, out: str | Path, only: str | Sequence[st
                 if (exp_dir / "table.md").exists() else f"[{name}] done in {dt:.1f} s")
     write_summary(out, scale, status, time.perf_counter() - t_all, device)
     say(f"summary: {out / 'summary.md'}")
+    if any(st["ok"] for n, st in status.items() if n != "data"):
+        say(f"digest (medians, ours vs paper): {write_digest(out)}")
     return status
 
 
