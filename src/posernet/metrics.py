@@ -14,6 +14,7 @@ import torch
 from torch import Tensor
 
 from .geometry import rotation_angle, rotation_error_deg, translation_direction_error_deg
+from .nn.scatter import scatter_count
 
 __all__ = [
     "ALIGNMENTS",
@@ -61,7 +62,7 @@ def per_graph_mean(values: Tensor, batch: Tensor, num_graphs: int) -> Tensor:
         )
     sums = torch.zeros(num_graphs, dtype=values.dtype, device=values.device)
     sums.index_add_(0, batch, values)
-    cnt = torch.bincount(batch, minlength=num_graphs).to(values.dtype)
+    cnt = scatter_count(batch, num_graphs).to(values.dtype)
     return torch.where(cnt > 0, sums / cnt.clamp_min(1), torch.full_like(sums, float("nan")))
 
 
@@ -115,7 +116,7 @@ ROTATION_GAUGES: tuple[str, ...] = ("centres", "rotations")
 
 def _group_layout(group: Tensor, num_groups: int) -> tuple[Tensor, Tensor, int]:
     """Padded layout of ``K`` items in ``num_groups`` groups: ``(row [K], col [K], width)``."""
-    count = torch.bincount(group, minlength=num_groups)
+    count = scatter_count(group, num_groups)
     order = torch.argsort(group, stable=True)
     start = torch.cumsum(count, 0) - count
     col = torch.empty_like(group)

@@ -41,7 +41,10 @@ def _check(src: Tensor, index: Tensor, dim: int, dim_size: int | None) -> tuple[
         raise ValueError(f"scatter: index is on {index.device} but src on {src.device}")
     if dim_size is None:
         dim_size = int(index.max()) + 1 if index.numel() else 0
-    elif index.numel() and (int(index.min()) < 0 or int(index.max()) >= dim_size):
+    elif index.numel() and index.device.type == "cpu" and (
+            int(index.min()) < 0 or int(index.max()) >= dim_size):
+        # Range checked on the CPU only: on a GPU it would cost a host sync per call (callers
+        # such as PoserConv validate their indices once per forward instead).
         raise IndexError(
             f"scatter: index values must lie in [0, {dim_size}), got "
             f"[{int(index.min())}, {int(index.max())}]"
@@ -68,10 +71,13 @@ def scatter_sum(src: Tensor, index: Tensor, dim: int = 0, dim_size: int | None =
     Shapes: ``src (..., R, ...)``, ``index (R,)`` -> ``(..., G, ...)``.
     """
     dim, dim_size = _check(src, index, dim, dim_size)
+    return _sum(src, index, dim, dim_size)
+
+
+def _sum(src: Tensor, index: Tensor, dim: int, dim_size: int) -> Tensor:
     shape = list(src.shape)
     shape[dim] = dim_size
-    out = src.new_zeros(shape)
-    return out.index_add(dim, index.long(), src)
+    return src.new_zeros(shape).index_add(dim, index.long(), src)
 
 
 def scatter_count(index: Tensor, dim_size: int | None = None) -> Tensor:
@@ -80,7 +86,10 @@ def scatter_count(index: Tensor, dim_size: int | None = None) -> Tensor:
         raise ValueError("scatter_count: index must be a 1-D tensor")
     if dim_size is None:
         dim_size = int(index.max()) + 1 if index.numel() else 0
-    return torch.bincount(index.long(), minlength=dim_size)[:dim_size]
+    # index_add rather than bincount: bincount has no deterministic CUDA kernel and raises
+    # under torch.use_deterministic_algorithms (Lightning's deterministic=True).
+    out = torch.zeros(dim_size, dtype=torch.long, device=index.device)
+    return out.index_add_(0, index.long(), torch.ones_like(index, dtype=torch.long))
 
 
 def scatter_mean(src: Tensor, index: Tensor, dim: int = 0, dim_size: int | None = None) -> Tensor:
@@ -90,7 +99,7 @@ def scatter_mean(src: Tensor, index: Tensor, dim: int = 0, dim_size: int | None 
     Shapes as :func:`scatter_sum`.
     """
     dim, dim_size = _check(src, index, dim, dim_size)
-    total = scatter_sum(src, index, dim, dim_size)
+    total = _sum(src, index, dim, dim_size)
     count = scatter_count(index, dim_size).clamp_min(1).to(src.dtype)
     shape = [1] * src.ndim
     shape[dim] = -1

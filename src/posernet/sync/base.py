@@ -36,6 +36,7 @@ from torch import Tensor
 
 from ..geometry import quaternion_to_rotation_matrix
 from ..graph import GraphBatch, ViewGraph
+from ..nn.scatter import scatter_count
 
 __all__ = [
     "SCALE_POLICIES",
@@ -249,8 +250,8 @@ def validate_sync_input(struct: dict[str, Any], edge_pose: Tensor | None) -> Non
         e = int((ei[0] == ei[1]).nonzero()[0, 0])
         raise ValueError(f"edge {e} is a self loop on node {int(ei[0, e])}")
     B = struct["num_graphs"]
-    nodes = torch.bincount(struct["node_batch"], minlength=B)
-    edges = torch.bincount(struct["edge_batch"], minlength=B)
+    nodes = scatter_count(struct["node_batch"], B)
+    edges = scatter_count(struct["edge_batch"], B)
     for what, bad in (("fewer than 2 nodes", nodes < 2), ("no edges", edges == 0)):
         if bool(bad.any()):
             g = int(bad.nonzero()[0, 0])
@@ -326,13 +327,13 @@ def connected_components(edge_index: Tensor, num_nodes: int, node_batch: Tensor,
             break
         label = new
     roots, comp = torch.unique(label, return_inverse=True)
-    size = torch.bincount(comp, minlength=roots.numel())
+    size = scatter_count(comp, roots.numel())
     graph = node_batch[roots]
     order = torch.argsort(comp, stable=True)
     start = torch.cumsum(size, 0) - size
     local = torch.empty_like(comp)
     local[order] = torch.arange(num_nodes, device=dev) - start[comp[order]]
-    gnc = torch.bincount(graph, minlength=num_graphs)
+    gnc = scatter_count(graph, num_graphs)
     return Components(comp=comp, size=size, graph=graph, local=local, graph_num_components=gnc)
 
 
@@ -396,7 +397,7 @@ def build_padded(edge_index: Tensor, R: Tensor, t: Tensor, comps: Components) ->
     node[node_g[keep], comps.local[keep]] = keep.nonzero().squeeze(1)
     E = edge_index.shape[1]
     edge_g = remap[comps.comp[edge_index[0]]]
-    ecount = torch.bincount(edge_g, minlength=G)
+    ecount = scatter_count(edge_g, G)
     m = int(ecount.max())
     order = torch.argsort(edge_g, stable=True)
     start = torch.cumsum(ecount, 0) - ecount
