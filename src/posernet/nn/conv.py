@@ -224,14 +224,20 @@ def validate_inputs(
             fail(f"{name} must have shape [M, 4] = [{M}, 4], got {_shape(t)}")
         if t.dtype != x.dtype:
             fail(f"{name} dtype {t.dtype} differs from x dtype {x.dtype}")
-    for name, t, size, what in (("edge_index", edge_index, N, "nodes"),
-                                ("pair_edge", pair_edge, E, "edges")):
+    ranged = (("edge_index", edge_index, N, "nodes"), ("pair_edge", pair_edge, E, "edges"))
+    for name, t, _, _ in ranged:
         if t.dtype != torch.long:
             fail(f"{name} must be torch.long, got {t.dtype}")
-        if t.numel() and (int(t.min()) < 0 or int(t.max()) >= size):
-            fail(f"{name} values must lie in [0, {size}) ({size} {what}), "
-                 f"got [{int(t.min())}, {int(t.max())}]")
-    if E and bool((edge_index[0] == edge_index[1]).any()):
+    # One host sync for all index checks (each int()/bool() of a GPU tensor waits for it);
+    # the detailed message is worked out only when something is wrong.
+    flags = [((t < 0) | (t >= size)).any() for _, t, size, _ in ranged if t.numel()]
+    if E:
+        flags.append((edge_index[0] == edge_index[1]).any())
+    if flags and bool(torch.stack(flags).any()):
+        for name, t, size, what in ranged:
+            if t.numel() and (int(t.min()) < 0 or int(t.max()) >= size):
+                fail(f"{name} values must lie in [0, {size}) ({size} {what}), "
+                     f"got [{int(t.min())}, {int(t.max())}]")
         fail("edge_index has a self loop (source == target)")
 
 
