@@ -236,3 +236,34 @@ def test_json_export_round_trips(tmp_path: Path):
     assert len(back) == len(ours)
     for a, b in zip(ours, back, strict=True):
         assert a.num_nodes == b.num_nodes and a.num_edges == b.num_edges
+
+
+def test_parts_cover_every_graph_once_and_spread_over_many_workers():
+    from posernet.data.synthetic.chunks import plan_chunks
+    from posernet.data.synthetic.generate import plan_parts
+
+    chunks = plan_chunks(load_preset("paper"))
+    for workers in (1, 2, 16):
+        parts = plan_parts(chunks, workers)
+        for c in chunks:
+            idx = sorted(i for pc, r in parts if pc == c for i in r)
+            assert idx == list(range(c.count)), (workers, c.relpath)
+    assert len(plan_parts(chunks, 1)) == len(chunks)  # one process: whole chunks
+    assert len(plan_parts(chunks, 16)) >= 4 * 16 // 2  # many workers: many parts
+
+
+def test_parts_of_a_chunk_join_into_the_whole_chunk():
+    from posernet.data.synthetic.chunks import Chunk, merge_stats, simulate_chunk, split_chunk
+
+    opts = options_from_dict(mini())
+    chunk = Chunk("small", "train", "chess", 3, 4)
+    whole, st_whole = simulate_chunk(opts, chunk, seed=5)
+    parts = [simulate_chunk(opts, chunk, seed=5, graphs_range=r) for r in split_chunk(chunk, 2)]
+    assert [len(g) for g, _ in parts] == [1, 2]
+    joined = [g for gs, _ in parts for g in gs]
+    assert [g.name for g in joined] == [g.name for g in whole]
+    for a, b in zip(joined, whole, strict=True):
+        assert torch.equal(a.edge_pose, b.edge_pose) and torch.equal(a.det_box, b.det_box)
+    assert same_payload(merge_stats([st for _, st in parts]), st_whole)
+    with pytest.raises(ValueError, match="outside"):
+        simulate_chunk(opts, chunk, seed=5, graphs_range=range(2, 5))

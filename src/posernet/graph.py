@@ -32,6 +32,7 @@ from __future__ import annotations
 import dataclasses
 import io
 import os
+import sys
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -442,6 +443,24 @@ class GraphBatch(ViewGraph):
 # --------------------------------------------------------------------------- storage
 
 
+def _canonical(obj: Any) -> Any:
+    """A copy of plain metadata whose pickle depends on its values only.
+
+    Pickle writes an object once and refers back to it when the same object recurs, so equal
+    strings that happen to be one object (or not) give different bytes. Interning strings and
+    rebuilding containers makes graphs made in another process save to the same bytes.
+    """
+    if isinstance(obj, str):
+        return sys.intern(str(obj))
+    if isinstance(obj, dict):
+        return {_canonical(k): _canonical(v) for k, v in obj.items()}
+    if isinstance(obj, list):
+        return [_canonical(v) for v in obj]
+    if isinstance(obj, tuple):
+        return tuple(_canonical(v) for v in obj)
+    return obj
+
+
 def save_graphs(path: str | os.PathLike[str], graphs: Sequence[ViewGraph],
                 extra: dict[str, Any] | None = None) -> Path:
     """Write graphs to one ``.pt`` file atomically (temp file + rename).
@@ -459,8 +478,8 @@ def save_graphs(path: str | os.PathLike[str], graphs: Sequence[ViewGraph],
         "version": FORMAT_VERSION,
         "tensors": {k: v for k, v in batch._tensor_items().items() if v is not None},
         "estimates": batch.estimates,
-        "metas": batch.metas,
-        "extra": dict(extra or {}),
+        "metas": _canonical(batch.metas),
+        "extra": _canonical(dict(extra or {})),
     }
     buf = io.BytesIO()
     torch.save(payload, buf)  # a buffer keeps the archive name fixed: same graphs => same bytes

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
+from itertools import pairwise
 from typing import Any
 
 from ...graph import ViewGraph
@@ -17,7 +18,8 @@ from .sampling import GraphStats, build_view_graph, sample_large, sample_small
 from .seeding import make_rng
 from .world import SceneWorld
 
-__all__ = ["Chunk", "plan_chunks", "simulate_chunk", "simulate_graphs"]
+__all__ = ["Chunk", "merge_stats", "plan_chunks", "simulate_chunk", "simulate_graphs",
+           "split_chunk"]
 
 ERROR_KEYS = ("kp_rot", "kp_tdir", "bb_rot", "bb_tdir")
 
@@ -90,18 +92,25 @@ def simulate_chunk(
     seed: int,
     progress: Callable[[int], None] | None = None,
     world: SceneWorld | None = None,
+    graphs_range: range | None = None,
 ) -> tuple[list[ViewGraph], dict[str, Any]]:
     """Simulate the chunk's graphs; returns them (float32) and their statistics.
 
     ``progress(k)`` is called after every ``k`` finished graphs. Graph ``i`` is named
-    ``<scene>-<size>-<split>-<i:05d>``.
+    ``<scene>-<size>-<split>-<i:05d>``. ``graphs_range`` simulates only those graph indices
+    (a part of the chunk, for parallel workers); each graph has its own random stream, so the
+    parts joined by :func:`merge_stats` and concatenation equal the whole chunk bit for bit.
     """
     world = world or SceneWorld(options, chunk.scene, seed)
     seq = options.sequences
     window = round(options.sampling.window_s * seq.frames_per_sequence / seq.duration_s)
     graphs: list[ViewGraph] = []
     stats = _empty_stats()
-    for i in range(chunk.count):
+    indices = range(chunk.count) if graphs_range is None else graphs_range
+    if indices.start < 0 or indices.stop > chunk.count:
+        raise ValueError(f"graphs_range {indices} is outside the chunk's "
+                         f"{chunk.count} graphs")
+    for i in indices:
         rng = make_rng(seed, chunk.scene, chunk.split, chunk.size, "graph", i)
         if chunk.size == "small":
             nodes = sample_small(
@@ -127,6 +136,30 @@ def simulate_chunk(
     stats["scene_frames"] = int(world.num_frames)
     stats["pool_frames"] = int(world.pools[chunk.split].frames.size)
     return graphs, stats
+
+
+def merge_stats(parts: list[dict[str, Any]]) -> dict[str, Any]:
+    """Statistics of a chunk from those of its consecutive parts (counts summed, per-graph
+    errors concatenated in order, per-scene constants taken from the first part)."""
+    if not parts:
+        raise ValueError("merge_stats: no parts")
+    out = dict(parts[0], errors={k: list(v) for k, v in parts[0]["errors"].items()})
+    for st in parts[1:]:
+        for k, v in st.items():
+            if k == "errors":
+                for e, vals in v.items():
+                    out["errors"][e] += vals
+            elif k not in ("scene_frames", "pool_frames"):
+                out[k] += v
+    return out
+
+
+def split_chunk(chunk: Chunk, parts: int) -> list[range]:
+    """``parts`` consecutive, near-equal ranges of the chunk's graph indices (fewer when the
+    chunk has fewer graphs)."""
+    k = max(1, min(int(parts), chunk.count))
+    bounds = [chunk.count * j // k for j in range(k + 1)]
+    return [range(a, b) for a, b in pairwise(bounds) if b > a]
 
 
 def simulate_graphs(

@@ -7,8 +7,9 @@ Layout::
     ROOT/<size>/<split>/<scene>.pt     graphs (``posernet.graph.save_graphs``), atomic
     ROOT/json/<size>.json              optional export in the authors' JSON schema
 
-Chunks (one file each) run in worker processes (spawn-safe); each chunk is seeded from
-``(seed, scene, split, size)``, so the files are bit-identical for any number of workers.
+Chunks (one file each) are split into parts of consecutive graphs that run in worker processes
+(spawn-safe); each graph is seeded from ``(seed, scene, split, size, index)``, so the files are
+bit-identical for any number of workers and any split.
 An interrupted run leaves only complete files (atomic rename) and no manifest; ``resume``
 keeps the complete files and makes the rest.
 """
@@ -30,7 +31,7 @@ import torch
 
 from ...graph import load_graphs, save_graphs
 from ...io import atomic_write_json
-from .chunks import Chunk, plan_chunks, simulate_chunk
+from .chunks import Chunk, merge_stats, plan_chunks, simulate_chunk, split_chunk
 from .config import SIZES, SPLITS, ConfigError, DatasetOptions, resolve_options
 from .summary import aggregate_stats, composition_row, error_table, format_summary
 
@@ -41,6 +42,7 @@ __all__ = [
     "GenerationError",
     "export_json",
     "generate_dataset",
+    "plan_parts",
 ]
 
 MANIFEST = "manifest.json"
@@ -188,22 +190,37 @@ def _report(k: int) -> None:
         _QUEUE.put(k)
 
 
-def _run_chunk(
-    options: dict[str, Any],
-    chunk: Chunk,
-    seed: int,
-    root: str,
-    spec_hash: str,
-    progress: Callable[[int], None] | None = None,
-) -> tuple[str, dict[str, Any]]:
-    """Simulate one chunk and write its file atomically; returns its path and statistics."""
+def _simulate_part(
+    options: dict[str, Any], chunk: Chunk, seed: int, graphs_range: range
+) -> tuple[list[Any], dict[str, Any]]:
+    """Worker task: the graphs ``graphs_range`` of ``chunk`` and their statistics."""
     from .config import options_from_dict
 
-    opts = options_from_dict(options)
-    graphs, stats = simulate_chunk(opts, chunk, seed, progress=progress or _report)
+    return simulate_chunk(options_from_dict(options), chunk, seed, progress=_report,
+                          graphs_range=graphs_range)
+
+
+def _save_chunk(root: Path, chunk: Chunk, graphs: list[Any], stats: dict[str, Any],
+                spec_hash: str) -> None:
+    """Write one chunk's file atomically (graphs + statistics + provenance)."""
     extra = {"stats": stats, "chunk": dataclasses.asdict(chunk), "spec_hash": spec_hash}
-    save_graphs(Path(root) / chunk.relpath, graphs, extra=extra)
-    return chunk.relpath, stats
+    save_graphs(root / chunk.relpath, graphs, extra=extra)
+
+
+def plan_parts(todo: list[Chunk], workers: int) -> list[tuple[Chunk, range]]:
+    """Split chunks into parts so ``workers`` processes stay busy until the end.
+
+    A chunk is one file (one scene, split and size) and can hold thousands of graphs; with more
+    workers than big chunks the rest would idle. Parts aim at a quarter of a worker's share of
+    the total cost; biggest parts come first for load balance.
+    """
+    if workers <= 1:
+        return [(c, range(c.count)) for c in todo]
+    target = sum(c.cost for c in todo) / (4 * workers)
+    parts = [(c, r) for c in todo
+             for r in split_chunk(c, -(-c.cost // target) if target > 0 else 1)]
+    parts.sort(key=lambda p: -len(p[1]) * p[0].cost / p[0].count)
+    return parts
 
 
 def _run_all(
@@ -226,38 +243,54 @@ def _run_all(
         dynamic_ncols=True,
     )
     results: dict[str, dict[str, Any]] = {}
-    args = [(opts.to_dict(), c, seed, str(root), spec_hash) for c in todo]
+    parts = plan_parts(todo, workers)
+    # parts of each chunk, by start index, until the chunk is complete and written
+    done: dict[str, dict[int, tuple[list[Any], dict[str, Any]]]] = {c.relpath: {} for c in todo}
+    expected = {c.relpath: sum(1 for pc, _ in parts if pc.relpath == c.relpath) for c in todo}
+
+    def finish(chunk: Chunk, rng: range, out: tuple[list[Any], dict[str, Any]]) -> None:
+        got = done[chunk.relpath]
+        got[rng.start] = out
+        if len(got) == expected[chunk.relpath]:
+            ordered = [got[k] for k in sorted(got)]
+            graphs = [g for gs, _ in ordered for g in gs]
+            stats = merge_stats([st for _, st in ordered])
+            _save_chunk(root, chunk, graphs, stats, spec_hash)
+            results[chunk.relpath] = stats
+            del done[chunk.relpath]
+
+    opts_dict = opts.to_dict()
     try:
-        if workers <= 1 or len(todo) <= 1:
+        if workers <= 1 or len(parts) <= 1:
             import cv2
 
             threads = cv2.getNumThreads()
             cv2.setNumThreads(1)
             try:
-                for a in args:
-                    rel, st = _run_chunk(*a, progress=bar.update)
-                    results[rel] = st
+                for c, rng in parts:
+                    finish(c, rng, simulate_chunk(opts, c, seed, progress=bar.update,
+                                                  graphs_range=rng))
             finally:
                 cv2.setNumThreads(threads)
             return results
         ctx = mp.get_context("spawn")
         q = ctx.Queue()
         with ctx.Pool(
-            processes=min(workers, len(todo)), initializer=_init_worker, initargs=(q,)
+            processes=min(workers, len(parts)), initializer=_init_worker, initargs=(q,)
         ) as pool:
-            pending = [pool.apply_async(_run_chunk, a) for a in args]
+            pending = [(c, rng, pool.apply_async(_simulate_part, (opts_dict, c, seed, rng)))
+                       for c, rng in parts]
             while pending:
                 try:
                     bar.update(q.get(timeout=0.2))
                 except queue_mod.Empty:
                     pass
                 still = []
-                for r in pending:
+                for c, rng, r in pending:
                     if r.ready():
-                        rel, st = r.get()  # re-raises a worker's exception here
-                        results[rel] = st
+                        finish(c, rng, r.get())  # re-raises a worker's exception here
                     else:
-                        still.append(r)
+                        still.append((c, rng, r))
                 pending = still
             while True:  # progress ticks still queued
                 try:
