@@ -50,17 +50,21 @@ def dataset_graphs(root: str, estimate: str) -> list[ViewGraph]:
     return [g.with_estimate(estimate) for g in open_split(root, "small", "train")]
 
 
-def time_epoch(graphs: list[ViewGraph], batch_size: int, threads: int, seed: int) -> float:
+def time_epoch(graphs: list[ViewGraph], batch_size: int, threads: int, seed: int,
+               device: str = "cpu") -> float:
     torch.set_num_threads(threads)
+    warnings.filterwarnings("ignore")
     L.seed_everything(seed, workers=True, verbose=False)
     module = PoserNetModule()
     loader = DataLoader(graphs, batch_size=batch_size, shuffle=True,
                         collate_fn=GraphBatch.from_graphs,
                         generator=torch.Generator().manual_seed(seed))
-    trainer = L.Trainer(accelerator="cpu", devices=1, max_epochs=1, logger=False,
+    trainer = L.Trainer(accelerator="gpu" if device == "cuda" else "cpu", devices=1,
+                        max_epochs=1, logger=False,
                         enable_checkpointing=False, enable_progress_bar=False,
                         enable_model_summary=False, limit_val_batches=0,
-                        num_sanity_val_steps=0, deterministic=True)
+                        num_sanity_val_steps=0,
+                        deterministic=True if device == "cpu" else "warn")
     t0 = time.perf_counter()
     trainer.fit(module, loader)
     return time.perf_counter() - t0
@@ -78,6 +82,10 @@ def main() -> None:
     ap.add_argument("--batch-size", type=int, default=32)
     ap.add_argument("--threads", type=int, nargs="+", default=[1, os.cpu_count() or 1])
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
+    ap.add_argument("--processes", type=int, nargs="+", default=[1],
+                    help="training processes at once, each one epoch (as the experiment "
+                         "runner's --jobs, e.g. several sharing one GPU)")
     ap.add_argument("--out", default=str(RESULTS))
     ap.add_argument("--note", default="", help="a line added to the results (e.g. machine load)")
     args = ap.parse_args()
@@ -103,15 +111,27 @@ def main() -> None:
     print(f"PoserNet default model: {params} parameters")
 
     rows = []
-    for threads in dict.fromkeys(args.threads):
-        sec = time_epoch(graphs, args.batch_size, threads, args.seed)
-        steps = -(-len(graphs) // args.batch_size)
-        rows.append((threads, sec, steps))
-        print(f"threads={threads}: one epoch {sec:.1f} s ({steps} steps, "
-              f"{1000 * sec / steps:.1f} ms/step, {len(graphs) / sec:.0f} graphs/s)")
+    steps = -(-len(graphs) // args.batch_size)
+    for procs in dict.fromkeys(args.processes):
+        for threads in dict.fromkeys(args.threads):
+            task = (graphs, args.batch_size, threads, args.seed, args.device)
+            if procs == 1:
+                secs = [time_epoch(*task)]
+            else:
+                import multiprocessing as mp
 
+                with mp.get_context("spawn").Pool(procs) as pool:
+                    secs = pool.starmap(time_epoch, [task] * procs)
+            sec = max(secs)  # wall time until the last process finished its epoch
+            rows.append((procs, threads, sec, steps))
+            print(f"{args.device} processes={procs} threads={threads}: one epoch each in "
+                  f"{sec:.1f} s ({1000 * sec / steps:.1f} ms/step per process, "
+                  f"{procs * len(graphs) / sec:.0f} graphs/s in all)")
+
+    gpu = (f", GPU {torch.cuda.get_device_name(0)}"
+           if args.device == "cuda" and torch.cuda.is_available() else "")
     lines = [
-        "# One PoserNet training epoch (CPU)",
+        f"# One PoserNet training epoch ({args.device})",
         "",
         f"- data: {source}",
         f"- {len(graphs)} graphs/epoch, {n_edges:.2f} edges/graph, {n_pairs:.2f} matched "
@@ -119,13 +139,17 @@ def main() -> None:
         f"- model: default PoserNet (depth 2, 3x32 MLPs), {params} parameters; Lightning "
         "`fit` for one epoch, no validation, no logger/checkpoint",
         f"- machine: {platform.processor() or platform.machine()}, {os.cpu_count()} CPU cores, "
-        f"torch {torch.__version__}; 1-minute load average before the run: {load:.2f}",
+        f"torch {torch.__version__}{gpu}; 1-minute load average before the run: {load:.2f}",
         *([f"- note: {args.note}"] if args.note else []),
         "",
-        "| torch threads | epoch (s) | steps | ms/step | graphs/s |",
-        "|---:|---:|---:|---:|---:|",
-        *[f"| {t} | {s:.1f} | {n} | {1000 * s / n:.1f} | {len(graphs) / s:.0f} |"
-          for t, s, n in rows],
+        "Processes: that many training processes at once, each one epoch on the device (the "
+        "experiment runner's `--jobs`); epoch: wall time until the last one finished.",
+        "",
+        "| device | processes | torch threads | epoch (s) | steps | ms/step per process | "
+        "graphs/s in all |",
+        "|---|---:|---:|---:|---:|---:|---:|",
+        *[f"| {args.device} | {p} | {t} | {s:.1f} | {n} | {1000 * s / n:.1f} | "
+          f"{p * len(graphs) / s:.0f} |" for p, t, s, n in rows],
         "",
         f"Command: `{shlex.join(['python', 'benchmarks/bench_train_epoch.py', *sys.argv[1:]])}`",
         "",

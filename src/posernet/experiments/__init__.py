@@ -11,7 +11,16 @@ supplementary's figures), at scale ``quick`` (tiny synthetic data, minutes on a 
 from __future__ import annotations
 
 from .digest import digest_markdown, write_digest
-from .runner import EXPERIMENTS, SCALES, Scale, parse_only, run_experiments
+from .runner import (
+    EXPERIMENTS,
+    MODELS,
+    SCALES,
+    Scale,
+    parse_only,
+    required_models,
+    run_experiments,
+    train_models,
+)
 
-__all__ = ["EXPERIMENTS", "SCALES", "Scale", "digest_markdown", "parse_only", "run_experiments",
-           "write_digest"]
+__all__ = ["EXPERIMENTS", "MODELS", "SCALES", "Scale", "digest_markdown", "parse_only",
+           "required_models", "run_experiments", "train_models", "write_digest"]

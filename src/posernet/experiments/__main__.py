@@ -31,6 +31,14 @@ def _parser() -> argparse.ArgumentParser:
                    help="torch CPU threads (1 is fastest for small graphs; 0: torch default)")
     p.add_argument("--workers", type=int, default=2,
                    help="processes generating the synthetic dataset (first run only)")
+    p.add_argument("--jobs", type=int, default=1,
+                   help="train the models the experiments need first, this many processes at "
+                        "a time (several can share one GPU); 1: train each when first needed")
+    p.add_argument("--train-only", action="store_true",
+                   help="stop after training the models (evaluate later, e.g. elsewhere)")
+    p.add_argument("--data", default=None,
+                   help="an existing dataset directory (posernet-make-data) instead of "
+                        "generating the scale's dataset into OUT/data")
     return p
 
 
@@ -44,7 +52,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         parser.error(str(exc))
     try:
         status = run_experiments(args.scale, args.out, only=names, device=args.device,
-                                 num_threads=args.threads or None, workers=args.workers)
+                                 num_threads=args.threads or None, workers=args.workers,
+                                 jobs=args.jobs, train_only=args.train_only, data=args.data)
     except (ValueError, FileNotFoundError) as exc:
         print(f"posernet.experiments: error: {exc}", file=sys.stderr)
         return 1

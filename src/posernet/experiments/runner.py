@@ -34,12 +34,15 @@ from .tables import MedianRow, MedianTable, interleave, ours
 
 __all__ = [
     "EXPERIMENTS",
+    "MODELS",
     "SCALES",
     "Context",
     "ModelSpec",
     "Scale",
     "parse_only",
+    "required_models",
     "run_experiments",
+    "train_models",
 ]
 
 log = logging.getLogger(__name__)
@@ -182,7 +185,7 @@ class Context:
     scale: Scale
     out: Path
     device: str = "cpu"
-    data_root: Path = field(init=False)
+    data_root: Path | None = None  # default: ``<out>/data``
     _graphs: dict[tuple[Any, ...], list[Any]] = field(default_factory=dict)
     _evals: dict[tuple[Any, ...], dict[str, Any]] = field(default_factory=dict)
     _results: dict[tuple[Any, ...], Any] = field(default_factory=dict)
@@ -190,7 +193,8 @@ class Context:
     used: list[str] = field(default_factory=list)
 
     def __post_init__(self) -> None:
-        self.data_root = self.out / "data"
+        if self.data_root is None:
+            self.data_root = self.out / "data"
 
     # ---------------------------------------------------------------- data
     def ensure_data(self, workers: int = 2) -> None:
@@ -221,10 +225,13 @@ class Context:
         return self._graphs[key]
 
     def scenes(self) -> list[str]:
-        """Scenes with small test graphs."""
+        """Scenes with small graphs (train or test: a dataset made for training elsewhere may
+        have no test split)."""
         from ..data.store import available_scenes
 
-        return list(available_scenes(self.data_root, "small", "test"))
+        have = {*available_scenes(self.data_root, "small", "train"),
+                *available_scenes(self.data_root, "small", "test")}
+        return sorted(have)
 
     # ---------------------------------------------------------------- models
     def _finished(self, run_dir: Path) -> Path | None:
@@ -276,7 +283,10 @@ class Context:
                                   monitor="val/loss", mode="min", save_top_k=1, save_last=True)
         trainer = L.Trainer(max_epochs=s.epochs_large if large else s.epochs_small,
                             accelerator="gpu" if self.device == "cuda" else "cpu", devices=1,
-                            deterministic=True, logger=False, callbacks=[ckpt_cb],
+                            # "warn" on a GPU: a CUDA op without a deterministic kernel
+                            # must not stop a long run (tests/test_cuda.py checks ours have one)
+                            deterministic=True if self.device == "cpu" else "warn",
+                            logger=False, callbacks=[ckpt_cb],
                             enable_model_summary=False, enable_progress_bar=s.progress_bar,
                             num_sanity_val_steps=0, default_root_dir=str(run_dir))
         # an interrupted run resumes from its last epoch (weights, optimiser, best-so-far)
@@ -364,7 +374,7 @@ def table1(ctx: Context, out: Path) -> list[Path]:
     """Table 1: initial vs refined relative poses, KP and BB, small graphs."""
     seeds = ctx.scale.seeds
     specs = {e: ModelSpec(estimate=e) for e in ("bb", "kp")}
-    _jobs(ctx, [(sp, s) for sp in specs.values() for s in seeds], "table1")
+    _jobs(ctx, MODELS["table1"](ctx), "table1")
     paper = {k: P.paper_row(("paper", *k), v) for k, v in P.TABLE1.items()}
     mine: dict[tuple[str, ...], TableRow] = {}
     for est, spec in specs.items():
@@ -417,7 +427,7 @@ def table2(ctx: Context, out: Path) -> list[Path]:
     """Table 2: train on small / large graphs, test on small / large graphs (KP)."""
     seeds = ctx.scale.seeds
     specs = {"Small": ModelSpec(size="small"), "Large": ModelSpec(size="large")}
-    _jobs(ctx, [(sp, s) for sp in specs.values() for s in seeds], "table2")
+    _jobs(ctx, MODELS["table2"](ctx), "table2")
     paper = {k: P.paper_row(("paper", *k), v, 7000 if k[1] == "Small" else 5)
              for k, v in P.TABLE2.items()}
     mine: dict[tuple[str, ...], TableRow] = {}
@@ -452,7 +462,7 @@ def table3(ctx: Context, out: Path) -> list[Path]:
     """Table 3: absolute poses from motion averaging of initial vs refined relative poses."""
     seeds = ctx.scale.seeds
     specs = {e: ModelSpec(estimate=e) for e in ("bb", "kp")}
-    _jobs(ctx, [(sp, s) for sp in specs.values() for s in seeds], "table3")
+    _jobs(ctx, MODELS["table3"](ctx), "table3")
     rows: list[TableRow] = []
     notes: list[str] = []
     backends = table3_backends()
@@ -500,7 +510,7 @@ def depth(ctx: Context, out: Path) -> list[Path]:
     seeds = ctx.scale.ablation_seeds
     dspecs = {d: ModelSpec(depth=d) for d in ctx.scale.depths}
     aspecs = {a: ModelSpec(alpha=a) for a in ctx.scale.alphas}
-    _jobs(ctx, [(sp, s) for sp in (*dspecs.values(), *aspecs.values()) for s in seeds], "depth")
+    _jobs(ctx, MODELS["depth"](ctx), "depth")
     files: list[Path] = []
     full: list[TableRow] = []
     for what, specs, paper in (("depth", dspecs, P.DEPTH_MEDIANS),
@@ -531,7 +541,7 @@ def loo(ctx: Context, out: Path) -> list[Path]:
         raise ValueError(f"loo needs at least two scenes, the dataset has {scenes}")
     specs = {sc: ModelSpec(leave_out=sc) for sc in scenes}
     allspec = ModelSpec()
-    _jobs(ctx, [(sp, s) for sp in (*specs.values(), allspec) for s in seeds], "loo")
+    _jobs(ctx, MODELS["loo"](ctx), "loo")
     mt = MedianTable("test scene", title="Leave-one-scene-out (KP, small graphs)")
     per_scene: list[tuple[list[float], list[float]]] = []
     full: list[TableRow] = []
@@ -618,6 +628,91 @@ def plots(ctx: Context, out: Path) -> list[Path]:
     return files
 
 
+Job = tuple[ModelSpec, int]
+
+
+def _table1_models(ctx: Context) -> list[Job]:
+    return [(ModelSpec(estimate=e), s) for e in ("bb", "kp") for s in ctx.scale.seeds]
+
+
+def _table2_models(ctx: Context) -> list[Job]:
+    return [(ModelSpec(size=z), s) for z in ("small", "large") for s in ctx.scale.seeds]
+
+
+def _depth_models(ctx: Context) -> list[Job]:
+    specs = [*(ModelSpec(depth=d) for d in ctx.scale.depths),
+             *(ModelSpec(alpha=a) for a in ctx.scale.alphas)]
+    return [(sp, s) for sp in specs for s in ctx.scale.ablation_seeds]
+
+
+def _loo_models(ctx: Context) -> list[Job]:
+    specs = [*(ModelSpec(leave_out=sc) for sc in ctx.scenes()), ModelSpec()]
+    return [(sp, s) for sp in specs for s in ctx.scale.ablation_seeds]
+
+
+def _plots_models(ctx: Context) -> list[Job]:
+    return [(ModelSpec(estimate=e), ctx.scale.seeds[0]) for e in ("kp", "bb")]
+
+
+# The models each experiment needs (trained on demand, or up front by ``train_models``).
+MODELS: dict[str, Callable[[Context], list[Job]]] = {
+    "table1": _table1_models, "table2": _table2_models, "table3": _table1_models,
+    "depth": _depth_models, "loo": _loo_models, "plots": _plots_models,
+}
+
+
+def required_models(ctx: Context, names: Sequence[str]) -> list[Job]:
+    """Every ``(spec, seed)`` the experiments ``names`` need, each once, in a stable order."""
+    return list(dict.fromkeys(job for n in names for job in MODELS[n](ctx)))
+
+
+def _train_one(scale: Scale, out: str, data_root: str, device: str, threads: int | None,
+               spec: ModelSpec, seed: int) -> tuple[str, float]:
+    """Worker process: train (or find) one model; returns its key and the seconds it took."""
+    if threads:
+        torch.set_num_threads(int(threads))
+    _quiet()
+    t0 = time.perf_counter()
+    ctx = Context(scale, Path(out), device=device, data_root=Path(data_root))
+    ctx.checkpoint(spec, seed)
+    return f"{spec.key}/seed{seed}", time.perf_counter() - t0
+
+
+def _train_one_packed(args: tuple[Any, ...]) -> tuple[str, float]:
+    return _train_one(*args)
+
+
+def train_models(ctx: Context, jobs: Sequence[Job], processes: int = 1,
+                 threads: int | None = 1) -> list[str]:
+    """Train every model of ``jobs`` not yet in ``<out>/models``, ``processes`` at a time.
+
+    Each model trains in its own process (spawned, so CUDA works; one torch thread each by
+    default); several processes may share one GPU. Lightning's progress bars are off in the
+    workers and one bar counts finished models. Returns the keys of the models trained now.
+    """
+    import multiprocessing as mp
+
+    todo = [j for j in dict.fromkeys(jobs)
+            if ctx._finished(ctx.out / "models" / j[0].key / f"seed{j[1]}") is None]
+    if not todo:
+        return []
+    if processes <= 1:
+        for spec, seed in tqdm(todo, desc="train: models", unit="model"):
+            ctx.checkpoint(spec, seed)
+        return [f"{sp.key}/seed{s}" for sp, s in todo]
+    quiet = replace(ctx.scale, progress_bar=False)
+    args = [(quiet, str(ctx.out), str(ctx.data_root), ctx.device, threads, sp, s)
+            for sp, s in todo]
+    trained = []
+    with mp.get_context("spawn").Pool(min(processes, len(todo)), maxtasksperchild=1) as pool, \
+            tqdm(total=len(todo), desc="train: models", unit="model") as bar:
+        for key, sec in pool.imap_unordered(_train_one_packed, args):
+            trained.append(key)
+            bar.update(1)
+            log.info("trained %s in %.0f s", key, sec)
+    return trained
+
+
 EXPERIMENTS: dict[str, Callable[[Context, Path], list[Path]]] = {
     "table1": table1, "table2": table2, "table3": table3, "depth": depth, "loo": loo,
     "plots": plots,
@@ -653,11 +748,16 @@ def _quiet() -> None:
 
 def run_experiments(scale: str | Scale, out: str | Path, only: str | Sequence[str] | None = None,
                     device: str = "cpu", num_threads: int | None = 1, workers: int = 2,
-                    echo: Callable[[str], None] | None = print) -> dict[str, dict[str, Any]]:
+                    echo: Callable[[str], None] | None = print, jobs: int = 1,
+                    train_only: bool = False,
+                    data: str | Path | None = None) -> dict[str, dict[str, Any]]:
     """Run the chosen experiments at ``scale`` into ``out``; return ``{name: status}``.
 
     A failing experiment is recorded in ``summary.md`` (with its error) and the others still
     run. ``device``: ``cpu``, ``cuda`` or ``auto``; ``workers``: data-generation processes.
+    ``jobs`` > 1 trains every model the experiments need first, that many processes at a time
+    (e.g. several per GPU); ``train_only`` stops after that. ``data``: an existing dataset
+    directory to use instead of generating the scale's into ``<out>/data``.
     """
     if isinstance(scale, str):
         if scale not in SCALES:
@@ -668,21 +768,37 @@ def run_experiments(scale: str | Scale, out: str | Path, only: str | Sequence[st
         device = "cuda" if torch.cuda.is_available() else "cpu"
     if device not in ("cpu", "cuda"):
         raise ValueError(f"device must be cpu, cuda or auto, got {device!r}")
+    if isinstance(jobs, bool) or not isinstance(jobs, int) or jobs < 1:
+        raise ValueError(f"jobs must be an integer >= 1, got {jobs!r}")
+    if data is not None and not (Path(data) / "manifest.json").is_file():
+        raise FileNotFoundError(f"--data {data}: not a complete posernet dataset (no "
+                                "manifest.json); generate one with posernet-make-data")
     if num_threads:
         torch.set_num_threads(int(num_threads))
     _quiet()
     say = echo or (lambda _msg: None)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    ctx = Context(scale, out, device=device)
+    ctx = Context(scale, out, device=device, data_root=None if data is None else Path(data))
     t_all = time.perf_counter()
     status: dict[str, dict[str, Any]] = {}
     t0 = time.perf_counter()
-    say(f"[data] synthetic dataset for scale '{scale.name}' -> {ctx.data_root}")
-    ctx.ensure_data(workers)
+    if data is None:
+        say(f"[data] synthetic dataset for scale '{scale.name}' -> {ctx.data_root}")
+        ctx.ensure_data(workers)
+    else:
+        say(f"[data] using the dataset in {ctx.data_root}")
     status["data"] = {"ok": True, "seconds": time.perf_counter() - t0, "files": [],
                       "error": None, "trained": [], "models": []}
-    for name in names:
+    if jobs > 1 or train_only:
+        t0 = time.perf_counter()
+        models = required_models(ctx, names)
+        say(f"[train] {len(models)} models for {','.join(names)}, {jobs} at a time on {device}")
+        trained = train_models(ctx, models, processes=jobs, threads=num_threads)
+        status["train"] = {"ok": True, "seconds": time.perf_counter() - t0, "files": [],
+                           "error": None, "trained": trained,
+                           "models": [f"{sp.key}/seed{s}" for sp, s in models]}
+    for name in ([] if train_only else names):
         say(f"[{name}] running")
         t0 = time.perf_counter()
         before, used_before = len(ctx.trained), len(ctx.used)
@@ -767,7 +883,7 @@ def write_summary(out: Path, scale: Scale, status: dict[str, dict[str, Any]], to
              "| experiment | status | wall time (s) | models trained | models used "
              "(their training, s) | table | finished |",
              "|---|---|---:|---:|---:|---|---|"]
-    order = ["data", *EXPERIMENTS]
+    order = ["data", "train", *EXPERIMENTS]
     for name in sorted(runs, key=lambda n: order.index(n) if n in order else len(order)):
         st = runs[name]
         table = next((Path(f).relative_to(out).as_posix() for f in st["files"]
