@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
+import io
 import json
 import multiprocessing as mp
 import os
@@ -190,14 +191,24 @@ def _report(k: int) -> None:
         _QUEUE.put(k)
 
 
-def _simulate_part(
-    options: dict[str, Any], chunk: Chunk, seed: int, graphs_range: range
-) -> tuple[list[Any], dict[str, Any]]:
-    """Worker task: the graphs ``graphs_range`` of ``chunk`` and their statistics."""
+def _simulate_part(options: dict[str, Any], chunk: Chunk, seed: int, graphs_range: range) -> bytes:
+    """Worker task: the graphs ``graphs_range`` of ``chunk`` and their statistics, serialised.
+
+    One ``torch.save`` blob: a pool result holding the tensors themselves would share each
+    through its own file descriptor and run out of them for thousands of graphs.
+    """
     from .config import options_from_dict
 
-    return simulate_chunk(options_from_dict(options), chunk, seed, progress=_report,
-                          graphs_range=graphs_range)
+    out = simulate_chunk(options_from_dict(options), chunk, seed, progress=_report,
+                         graphs_range=graphs_range)
+    buf = io.BytesIO()
+    torch.save(out, buf)
+    return buf.getvalue()
+
+
+def _unpack_part(blob: bytes) -> tuple[list[Any], dict[str, Any]]:
+    # our own worker's output (ViewGraph objects), hence weights_only=False
+    return torch.load(io.BytesIO(blob), map_location="cpu", weights_only=False)
 
 
 def _save_chunk(root: Path, chunk: Chunk, graphs: list[Any], stats: dict[str, Any],
@@ -288,7 +299,7 @@ def _run_all(
                 still = []
                 for c, rng, r in pending:
                     if r.ready():
-                        finish(c, rng, r.get())  # re-raises a worker's exception here
+                        finish(c, rng, _unpack_part(r.get()))  # re-raises a worker's error
                     else:
                         still.append((c, rng, r))
                 pending = still
