@@ -36,18 +36,21 @@ lint: $(STAMP)  ## ruff check (style and common bugs)
 demo: $(STAMP)  ## run the main job on the built-in synthetic default
 	$(VENV)/bin/posernet-demo out_dir=$(DEMO_DIR)
 
-paper: $(STAMP)  ## every paper experiment at full size (~6 h on 2 CPU cores) into results/paper
+paper: $(STAMP)  ## every paper experiment at full size (~7 h on 2 CPU cores) into results/paper
 	$(MAKE) --no-print-directory experiments SCALE=paper
 
 paper-medium: $(STAMP)  ## the same with a tenth of the small graphs (~1 h on 2 cores) into results/medium
 	$(MAKE) --no-print-directory experiments SCALE=medium
 
-# two runner processes (one torch thread each) share the data and the models cache of one folder
+# Stages, each training its models JOBS at a time (--jobs; e.g. JOBS=8 DEVICE=cuda on a GPU) and
+# then writing its tables, so the first tables land early; models are cached in the folder.
+JOBS   ?= 2
+DEVICE ?= cpu
 experiments: $(STAMP)
-	$(PY) -m posernet.experiments --scale $(SCALE) --out results/$(SCALE) \
-		--only table1,table2,table3,plots,depth & pid=$$!; \
-	$(PY) -m posernet.experiments --scale $(SCALE) --out results/$(SCALE) --only loo,depth; \
-	rc=$$?; wait $$pid && exit $$rc
+	rc=0; for only in table1,table3,plots table2 depth loo; do \
+		$(PY) -m posernet.experiments --scale $(SCALE) --out results/$(SCALE) --only $$only \
+			--jobs $(JOBS) --device $(DEVICE) || rc=1; \
+	done; exit $$rc
 
 paper-quick: $(STAMP)  ## the same experiments at a tiny scale (under a minute) into outputs/paper-quick
 	$(PY) -m posernet.experiments --scale quick --out outputs/paper-quick
