@@ -255,3 +255,42 @@ def test_digest_pairs_ours_with_the_paper(tmp_path: Path) -> None:
     assert "| KP | PoserNet | 6.4 ± 0.2 | 7.3 ± 0.1 | 63.1 ± 4.0 | 14.5 ± 0.1 |" in text
     assert "| KP | Initial | 24.8 |  | 72.6 |  |" in text  # no paper row: empty cells
     assert "| chess | 6.0 | 7.3 | 58.1 | 21.0 |" in text
+
+
+@pytest.mark.slow
+def test_required_models_list_each_model_once(quick_run: tuple[Path, dict]) -> None:
+    from posernet.experiments import MODELS, SCALES, required_models
+    from posernet.experiments.runner import Context
+
+    out, _ = quick_run
+    ctx = Context(SCALES["quick"](), out)
+    jobs = required_models(ctx, list(EXPERIMENTS))
+    assert len(jobs) == len(set(jobs))
+    for name in EXPERIMENTS:
+        assert set(MODELS[name](ctx)) <= set(jobs)
+    # quick: KP/BB x 2 seeds, large x 2 seeds, depth 3-5, alpha 0.5/1, one model per scene
+    assert len(jobs) == 4 + 2 + 3 + 2 + len(ctx.scenes())
+
+
+@pytest.mark.slow
+def test_parallel_training_then_evaluation_from_the_cache(quick_run: tuple[Path, dict],
+                                                          tmp_path: Path) -> None:
+    data = quick_run[0] / "data"
+    status = run_experiments("quick", tmp_path, only="plots", jobs=2, train_only=True,
+                             data=data, echo=None)
+    assert sorted(status) == ["data", "train"]
+    assert sorted(status["train"]["trained"]) == ["bb-small-d2-a0.1/seed0",
+                                                  "kp-small-d2-a0.1/seed0"]
+    assert not (tmp_path / "data").exists()  # --data: nothing generated into OUT
+    assert not (tmp_path / "digest.md").exists()
+    status = run_experiments("quick", tmp_path, only="plots", data=data, echo=None)
+    assert status["plots"]["ok"] and status["plots"]["trained"] == []  # all from the cache
+    assert "| train | ok |" in (tmp_path / "summary.md").read_text()
+
+
+def test_bad_data_or_jobs_are_clear_errors(tmp_path: Path) -> None:
+    with pytest.raises(FileNotFoundError, match="nope.*manifest.json"):
+        run_experiments("quick", tmp_path, data=tmp_path / "nope", echo=None)
+    with pytest.raises(ValueError, match="jobs must be an integer >= 1"):
+        run_experiments("quick", tmp_path, jobs=0, echo=None)
+    assert main(["--out", str(tmp_path), "--data", str(tmp_path / "nope")]) == 1

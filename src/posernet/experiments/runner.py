@@ -820,7 +820,8 @@ def run_experiments(scale: str | Scale, out: str | Path, only: str | Sequence[st
                 if (exp_dir / "table.md").exists() else f"[{name}] done in {dt:.1f} s")
     write_summary(out, scale, status, time.perf_counter() - t_all, device)
     say(f"summary: {out / 'summary.md'}")
-    if any(st["ok"] for n, st in status.items() if n in EXPERIMENTS):
+    if any(st["ok"] for n, st in status.items() if n in EXPERIMENTS) and any(
+            out.glob("*/table.csv")):  # e.g. --only plots writes no table
         say(f"digest (medians, ours vs paper): {write_digest(out)}")
     return status
 
