@@ -21,12 +21,16 @@ def test_poserconv_example_runs():
     assert ns["out"].edge_pose.shape == (2, 7)
 
 
-def test_results_section_quotes_the_committed_digest():
-    """The README's results are the runner's own digest of the committed run, verbatim."""
+def test_results_sections_quote_the_committed_digests():
+    """Each results block of the README (``<!-- results:<scale>:begin -->``) is the runner's own
+    digest of the committed run at that scale, verbatim."""
     root = README.parent
     text = README.read_text(encoding="utf-8")
-    begin, end = "<!-- results:medium:begin -->", "<!-- results:medium:end -->"
-    quoted = text[text.index(begin) + len(begin):text.index(end)].strip()
-    digest = (root / "results" / "medium" / "digest.md").read_text(encoding="utf-8").strip()
-    assert quoted == digest
-    assert (root / "results" / "medium" / "summary.md").is_file()
+    scales = re.findall(r"<!-- results:(\w+):begin -->", text)
+    assert "medium" in scales
+    for scale in scales:
+        begin, end = f"<!-- results:{scale}:begin -->", f"<!-- results:{scale}:end -->"
+        quoted = text[text.index(begin) + len(begin):text.index(end)].strip()
+        digest = (root / "results" / scale / "digest.md").read_text(encoding="utf-8").strip()
+        assert quoted == digest, scale
+        assert (root / "results" / scale / "summary.md").is_file()
