@@ -118,6 +118,21 @@ def test_checkpoint_round_trip(data, tmp_path: Path) -> None:
     assert read_posernet_checkpoint(path)["posernet"]["tag"] == "posernet.PoserNetModule"
 
 
+def test_last_checkpoint_is_the_latest_epoch_even_without_improvement(data,
+                                                                       tmp_path: Path) -> None:
+    from posernet.lit import checkpoint_callbacks
+
+    train, val = data
+    L.seed_everything(1, workers=True)
+    module = PoserNetModule(lr=0.0)  # weights never change: val/loss never improves after epoch 0
+    trainer(tmp_path, epochs=3, callbacks=checkpoint_callbacks(tmp_path),
+            limit_train_batches=2).fit(module, loader(train[:16]), loader(val[:8]))
+    epoch = {name: torch.load(tmp_path / f"{name}.ckpt", weights_only=False)["epoch"]
+             for name in ("best", "last")}
+    assert epoch == {"best": 0, "last": 2}  # resuming from last.ckpt repeats no epoch
+    assert sorted(p.name for p in tmp_path.glob("*.ckpt")) == ["best.ckpt", "last.ckpt"]
+
+
 def test_bad_checkpoints_give_clear_errors(tmp_path: Path) -> None:
     with pytest.raises(CheckpointError, match="checkpoint not found"):
         load_posernet_checkpoint(tmp_path / "missing.ckpt")

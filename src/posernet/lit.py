@@ -27,8 +27,8 @@ from .nn import PoserNet, posernet_loss
 from .nn.model import CHECKPOINT_TAG, CheckpointError
 from .nn.model import read_checkpoint as read_posernet_checkpoint
 
-__all__ = ["CHECKPOINT_TAG", "CheckpointError", "PoserNetModule", "load_posernet_checkpoint",
-           "read_posernet_checkpoint"]
+__all__ = ["CHECKPOINT_TAG", "CheckpointError", "PoserNetModule", "checkpoint_callbacks",
+           "load_posernet_checkpoint", "read_posernet_checkpoint"]
 
 
 
@@ -178,6 +178,27 @@ class PoserNetModule(L.LightningModule):
     def num_parameters(self) -> int:
         """Number of trainable parameters of the network."""
         return sum(p.numel() for p in self.model.parameters() if p.requires_grad)
+
+
+# --------------------------------------------------------------------------- checkpoints
+
+
+def checkpoint_callbacks(dirpath: str | os.PathLike[str], monitor: str = "val/loss",
+                         mode: str = "min") -> list[Any]:
+    """``[best, last]`` checkpoint callbacks: ``best.ckpt`` (best ``monitor``) and ``last.ckpt``
+    (the latest epoch, rewritten every epoch; resume from it).
+
+    One callback with ``save_last=True`` is not enough: Lightning then writes ``last.ckpt`` only
+    in epochs that also wrote a best checkpoint, so a resumed run would repeat the epochs since.
+    """
+    from lightning.pytorch.callbacks import ModelCheckpoint
+
+    best = ModelCheckpoint(dirpath=dirpath, filename="best", monitor=monitor, mode=mode,
+                           save_top_k=1, auto_insert_metric_name=False)
+    # no monitor + save_top_k=1: keep only the newest epoch, always under the same name
+    last = ModelCheckpoint(dirpath=dirpath, filename="last", save_top_k=1,
+                           enable_version_counter=False, auto_insert_metric_name=False)
+    return [best, last]
 
 
 # --------------------------------------------------------------------------- loading

@@ -67,7 +67,10 @@ def train(cfg: DictConfig) -> float:
 
     trainer.fit(model, datamodule=datamodule, ckpt_path=cfg.get("ckpt_path"))
 
-    ckpt_cb = next((c for c in trainer.callbacks if isinstance(c, ModelCheckpoint)), None)
+    checkpoints = [c for c in trainer.callbacks if isinstance(c, ModelCheckpoint)]
+    # the monitored one keeps the best model; one without a monitor keeps the latest epoch
+    ckpt_cb = next((c for c in checkpoints if c.monitor), checkpoints[0] if checkpoints else None)
+    last_cb = next((c for c in checkpoints if not c.monitor), None)
     metric_name = str(cfg.optimized_metric)
     best: float = math.nan
     if ckpt_cb is not None and ckpt_cb.best_model_score is not None:
@@ -86,7 +89,9 @@ def train(cfg: DictConfig) -> float:
             "optimized_metric": metric_name,
             "best": None if math.isnan(best) else best,
             "best_checkpoint": ckpt_cb.best_model_path if ckpt_cb is not None else None,
-            "last_checkpoint": ckpt_cb.last_model_path if ckpt_cb is not None else None,
+            "last_checkpoint": (last_cb.best_model_path if last_cb is not None
+                                else ckpt_cb.last_model_path if ckpt_cb is not None else None)
+                               or None,
             "epochs": int(trainer.current_epoch),
             "num_parameters": model.num_parameters,
             "seed": int(cfg.seed),

@@ -264,10 +264,9 @@ class Context:
 
     def _train(self, spec: ModelSpec, seed: int, run_dir: Path) -> Path:
         import lightning as L
-        from lightning.pytorch.callbacks import ModelCheckpoint
 
         from ..data.datamodule import PoserDataModule
-        from ..lit import PoserNetModule
+        from ..lit import PoserNetModule, checkpoint_callbacks
 
         done = run_dir / "done.json"
         s = self.scale
@@ -279,21 +278,20 @@ class Context:
                              seed=seed)
         module = PoserNetModule(depth=spec.depth, alpha=spec.alpha,
                                 lr=s.lr_large if large else s.lr_small)
-        ckpt_cb = ModelCheckpoint(dirpath=run_dir / "checkpoints", filename="best",
-                                  monitor="val/loss", mode="min", save_top_k=1, save_last=True)
+        ckpt_cb, last_cb = checkpoint_callbacks(run_dir / "checkpoints")
         trainer = L.Trainer(max_epochs=s.epochs_large if large else s.epochs_small,
                             accelerator="gpu" if self.device == "cuda" else "cpu", devices=1,
                             # "warn" on a GPU: a CUDA op without a deterministic kernel
                             # must not stop a long run (tests/test_cuda.py checks ours have one)
                             deterministic=True if self.device == "cpu" else "warn",
-                            logger=False, callbacks=[ckpt_cb],
+                            logger=False, callbacks=[ckpt_cb, last_cb],
                             enable_model_summary=False, enable_progress_bar=s.progress_bar,
                             num_sanity_val_steps=0, default_root_dir=str(run_dir))
         # an interrupted run resumes from its last epoch (weights, optimiser, best-so-far)
         last = run_dir / "checkpoints" / "last.ckpt"
         t0 = time.perf_counter()
         trainer.fit(module, datamodule=dm, ckpt_path=str(last) if last.is_file() else None)
-        best = Path(ckpt_cb.best_model_path or ckpt_cb.last_model_path)
+        best = Path(ckpt_cb.best_model_path or last_cb.best_model_path)
         atomic_write_json(done, {"checkpoint": _relative_to(best, run_dir), "model": spec.key,
                                  "seed": seed,
                                  "epochs": int(trainer.current_epoch),
