@@ -80,6 +80,22 @@ def test_sizes_and_missing_splits(root: Path):
     assert dm.train_graphs[0].num_nodes == 5 and dm.val_graphs[0].num_nodes == 4
 
 
+def test_eval_batch_size_sets_validation_and_test_batches(root: Path):
+    # a large-graph model (batch 1) validated on small graphs: not one step per graph
+    dm = PoserDataModule(root, size="large", val_size="small", batch_size=1, eval_batch_size=2)
+    dm.setup("fit")
+    dm.setup("test")
+    assert [b.num_graphs for b in dm.train_dataloader()] == [1]
+    n = len(dm.val_graphs)
+    assert n >= 2
+    assert [b.num_graphs for b in dm.val_dataloader()] == [min(2, n - k) for k in range(0, n, 2)]
+    assert dm.test_dataloader().batch_size == 2
+    default = PoserDataModule(root, batch_size=3)
+    assert default.eval_batch_size == 3
+    with pytest.raises(ValueError, match="eval_batch_size must be an integer >= 1"):
+        PoserDataModule(root, eval_batch_size=0)
+
+
 def test_bad_arguments(root: Path, tmp_path: Path):
     with pytest.raises(ValueError, match="estimate"):
         PoserDataModule(root, estimate="free")

@@ -42,6 +42,9 @@ class PoserDataModule(L.LightningDataModule):
         test_size: graph size of the test split (default: ``size``).
         val_size: graph size of the validation split (default: ``size``); e.g. ``"small"``
             when training on large graphs, which have no validation split in the paper preset.
+        eval_batch_size: graphs per batch of the validation and test loaders (default:
+            ``batch_size``); e.g. 32 to validate a large-graph model (batch 1) on small graphs
+            without one step per graph.
         shuffle: shuffle the training graphs each epoch (seeded by ``seed``).
         seed: seed of the shuffling.
     """
@@ -58,6 +61,7 @@ class PoserDataModule(L.LightningDataModule):
         shuffle: bool = True,
         seed: int = 0,
         val_size: str | None = None,
+        eval_batch_size: int | None = None,
     ) -> None:
         super().__init__()
         if estimate not in ESTIMATES:
@@ -65,8 +69,11 @@ class PoserDataModule(L.LightningDataModule):
         for name, v in (("size", size), ("test_size", test_size), ("val_size", val_size)):
             if v is not None and v not in SIZES:
                 raise ValueError(f"{name} must be one of {list(SIZES)}, got {v!r}")
-        if isinstance(batch_size, bool) or not isinstance(batch_size, int) or batch_size < 1:
-            raise ValueError(f"batch_size must be an integer >= 1, got {batch_size!r}")
+        for name, v in (("batch_size", batch_size), ("eval_batch_size", eval_batch_size)):
+            if v is None and name == "eval_batch_size":
+                continue
+            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+                raise ValueError(f"{name} must be an integer >= 1, got {v!r}")
         if isinstance(num_workers, bool) or not isinstance(num_workers, int) or num_workers < 0:
             raise ValueError(f"num_workers must be an integer >= 0, got {num_workers!r}")
         self.root = Path(root)
@@ -76,6 +83,7 @@ class PoserDataModule(L.LightningDataModule):
         self.test_size = test_size or size
         self.val_size = val_size or size
         self.batch_size = batch_size
+        self.eval_batch_size = eval_batch_size or batch_size
         self.num_workers = num_workers
         self.shuffle = shuffle
         self.seed = int(seed)
@@ -98,6 +106,7 @@ class PoserDataModule(L.LightningDataModule):
                 "test_size": self.test_size,
                 "val_size": self.val_size,
                 "batch_size": batch_size,
+                "eval_batch_size": self.eval_batch_size,
                 "leave_out_scene": leave_out_scene,
                 "seed": self.seed,
             }
@@ -139,13 +148,14 @@ class PoserDataModule(L.LightningDataModule):
 
     # ------------------------------------------------------------------ loaders
 
-    def _loader(self, graphs: list[ViewGraph] | None, shuffle: bool, what: str) -> DataLoader:
+    def _loader(self, graphs: list[ViewGraph] | None, shuffle: bool, what: str,
+                batch_size: int | None = None) -> DataLoader:
         if graphs is None:
             raise RuntimeError(f"call setup() before {what}_dataloader()")
         gen = torch.Generator().manual_seed(self.seed) if shuffle else None
         return DataLoader(
             graphs,
-            batch_size=self.batch_size,
+            batch_size=batch_size or self.batch_size,
             shuffle=shuffle,
             generator=gen,
             collate_fn=collate_graphs,
@@ -157,13 +167,13 @@ class PoserDataModule(L.LightningDataModule):
         return self._loader(self.train_graphs, self.shuffle, "train")
 
     def val_dataloader(self) -> DataLoader:
-        return self._loader(self.val_graphs, False, "val")
+        return self._loader(self.val_graphs, False, "val", self.eval_batch_size)
 
     def test_dataloader(self) -> DataLoader:
-        return self._loader(self.test_graphs, False, "test")
+        return self._loader(self.test_graphs, False, "test", self.eval_batch_size)
 
     def predict_dataloader(self) -> DataLoader:
-        return self._loader(self.test_graphs, False, "predict")
+        return self._loader(self.test_graphs, False, "predict", self.eval_batch_size)
 
     def transfer_batch_to_device(
         self, batch: Any, device: torch.device, dataloader_idx: int

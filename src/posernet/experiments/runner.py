@@ -274,6 +274,8 @@ class Context:
         L.seed_everything(seed, workers=True, verbose=False)
         dm = PoserDataModule(str(self.data_root), estimate=spec.estimate, size=spec.size,
                              batch_size=s.batch_large if large else s.batch_small,
+                             # validation is on small graphs: batch them as for training there
+                             eval_batch_size=s.batch_small,
                              leave_out_scene=spec.leave_out, val_size="small" if large else None,
                              seed=seed)
         module = PoserNetModule(depth=spec.depth, alpha=spec.alpha,
