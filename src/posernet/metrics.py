@@ -24,6 +24,7 @@ __all__ = [
     "ThresholdRow",
     "absolute_pose_errors",
     "absolute_pose_errors_per_camera",
+    "align_to_ground_truth",
     "per_graph_mean",
     "relative_pose_errors",
     "threshold_row",
@@ -249,6 +250,31 @@ def absolute_pose_errors_per_camera(
     pos = (s[group, None] * (Qn @ ce[..., None]).squeeze(-1) + t[group] - cg).norm(dim=-1)
     nan = torch.full_like(rot, float("nan"))
     return torch.where(valid, rot, nan), torch.where(valid, pos, nan)
+
+
+def align_to_ground_truth(pose_est: Tensor, pose_gt: Tensor, rotation_gauge: str = "rotations",
+                          alignment: str = "similarity") -> Tensor:
+    """``pose_est`` moved into the ground-truth frame as :func:`absolute_pose_errors` sees it.
+
+    ``pose_est, pose_gt [N, 4, 4]`` world-to-camera poses of one graph (at least 3 cameras whose
+    centres are not collinear). Camera centres are mapped by the Umeyama transform of the
+    centres (``alignment``: ``similarity`` or ``rigid``); orientations by the rotation that
+    best aligns the rotations (``rotation_gauge="rotations"``, the metrics' default) or by the
+    centres' rotation (``"centres"``). The rotation and position errors of the result against
+    ``pose_gt`` are those the metrics report, so a plot of it shows what the tables measure.
+    Returns ``[N, 4, 4]`` world-to-camera (float64).
+    """
+    from .geometry import invert_se3, make_se3
+
+    if rotation_gauge not in ROTATION_GAUGES:
+        raise ValueError(f"rotation_gauge={rotation_gauge!r}; choose one of "
+                         f"{list(ROTATION_GAUGES)}")
+    est, gt = invert_se3(pose_est.double()), invert_se3(pose_gt.double())  # camera-to-world
+    s, R, t = umeyama_alignment(est[:, :3, 3], gt[:, :3, 3], with_scale=alignment == "similarity")
+    centres = s * est[:, :3, 3] @ R.mT + t
+    if rotation_gauge == "rotations":
+        R, _, _ = _proper_rotation_from_cov((gt[:, :3, :3] @ est[:, :3, :3].mT).sum(0))
+    return invert_se3(make_se3(R @ est[:, :3, :3], centres))
 
 
 def absolute_pose_errors(

@@ -54,22 +54,12 @@ def _model(cfg: DictConfig, data_dir: Path, out_dir: Path, device: str) -> tuple
     return PoserNet.from_checkpoint(ckpt, map_location=device), f"trained here: {ckpt}"
 
 
-def _aligned(est: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
-    """``est`` world-to-camera poses moved into the ground-truth frame (similarity on centres)."""
-    from ..geometry import invert_se3, make_se3
-    from ..metrics import umeyama_alignment
-
-    c2w = invert_se3(est)
-    s, R, t = umeyama_alignment(c2w[:, :3, 3], invert_se3(gt)[:, :3, 3], with_scale=True)
-    centres = s * c2w[:, :3, 3] @ R.T + t
-    return invert_se3(make_se3(R @ c2w[:, :3, :3], centres))
-
-
 def demo(cfg: DictConfig) -> dict[str, Any]:
     """Run the demo described by ``cfg``; returns the written files."""
     from ..data.store import open_split
     from ..data.synthetic import generate_dataset
     from ..data.synthetic.generate import GenerationError
+    from ..metrics import align_to_ground_truth
     from ..pipeline import evaluate_result, refine_graphs, result_tables
     from ..plots import plot_cameras, plot_sorted_errors
     from ..sync import backend_from_config
@@ -130,7 +120,7 @@ def demo(cfg: DictConfig) -> dict[str, Any]:
             g = graphs[k]
             poses = {"ground truth": g.pose_gt.double()}
             for stage in ("initial", "refined"):
-                poses[stage] = _aligned(result.absolute[stage][k].double(), g.pose_gt.double())
+                poses[stage] = align_to_ground_truth(result.absolute[stage][k], g.pose_gt)
             cams.append(plot_cameras(out / f"cameras_{k}.png", poses,
                                      title=f"{g.name} ({g.meta.get('scene', '')})"))
     files["camera_pngs"] = cams

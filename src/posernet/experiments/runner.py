@@ -571,26 +571,17 @@ def loo(ctx: Context, out: Path) -> list[Path]:
     return files
 
 
-def _aligned(est: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
-    """``est`` world-to-camera poses moved into the ground-truth frame (similarity on centres)."""
-    from ..geometry import invert_se3, make_se3
-    from ..metrics import umeyama_alignment
-
-    c2w = invert_se3(est)
-    s, R, t = umeyama_alignment(c2w[:, :3, 3], invert_se3(gt)[:, :3, 3], with_scale=True)
-    centres = s * c2w[:, :3, 3] @ R.T + t
-    return invert_se3(make_se3(R @ c2w[:, :3, :3], centres))
-
-
 def plots(ctx: Context, out: Path) -> list[Path]:
     """Supplementary plots: sorted per-graph errors (rolling mean) and 3D cameras (EIG-SE3)."""
+    from ..metrics import align_to_ground_truth
     from ..plots import plot_cameras, plot_sorted_errors
 
     seed = ctx.scale.seeds[0]
     files: list[Path] = []
     lines = ["# Supplementary plots", "",
-             f"Model seed {seed}; absolute poses from EIG-SE3, aligned to ground truth "
-             "(similarity, Umeyama on camera centres).", ""]
+             f"Model seed {seed}; absolute poses from EIG-SE3, aligned to ground truth as "
+             "the tables measure them: camera centres by a similarity (Umeyama on the "
+             "centres), orientations by the rotation that best aligns the rotations.", ""]
     for est in ("kp", "bb"):
         spec = ModelSpec(estimate=est)
         res = ctx.result(spec, seed, backend="eig_se3")
@@ -618,7 +609,7 @@ def plots(ctx: Context, out: Path) -> list[Path]:
             gt = g.pose_gt.double()
             poses = {"ground truth": gt}
             for stage in ("initial", "refined"):
-                poses[stage] = _aligned(res.absolute[stage][k].double(), gt)
+                poses[stage] = align_to_ground_truth(res.absolute[stage][k], gt)
             f = plot_cameras(out / f"cameras_{est}_{k}.png", poses,
                              title=f"{est.upper()} {g.name} ({g.meta.get('scene', '')}): GT vs "
                                    "initial vs refined (EIG-SE3)")
