@@ -96,6 +96,9 @@ def test_quick_tables_have_paper_and_our_rows(quick_run: tuple[Path, dict]) -> N
     loo = {r["test scene"]: r for r in _rows(out / "loo" / "table.csv")}
     assert {"chess", "fire", "heads", "median"} <= set(loo)
     assert float(loo["median"]["rot_median_paper"]) == pytest.approx(8.04)
+    per_scene = [int(r["graphs"]) for k, r in loo.items()
+                 if k not in ("median", "all (trained on every scene)")]
+    assert int(loo["median"]["graphs"]) == sum(per_scene) > 0
 
 
 @pytest.mark.slow

@@ -544,24 +544,26 @@ def loo(ctx: Context, out: Path) -> list[Path]:
     _jobs(ctx, MODELS["loo"](ctx), "loo")
     mt = MedianTable("test scene", title="Leave-one-scene-out (KP, small graphs)")
     per_scene: list[tuple[list[float], list[float]]] = []
+    tested = 0
     full: list[TableRow] = []
     for sc, spec in specs.items():
         evals = [ctx.evaluation(spec, s, scene=sc) for s in seeds]
         rot, tdir = _medians(evals)
         per_scene.append((rot, tdir))
-        mt.rows.append(MedianRow(sc, rot, tdir, P.LOO_MEDIANS.get(sc),
-                                 evals[0]["relative"]["refined"]["rot"].count))
+        count = evals[0]["relative"]["refined"]["rot"].count
+        tested += count
+        mt.rows.append(MedianRow(sc, rot, tdir, P.LOO_MEDIANS.get(sc), count))
         full.append(_seed_row(evals, "relative", "refined", ("left out", sc)))
     # median over the scenes' tests, seed by seed
     med_rot = [statistics.median(r[k] for r, _ in per_scene) for k in range(len(seeds))]
     med_tdir = [statistics.median(t[k] for _, t in per_scene) for k in range(len(seeds))]
-    mt.rows.append(MedianRow("median", med_rot, med_tdir, P.LOO_MEDIANS["median"], 0))
+    mt.rows.append(MedianRow("median", med_rot, med_tdir, P.LOO_MEDIANS["median"], tested))
     all_evals = [ctx.evaluation(allspec, s) for s in seeds]
     rot, tdir = _medians(all_evals)
     mt.rows.append(MedianRow("all (trained on every scene)", rot, tdir, P.LOO_MEDIANS["all"],
                              all_evals[0]["relative"]["refined"]["rot"].count))
     full.append(_seed_row(all_evals, "relative", "refined", ("none", "all")))
-    mt.note = ("median: median over the per-scene tests (graphs column 0). "
+    mt.note = ("median: median of the per-scene medians (graphs: all the per-scene tests). "
                + _note(ctx).replace(f"{len(ctx.scale.seeds)} seed(s) {list(ctx.scale.seeds)}",
                                     f"{len(seeds)} seed(s) {list(seeds)}"))
     files = list(mt.write(out))
