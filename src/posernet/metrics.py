@@ -188,6 +188,26 @@ def absolute_pose_errors_per_camera(
     cameras' rotations (chordal mean of ``R_gt_c2w R_est_c2w^T``) and scale and offset from the
     centres given it. Batched: one padded ``[G, K, 3]`` problem, no loop over groups.
     """
+    Re, Rg, ce, cg, s, Q, t, Q_err = _align_groups(pose_est, pose_gt, group, num_groups,
+                                                   alignment, valid, degenerate_tol,
+                                                   rotation_gauge)
+    rot = torch.rad2deg(rotation_angle(Rg.mT @ Q_err @ Re))
+    pos = (s * (Q @ ce[..., None]).squeeze(-1) + t - cg).norm(dim=-1)
+    if valid is None:
+        return rot, pos
+    nan = torch.full_like(rot, float("nan"))
+    return torch.where(valid, rot, nan), torch.where(valid, pos, nan)
+
+
+def _align_groups(pose_est: Tensor, pose_gt: Tensor, group: Tensor, num_groups: int,
+                  alignment: str, valid: Tensor | None, degenerate_tol: float,
+                  rotation_gauge: str) -> tuple[Tensor, ...]:
+    """The per-camera alignment of :func:`absolute_pose_errors_per_camera`.
+
+    Returns camera-to-world rotations ``Re, Rg [N, 3, 3]``, centres ``ce, cg [N, 3]`` and, per
+    camera (its group's), the centres' transform ``s [N, 1], Q [N, 3, 3], t [N, 3]`` and the
+    rotation ``Q_err [N, 3, 3]`` that aligns orientations (``Q`` for the "centres" gauge).
+    """
     if alignment not in ALIGNMENTS:
         raise ValueError(f"alignment={alignment!r}; choose one of {list(ALIGNMENTS)}")
     if rotation_gauge not in ROTATION_GAUGES:
@@ -246,35 +266,28 @@ def absolute_pose_errors_per_camera(
     # "rotations": the rotation error uses the rotation that best aligns the rotations
     # themselves, so bad positions (e.g. from unit-norm translations) do not leak into it.
     Q_err = Q_rot[group] if rotation_gauge == "rotations" else Qn
-    rot = torch.rad2deg(rotation_angle(Rg.mT @ Q_err @ Re))
-    pos = (s[group, None] * (Qn @ ce[..., None]).squeeze(-1) + t[group] - cg).norm(dim=-1)
-    nan = torch.full_like(rot, float("nan"))
-    return torch.where(valid, rot, nan), torch.where(valid, pos, nan)
+    return Re, Rg, ce, cg, s[group, None], Qn, t[group], Q_err
 
 
 def align_to_ground_truth(pose_est: Tensor, pose_gt: Tensor, rotation_gauge: str = "rotations",
                           alignment: str = "similarity") -> Tensor:
     """``pose_est`` moved into the ground-truth frame as :func:`absolute_pose_errors` sees it.
 
-    ``pose_est, pose_gt [N, 4, 4]`` world-to-camera poses of one graph (at least 3 cameras whose
-    centres are not collinear). Camera centres are mapped by the Umeyama transform of the
-    centres (``alignment``: ``similarity`` or ``rigid``); orientations by the rotation that
-    best aligns the rotations (``rotation_gauge="rotations"``, the metrics' default) or by the
-    centres' rotation (``"centres"``). The rotation and position errors of the result against
-    ``pose_gt`` are those the metrics report, so a plot of it shows what the tables measure.
-    Returns ``[N, 4, 4]`` world-to-camera (float64).
+    ``pose_est, pose_gt [N, 4, 4]`` world-to-camera poses of one graph, aligned exactly as
+    :func:`absolute_pose_errors_per_camera` aligns a group (same code): camera centres by the
+    Umeyama transform of the centres (``alignment``: ``similarity`` or ``rigid``), orientations
+    by the rotation that best aligns the rotations (``rotation_gauge="rotations"``, the
+    metrics' default) or by the centres' rotation (``"centres"``). The rotation and position
+    errors of the result against ``pose_gt`` are those the metrics report, so a plot of it shows
+    what the tables measure. Returns ``[N, 4, 4]`` world-to-camera (float64).
     """
     from .geometry import invert_se3, make_se3
 
-    if rotation_gauge not in ROTATION_GAUGES:
-        raise ValueError(f"rotation_gauge={rotation_gauge!r}; choose one of "
-                         f"{list(ROTATION_GAUGES)}")
-    est, gt = invert_se3(pose_est.double()), invert_se3(pose_gt.double())  # camera-to-world
-    s, R, t = umeyama_alignment(est[:, :3, 3], gt[:, :3, 3], with_scale=alignment == "similarity")
-    centres = s * est[:, :3, 3] @ R.mT + t
-    if rotation_gauge == "rotations":
-        R, _, _ = _proper_rotation_from_cov((gt[:, :3, :3] @ est[:, :3, :3].mT).sum(0))
-    return invert_se3(make_se3(R @ est[:, :3, :3], centres))
+    group = torch.zeros(pose_est.shape[0], dtype=torch.long, device=pose_est.device)
+    Re, _, ce, _, s, Q, t, Q_err = _align_groups(pose_est, pose_gt, group, 1, alignment, None,
+                                                 1e-9, rotation_gauge)
+    centres = s * (Q @ ce[..., None]).squeeze(-1) + t
+    return invert_se3(make_se3(Q_err @ Re, centres))
 
 
 def absolute_pose_errors(
