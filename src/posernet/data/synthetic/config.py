@@ -15,6 +15,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from ...frontend.relpose import PoseOptions
+
 __all__ = [
     "ALL_SCENES",
     "CameraOptions",
@@ -131,17 +133,6 @@ class MatchOptions:
     # concentrate on the one or two most textured objects (a poster, a screen, a chessboard):
     # a small, clustered point set on few faces, which leaves 5-point ill-conditioned.
     kp_boxes: int = 0
-
-
-@dataclass
-class PoseOptions:
-    """OpenCV 5-point + RANSAC (``findEssentialMat`` / ``recoverPose``)."""
-
-    method: str = "usac"  # "usac" (USAC_DEFAULT, fast) or "ransac" (classic, as in the paper)
-    ransac_prob: float = 0.999
-    kp_threshold: float = 1.0  # RANSAC threshold (px) on keypoints
-    bb_threshold: float = 1.0  # RANSAC threshold (px) on box centres
-    max_iters: int = 1000
 
 
 @dataclass

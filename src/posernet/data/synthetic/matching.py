@@ -1,12 +1,12 @@
-"""Keypoint matching between two images and the paper's box-matching rules.
+"""Simulated keypoint matching between two images, and simulated box-matching mistakes.
 
 * Keypoints (SuperGlue-like): a 3D keypoint detected in both images is matched with a
   probability that fades with the change of viewing direction and fails beyond a scale change;
   a fraction of matches is wrong (the second image's point is another keypoint).
-* Boxes (supplementary, "ROIs matching"): a box pair matches when it shares at least
-  ``min_keypoints`` matched keypoints spanning at least ``min_span`` of each box's area. A few
-  matched pairs are re-assigned to a wrong box.
-* Images are connected when they share at least ``min_boxes`` matched boxes.
+* A few matched box pairs are re-assigned to a wrong box (:func:`reassign_wrong`).
+
+The box-matching rules themselves (shared keypoints, span, edges) are the image front end's:
+:mod:`posernet.frontend.boxmatch`.
 """
 
 from __future__ import annotations
@@ -17,14 +17,7 @@ import numpy as np
 
 from .config import KeypointOptions
 
-__all__ = [
-    "KeypointMatches",
-    "boxes_contain",
-    "is_connected",
-    "match_boxes",
-    "match_keypoints",
-    "reassign_wrong",
-]
+__all__ = ["KeypointMatches", "match_keypoints", "reassign_wrong"]
 
 
 @dataclass
@@ -97,57 +90,6 @@ def match_keypoints(
     )
 
 
-def boxes_contain(boxes: np.ndarray, uv: np.ndarray) -> np.ndarray:
-    """``(M, B)`` whether point m lies in box b; ``boxes (B, 4)`` xyxy, ``uv (M, 2)``."""
-    x, y = uv[:, 0:1], uv[:, 1:2]
-    return (
-        (x >= boxes[None, :, 0])
-        & (x <= boxes[None, :, 2])
-        & (y >= boxes[None, :, 1])
-        & (y <= boxes[None, :, 3])
-    )
-
-
-def _span(uv: np.ndarray, mask: np.ndarray, area: np.ndarray) -> np.ndarray:
-    """Area of the bounding rectangle of the masked points ``(M, C)`` per column / ``area``."""
-    big = np.inf
-    x1 = np.where(mask, uv[:, 0:1], big).min(0)
-    x2 = np.where(mask, uv[:, 0:1], -big).max(0)
-    y1 = np.where(mask, uv[:, 1:2], big).min(0)
-    y2 = np.where(mask, uv[:, 1:2], -big).max(0)
-    return np.maximum(x2 - x1, 0) * np.maximum(y2 - y1, 0) / np.maximum(area, 1e-9)
-
-
-def match_boxes(
-    uv_a: np.ndarray,
-    uv_b: np.ndarray,
-    boxes_a: np.ndarray,
-    boxes_b: np.ndarray,
-    min_keypoints: int = 15,
-    min_span: float = 0.3,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Box pairs ``(ia, ib)`` sharing >= ``min_keypoints`` matches spanning >= ``min_span``.
-
-    ``uv_a, uv_b (M, 2)`` are matched keypoints; the span of a pair is the area of the bounding
-    rectangle of its shared keypoints over the box area, required in both images. Returns the
-    pair indices (sorted by ``ia``, then ``ib``) and their keypoint counts.
-    """
-    empty = np.zeros(0, np.int64)
-    if uv_a.shape[0] == 0 or boxes_a.shape[0] == 0 or boxes_b.shape[0] == 0:
-        return empty, empty, empty
-    in_a = boxes_contain(boxes_a, uv_a)
-    in_b = boxes_contain(boxes_b, uv_b)
-    counts = in_a.T.astype(np.float32) @ in_b.astype(np.float32)  # (Ba, Bb)
-    ca, cb = np.nonzero(counts >= min_keypoints)
-    if ca.size == 0:
-        return empty, empty, empty
-    mask = in_a[:, ca] & in_b[:, cb]  # (M, C)
-    area_a = (boxes_a[ca, 2] - boxes_a[ca, 0]) * (boxes_a[ca, 3] - boxes_a[ca, 1])
-    area_b = (boxes_b[cb, 2] - boxes_b[cb, 0]) * (boxes_b[cb, 3] - boxes_b[cb, 1])
-    ok = (_span(uv_a, mask, area_a) >= min_span) & (_span(uv_b, mask, area_b) >= min_span)
-    return ca[ok].astype(np.int64), cb[ok].astype(np.int64), counts[ca[ok], cb[ok]].astype(np.int64)
-
-
 def reassign_wrong(
     ia: np.ndarray, ib: np.ndarray, n_boxes_b: int, rate: float, rng: np.random.Generator
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -163,18 +105,3 @@ def reassign_wrong(
     _, first = np.unique(key, return_index=True)
     first.sort()
     return ia[first], ib[first], wrong[first]
-
-
-def is_connected(n: int, edge_index: np.ndarray) -> bool:
-    """Whether ``n`` nodes with edges ``(2, E)`` form one component (union-find)."""
-    parent = list(range(n))
-
-    def find(x: int) -> int:
-        while parent[x] != x:
-            parent[x] = parent[parent[x]]
-            x = parent[x]
-        return x
-
-    for a, b in np.asarray(edge_index).T.tolist():
-        parent[find(a)] = find(b)
-    return n > 0 and len({find(i) for i in range(n)}) == 1

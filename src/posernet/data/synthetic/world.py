@@ -14,11 +14,18 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ...frontend.boxmatch import (
+    box_centres,
+    boxes_contain,
+    keypoints_in_matched_boxes,
+    match_boxes,
+)
+from ...frontend.graphs import PairResult
+from ...frontend.relpose import five_point
 from .camera import intrinsics
 from .config import DatasetOptions
 from .detections import Detections, detect
-from .matching import boxes_contain, match_boxes, match_keypoints, reassign_wrong
-from .relpose import five_point
+from .matching import match_keypoints, reassign_wrong
 from .scenes import Scene, build_scene
 from .seeding import make_rng, stream_seed
 from .trajectories import FramePool, Sequence, frame_pools, make_sequences
@@ -42,31 +49,6 @@ class Frame:
     kp_uv: np.ndarray
     kp_uv_true: np.ndarray
     det: Detections
-
-
-@dataclass
-class PairResult:
-    """An evaluated image pair ``a < b`` (frame ids); poses map camera a to camera b.
-
-    ``box_a, box_b (M,)`` matched detections (local indices), ``wrong (M,)`` re-assigned pairs.
-    ``status`` is ``"edge"``, ``"unmatched"`` (fewer than ``min_boxes`` matched boxes),
-    ``"kp_failed"`` or ``"bb_failed"`` (a 5-point estimate failed: the edge is dropped).
-    """
-
-    a: int
-    b: int
-    box_a: np.ndarray
-    box_b: np.ndarray
-    wrong: np.ndarray
-    n_kp: int
-    n_kp_outliers: int
-    kp: tuple[np.ndarray, np.ndarray] | None
-    bb: tuple[np.ndarray, np.ndarray] | None
-    status: str
-
-    @property
-    def is_edge(self) -> bool:
-        return self.status == "edge"
 
 
 class SceneWorld:
@@ -173,6 +155,8 @@ class SceneWorld:
         none = np.zeros(0, np.int64)
         if m.uv_a.shape[0] < o.matching.min_keypoints:  # cannot match a single box pair
             return PairResult(a, b, none, none, np.zeros(0, bool), 0, 0, None, None, "unmatched")
+        # not one-to-one: the simulated detector gives no nested duplicates, and the datasets
+        # (and results/) were made this way
         ia, ib, _ = match_boxes(
             m.uv_a,
             m.uv_b,
@@ -180,6 +164,7 @@ class SceneWorld:
             fb.det.boxes,
             o.matching.min_keypoints,
             o.matching.min_span,
+            one_to_one=False,
         )
         ia, ib, wrong = reassign_wrong(
             ia, ib, fb.det.boxes.shape[0], o.matching.wrong_match_rate, rng
@@ -187,23 +172,20 @@ class SceneWorld:
         if ia.size < o.matching.min_boxes:
             return PairResult(a, b, ia, ib, wrong, 0, 0, None, None, "unmatched")
         # KP input: the matched keypoints inside the ROIs (paper, Sec. 3.1): inside a matched
-        # box pair ("matched"), or inside any box of each image ("boxes")
-        in_a = boxes_contain(fa.det.boxes, m.uv_a)
-        in_b = boxes_contain(fb.det.boxes, m.uv_b)
+        # box pair ("matched"; with kp_boxes, only the pairs sharing the most matches: matches
+        # concentrate on the most textured region), or inside any box of each image ("boxes")
         if o.matching.kp_source == "matched":
-            both = in_a[:, ia] & in_b[:, ib]  # (M, pairs)
-            if 0 < o.matching.kp_boxes < ia.size:
-                # matches concentrate on the most textured region: only the box pairs that
-                # share the most keypoints feed the 5-point (ties: first pair first)
-                top = np.argsort(-both.sum(0), kind="stable")[: o.matching.kp_boxes]
-                both = both[:, top]
-            inside = both.any(1)
+            inside = keypoints_in_matched_boxes(
+                m.uv_a, m.uv_b, fa.det.boxes, fb.det.boxes, ia, ib, o.matching.kp_boxes
+            )
         else:
-            inside = in_a.any(1) & in_b.any(1)
+            inside = (
+                boxes_contain(fa.det.boxes, m.uv_a).any(1)
+                & boxes_contain(fb.det.boxes, m.uv_b).any(1)
+            )
         p1, p2 = m.uv_a[inside], m.uv_b[inside]
         # BB input: centres of the matched boxes
-        ca = 0.5 * (fa.det.boxes[ia, :2] + fa.det.boxes[ia, 2:])
-        cb = 0.5 * (fb.det.boxes[ib, :2] + fb.det.boxes[ib, 2:])
+        ca, cb = box_centres(fa.det.boxes[ia]), box_centres(fb.det.boxes[ib])
         cv_seed = int(stream_seed(self.seed, self.scene_name, "ransac", a, b).generate_state(1)[0])
         q = o.pose
         kp = five_point(

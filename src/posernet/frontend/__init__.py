@@ -1,0 +1,1 @@
+"""Image front end: ROI proposals, keypoint matching, box matching, initial relative poses."""
