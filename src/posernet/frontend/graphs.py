@@ -26,6 +26,7 @@ __all__ = [
     "GraphStats",
     "PairResult",
     "assemble_view_graph",
+    "grow_connected",
     "is_connected",
 ]
 
@@ -85,6 +86,57 @@ def is_connected(n: int, edge_index: np.ndarray) -> bool:
     for a, b in np.asarray(edge_index).T.tolist():
         parent[find(a)] = find(b)
     return n > 0 and len({find(i) for i in range(n)}) == 1
+
+
+def grow_connected(
+    pool: np.ndarray,
+    n: int,
+    is_edge: Callable[[int, int], bool],
+    rng: np.random.Generator,
+    max_tries: int = 200,
+    restarts: int = 20,
+    locality: float = 0.0,
+    window: int = 0,
+    sequence: np.ndarray | None = None,
+) -> list[int] | None:
+    """Image ids of one connected ``n``-image graph drawn from ``pool``, or ``None``.
+
+    Images are added one at a time, each candidate kept only when it has an edge to an image
+    already chosen (the paper rejects graphs with isolated nodes or components; growing them
+    connected is the same constraint without the waste). Candidates are uniform over the pool,
+    or with probability ``locality`` within ``window`` ids of a chosen image of the same
+    ``sequence`` (``sequence[id]``, needed then): neighbouring frames of a handheld sequence
+    overlap, random ones rarely do. ``max_tries`` failed candidates in a row end an attempt.
+    """
+    pool = np.asarray(pool)
+    in_pool = None
+    if locality > 0 and window > 0:
+        if sequence is None:
+            raise ValueError("grow_connected: locality needs the sequence of every image")
+        in_pool = np.zeros(len(sequence), bool)
+        in_pool[pool] = True
+    for _restart in range(restarts):
+        nodes = [int(pool[rng.integers(pool.size)])]
+        chosen = set(nodes)
+        tries = 0
+        while len(nodes) < n and tries < max_tries:
+            tries += 1
+            if in_pool is not None and rng.random() < locality:
+                u = nodes[int(rng.integers(len(nodes)))]
+                v = u + int(rng.integers(-window, window + 1))
+                if not (0 <= v < in_pool.size and sequence[v] == sequence[u] and in_pool[v]):
+                    continue
+            else:
+                v = int(pool[rng.integers(pool.size)])
+            if v in chosen:
+                continue
+            if any(is_edge(u, v) for u in nodes):
+                nodes.append(v)
+                chosen.add(v)
+                tries = 0
+        if len(nodes) == n:
+            return nodes
+    return None
 
 
 def _pose_vecs(poses: list[tuple[np.ndarray, np.ndarray]], forward: list[bool]) -> Tensor:

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ...frontend.graphs import GraphStats, assemble_view_graph, is_connected
+from ...frontend.graphs import GraphStats, assemble_view_graph, grow_connected, is_connected
 from ...graph import ViewGraph
 from .world import SceneWorld
 
@@ -51,36 +51,24 @@ def sample_small(
     camera pans. Raises :class:`SamplingError` when the pool cannot give a connected graph.
     """
     pool = _pool_of(world, split, n)
-    seq = world.frame_sequence
-    in_pool = np.zeros(world.num_frames, bool)
-    in_pool[pool] = True
-    max_tries = world.options.max_tries_per_node
-    for _restart in range(20):
-        nodes = [int(pool[rng.integers(pool.size)])]
-        chosen = set(nodes)
-        tries = 0
-        while len(nodes) < n and tries < max_tries:
-            tries += 1
-            if locality > 0 and window > 0 and rng.random() < locality:
-                u = nodes[int(rng.integers(len(nodes)))]
-                v = u + int(rng.integers(-window, window + 1))
-                if not (0 <= v < seq.size and seq[v] == seq[u] and in_pool[v]):
-                    continue
-            else:
-                v = int(pool[rng.integers(pool.size)])
-            if v in chosen:
-                continue
-            if any(world.pair(u, v).is_edge for u in nodes):
-                nodes.append(v)
-                chosen.add(v)
-                tries = 0
-        if len(nodes) == n:
-            return nodes
+    nodes = grow_connected(
+        pool,
+        n,
+        lambda u, v: world.pair(u, v).is_edge,
+        rng,
+        max_tries=world.options.max_tries_per_node,
+        locality=locality,
+        window=window,
+        sequence=world.frame_sequence,
+    )
+    if nodes is not None:
+        return nodes
     raise SamplingError(
         f"could not grow a connected {n}-image graph in scene {world.scene_name!r} split "
-        f"{split!r} ({max_tries} candidates per image, 20 restarts): too few image pairs share "
-        f"{world.options.matching.min_boxes} matched boxes; lower dataset.small.graph_size or "
-        f"dataset.matching.min_boxes, or raise dataset.keypoints.density"
+        f"{split!r} ({world.options.max_tries_per_node} candidates per image, 20 restarts): "
+        f"too few image pairs share {world.options.matching.min_boxes} matched boxes; lower "
+        f"dataset.small.graph_size or dataset.matching.min_boxes, or raise "
+        f"dataset.keypoints.density"
     )
 
 
