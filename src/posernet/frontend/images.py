@@ -1,0 +1,277 @@
+"""Images a user brings: listing a folder, reading files, intrinsics and optional pose files.
+
+Every failure names the offending file or value: a missing or unreadable image, intrinsics of
+the wrong shape, a pose file that is not a rigid 4x4 matrix.
+
+Intrinsics come as ``fx, fy, cx, cy`` (4 numbers), a ``3x3`` matrix, or a JSON file holding
+either one entry for all images or one per image::
+
+    {"fx": 585, "fy": 585, "cx": 320, "cy": 240, "dist": [k1, k2, p1, p2, k3]}     # shared
+    {"default": {...}, "images": {"IMG_001.jpg": {"K": [[...], [...], [...]]}, ...}}  # per image
+
+``dist`` (OpenCV order, optional) is the lens distortion; the 5-point step undistorts with it.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+__all__ = [
+    "IMAGE_SUFFIXES",
+    "ImageError",
+    "ImageRecord",
+    "list_images",
+    "parse_intrinsics",
+    "read_image",
+    "read_pose_file",
+    "records_for_images",
+]
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp")
+# 7-Scenes keeps depth maps beside the colour images: never take them for photos
+_SKIP_SUFFIXES = (".depth.png",)
+
+
+class ImageError(ValueError):
+    """A user-supplied image, intrinsics or pose file is missing or malformed."""
+
+
+@dataclass
+class ImageRecord:
+    """One input image: ``key`` is its name relative to the image folder (used in outputs).
+
+    ``K (3, 3)``, ``dist (D,)`` OpenCV distortion or ``None``; ``size`` (W, H) once read;
+    ``c2w (4, 4)`` the ground-truth camera-to-world pose when known.
+    """
+
+    path: Path
+    key: str
+    K: np.ndarray
+    dist: np.ndarray | None = None
+    size: tuple[int, int] | None = None
+    c2w: np.ndarray | None = None
+
+    @property
+    def k1(self) -> float:
+        return float(self.dist[0]) if self.dist is not None and self.dist.size else 0.0
+
+
+def list_images(folder: str | os.PathLike[str], pattern: str | None = None) -> list[Path]:
+    """Image files in ``folder`` (sorted; ``pattern`` a glob such as ``*.color.png``).
+
+    Without a pattern every file with an image suffix is taken except 7-Scenes depth maps.
+    """
+    root = Path(folder)
+    if not root.exists():
+        raise ImageError(f"image folder not found: {root}")
+    if not root.is_dir():
+        raise ImageError(f"images must be a folder of image files, got a file: {root}")
+    if pattern:
+        files = sorted(p for p in root.glob(pattern) if p.is_file())
+    else:
+        files = sorted(
+            p
+            for p in root.iterdir()
+            if p.is_file()
+            and p.suffix.lower() in IMAGE_SUFFIXES
+            and not p.name.lower().endswith(_SKIP_SUFFIXES)
+        )
+    if not files:
+        what = f"matching {pattern!r}" if pattern else f"({', '.join(IMAGE_SUFFIXES)})"
+        raise ImageError(f"no image files {what} in {root}")
+    return files
+
+
+def read_image(path: str | os.PathLike[str]) -> np.ndarray:
+    """``(H, W, 3)`` uint8 BGR image; a clear error for a missing or unreadable file."""
+    p = Path(path)
+    if not p.is_file():
+        raise ImageError(f"image not found: {p}")
+    data = np.fromfile(p, dtype=np.uint8)
+    img = cv2.imdecode(data, cv2.IMREAD_COLOR) if data.size else None
+    if img is None or img.size == 0:
+        raise ImageError(f"cannot read image {p}: not an image file OpenCV can decode")
+    return img
+
+
+def _k_from(value: Any, where: str) -> tuple[np.ndarray, np.ndarray | None]:
+    """``(K, dist)`` from 4 numbers, a 3x3 matrix, or a mapping with fx/fy/cx/cy or K."""
+    dist = None
+    if isinstance(value, Mapping):
+        if "K" in value:
+            K = np.asarray(value["K"], dtype=np.float64) if _numeric(value["K"]) else None
+        elif all(k in value for k in ("fx", "fy", "cx", "cy")):
+            vals = [value[k] for k in ("fx", "fy", "cx", "cy")]
+            K = _k_from(vals, where)[0] if _numeric(vals) else None
+        else:
+            raise ImageError(f"{where}: intrinsics need 'fx', 'fy', 'cx', 'cy' or 'K'")
+        if K is None:
+            raise ImageError(f"{where}: intrinsics must be numbers")
+        if value.get("dist") is not None:
+            d = value["dist"]
+            if not _numeric(d) or np.asarray(d, dtype=np.float64).ndim != 1 or \
+                    np.asarray(d).size not in (1, 2, 4, 5, 8, 12, 14):
+                raise ImageError(f"{where}: 'dist' must be 1, 2, 4, 5, 8, 12 or 14 numbers "
+                                 "(OpenCV order k1, k2, p1, p2, k3, ...)")
+            dist = np.asarray(d, dtype=np.float64)
+    else:
+        if not _numeric(value):
+            raise ImageError(f"{where}: intrinsics must be numbers, got {value!r}")
+        a = np.asarray(value, dtype=np.float64)
+        if a.shape == (4,):
+            fx, fy, cx, cy = a
+            K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+        elif a.shape == (3, 3):
+            K = a
+        else:
+            raise ImageError(f"{where}: intrinsics must be 4 numbers fx,fy,cx,cy or a 3x3 "
+                             f"matrix, got shape {a.shape}")
+    if K.shape != (3, 3):
+        raise ImageError(f"{where}: K must be 3x3, got shape {K.shape}")
+    if not np.isfinite(K).all() or K[0, 0] <= 0 or K[1, 1] <= 0:
+        raise ImageError(f"{where}: focal lengths must be positive and finite, got "
+                         f"fx={K[0, 0]}, fy={K[1, 1]}")
+    if not np.allclose(K[2], [0.0, 0.0, 1.0]) or K[1, 0] != 0 or K[2, 0] != 0:
+        raise ImageError(f"{where}: K must be upper triangular with last row 0 0 1")
+    return K, dist
+
+
+def _numeric(v: Any) -> bool:
+    try:
+        a = np.asarray(v, dtype=np.float64)
+    except (TypeError, ValueError):
+        return False
+    return bool(a.size) and bool(np.isfinite(a).all())
+
+
+def parse_intrinsics(
+    spec: Any, keys: Sequence[str]
+) -> list[tuple[np.ndarray, np.ndarray | None]]:
+    """Per-image ``(K, dist)`` for images ``keys`` from a spec (see the module docstring).
+
+    ``spec``: 4 numbers, a ``"fx,fy,cx,cy"`` string, a 3x3 nested list, a mapping, or the path
+    of a JSON file (shared or per image) or a text file with a 3x3 matrix.
+    """
+    if spec is None:
+        raise ImageError("intrinsics are required: intrinsics=FX,FY,CX,CY or a file")
+    if isinstance(spec, str) and "," in spec and not Path(spec).exists():
+        parts = [s.strip() for s in spec.strip("[]()").split(",")]
+        try:
+            spec = [float(p) for p in parts]
+        except ValueError:
+            raise ImageError(f"intrinsics {spec!r}: expected 4 numbers FX,FY,CX,CY") from None
+    if isinstance(spec, str | os.PathLike):
+        return _intrinsics_file(Path(spec), keys)
+    shared = _k_from(spec, "intrinsics")
+    return [shared] * len(keys)
+
+
+def _intrinsics_file(path: Path, keys: Sequence[str]) -> list[tuple[np.ndarray, np.ndarray | None]]:
+    if not path.is_file():
+        raise ImageError(f"intrinsics file not found: {path}")
+    text = path.read_text(encoding="utf-8", errors="replace")
+    if path.suffix.lower() != ".json":
+        try:
+            K = np.loadtxt(path, dtype=np.float64, ndmin=2)
+        except ValueError as exc:
+            raise ImageError(f"{path}: not a 3x3 matrix of numbers ({exc})") from None
+        shared = _k_from(K.reshape(-1) if K.size == 4 else K, str(path))
+        return [shared] * len(keys)
+    try:
+        data = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise ImageError(f"{path}: malformed JSON ({exc})") from None
+    if isinstance(data, Mapping) and "images" in data:
+        per = data["images"]
+        if not isinstance(per, Mapping):
+            raise ImageError(f"{path}: 'images' must map image names to intrinsics")
+        default = data.get("default")
+        out = []
+        for key in keys:
+            entry = per.get(key, per.get(Path(key).name, default))
+            if entry is None:
+                raise ImageError(f"{path}: no intrinsics for image {key!r} and no 'default'")
+            out.append(_k_from(entry, f"{path} [{key}]"))
+        return out
+    shared = _k_from(data, str(path))
+    return [shared] * len(keys)
+
+
+def read_pose_file(path: str | os.PathLike[str], tol: float = 1e-3) -> np.ndarray:
+    """A 4x4 camera-to-world matrix from a text file (7-Scenes ``.pose.txt``), validated.
+
+    The rotation is re-orthonormalised (SVD) when within ``tol`` of a rotation, since real pose
+    files carry a few digits only.
+    """
+    p = Path(path)
+    if not p.is_file():
+        raise ImageError(f"pose file not found: {p}")
+    try:
+        M = np.loadtxt(p, dtype=np.float64, ndmin=2)
+    except ValueError as exc:
+        raise ImageError(f"pose file {p}: not a matrix of numbers ({exc})") from None
+    if M.shape != (4, 4):
+        raise ImageError(f"pose file {p}: expected a 4x4 matrix, got shape {M.shape}")
+    if not np.isfinite(M).all():
+        raise ImageError(f"pose file {p}: contains NaN or inf")
+    R = M[:3, :3]
+    if not np.allclose(M[3], [0.0, 0.0, 0.0, 1.0], atol=tol) or \
+            np.abs(R @ R.T - np.eye(3)).max() > max(tol, 1e-2) or np.linalg.det(R) < 0:
+        raise ImageError(f"pose file {p}: not a rigid transform (rotation not orthonormal with "
+                         "det +1, or last row not 0 0 0 1)")
+    U, _, Vt = np.linalg.svd(R)
+    out = M.copy()
+    out[:3, :3] = U @ Vt
+    out[3] = [0.0, 0.0, 0.0, 1.0]
+    return out
+
+
+def _pose_path(image: Path, pose_dir: Path | None) -> Path:
+    name = image.name
+    for suffix in (".color.png", ".color.jpg"):
+        if name.endswith(suffix):
+            name = name[: -len(suffix)] + ".pose.txt"
+            break
+    else:
+        name = image.stem + ".pose.txt"
+    return (pose_dir or image.parent) / name
+
+
+def records_for_images(
+    folder: str | os.PathLike[str],
+    intrinsics: Any,
+    pattern: str | None = None,
+    gt_poses: str | None = "auto",
+) -> list[ImageRecord]:
+    """Records of the images in ``folder`` with their intrinsics and, optionally, poses.
+
+    ``gt_poses``: ``"auto"`` uses ``<name>.pose.txt`` files beside the images when every image
+    has one (7-Scenes layout: ``frame-000000.color.png`` -> ``frame-000000.pose.txt``),
+    ``"none"``/``None`` ignores them, a folder path requires one per image there.
+    """
+    root = Path(folder)
+    files = list_images(root, pattern)
+    keys = [str(p.relative_to(root)) for p in files]
+    cams = parse_intrinsics(intrinsics, keys)
+    records = [ImageRecord(path=p, key=k, K=K, dist=d)
+               for p, k, (K, d) in zip(files, keys, cams, strict=True)]
+    mode = "none" if gt_poses is None else str(gt_poses)
+    if mode.lower() == "none":
+        return records
+    pose_dir = None if mode == "auto" else Path(mode)
+    if pose_dir is not None and not pose_dir.is_dir():
+        raise ImageError(f"gt_poses folder not found: {pose_dir}")
+    paths = [_pose_path(r.path, pose_dir) for r in records]
+    if mode == "auto" and not all(p.is_file() for p in paths):
+        return records
+    for r, p in zip(records, paths, strict=True):
+        r.c2w = read_pose_file(p)
+    return records

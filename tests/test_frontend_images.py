@@ -1,0 +1,181 @@
+"""Image folders, intrinsics and pose files a user brings: good input and every bad one."""
+
+from __future__ import annotations
+
+import json
+
+import cv2
+import numpy as np
+import pytest
+
+from posernet.frontend.images import (
+    ImageError,
+    list_images,
+    parse_intrinsics,
+    read_image,
+    read_pose_file,
+    records_for_images,
+)
+from posernet.frontend.relpose import five_point
+
+
+def _write_images(folder, names, size=(40, 30)):
+    folder.mkdir(parents=True, exist_ok=True)
+    for n in names:
+        cv2.imwrite(str(folder / n), np.full((size[1], size[0], 3), 128, np.uint8))
+
+
+def test_list_images_skips_depth_maps_and_other_files(tmp_path):
+    _write_images(tmp_path, ["frame-000000.color.png", "frame-000000.depth.png", "b.jpg"])
+    (tmp_path / "notes.txt").write_text("x")
+    names = [p.name for p in list_images(tmp_path)]
+    assert names == ["b.jpg", "frame-000000.color.png"]
+    assert [p.name for p in list_images(tmp_path, "*.color.png")] == ["frame-000000.color.png"]
+
+
+def test_list_images_errors(tmp_path):
+    with pytest.raises(ImageError, match="not found"):
+        list_images(tmp_path / "nope")
+    (tmp_path / "f.png").write_bytes(b"")
+    with pytest.raises(ImageError, match="a file"):
+        list_images(tmp_path / "f.png")
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    with pytest.raises(ImageError, match="no image files"):
+        list_images(empty)
+
+
+def test_read_image_errors(tmp_path):
+    with pytest.raises(ImageError, match="image not found"):
+        read_image(tmp_path / "missing.png")
+    bad = tmp_path / "broken.png"
+    bad.write_bytes(b"not a png at all")
+    with pytest.raises(ImageError, match="broken.png"):
+        read_image(bad)
+    empty = tmp_path / "empty.png"
+    empty.write_bytes(b"")
+    with pytest.raises(ImageError, match="empty.png"):
+        read_image(empty)
+
+
+def test_parse_intrinsics_forms(tmp_path):
+    K = np.array([[500.0, 0, 320], [0, 510, 240], [0, 0, 1]])
+    for spec in ("500,510,320,240", [500, 510, 320, 240], K.tolist(), "[500, 510, 320, 240]"):
+        (K1, d), (K2, _) = parse_intrinsics(spec, ["a.png", "b.png"])
+        assert np.allclose(K1, K) and np.allclose(K2, K) and d is None
+    f = tmp_path / "k.txt"
+    np.savetxt(f, K)
+    assert np.allclose(parse_intrinsics(str(f), ["a"])[0][0], K)
+    j = tmp_path / "cams.json"
+    j.write_text(json.dumps({"default": {"fx": 500, "fy": 510, "cx": 320, "cy": 240},
+                             "images": {"b.png": {"K": [[400, 0, 300], [0, 400, 200], [0, 0, 1]],
+                                                  "dist": [0.1, -0.01]}}}))
+    (Ka, da), (Kb, db) = parse_intrinsics(str(j), ["a.png", "sub/b.png"])
+    assert np.allclose(Ka, K) and da is None
+    assert Kb[0, 0] == 400 and db.tolist() == [0.1, -0.01]
+
+
+@pytest.mark.parametrize(
+    ("spec", "match"),
+    [
+        ("500,510,320", "3 numbers|4 numbers"),
+        ([500, 510, 320, 240, 1], "4 numbers"),
+        ([[1, 0], [0, 1]], r"shape \(2, 2\)"),
+        ("-5,500,320,240", "positive"),
+        ("a,b,c,d", "4 numbers"),
+        ([500, float("nan"), 320, 240], "numbers"),
+        (None, "required"),
+    ],
+)
+def test_parse_intrinsics_bad(spec, match):
+    with pytest.raises(ImageError, match=match):
+        parse_intrinsics(spec, ["a.png"])
+
+
+def test_intrinsics_file_errors(tmp_path):
+    with pytest.raises(ImageError, match="intrinsics file not found"):
+        parse_intrinsics(str(tmp_path / "none.json"), ["a"])
+    bad = tmp_path / "bad.json"
+    bad.write_text("{nope")
+    with pytest.raises(ImageError, match="bad.json.*malformed"):
+        parse_intrinsics(str(bad), ["a"])
+    per = tmp_path / "per.json"
+    per.write_text(json.dumps({"images": {"x.png": {"fx": 1, "fy": 1, "cx": 0, "cy": 0}}}))
+    with pytest.raises(ImageError, match="no intrinsics for image 'y.png'"):
+        parse_intrinsics(str(per), ["y.png"])
+    dist = tmp_path / "dist.json"
+    dist.write_text(json.dumps({"fx": 1, "fy": 1, "cx": 0, "cy": 0, "dist": [1, 2, 3]}))
+    with pytest.raises(ImageError, match="dist"):
+        parse_intrinsics(str(dist), ["a"])
+
+
+def test_pose_files(tmp_path):
+    good = tmp_path / "frame-000000.pose.txt"
+    T = np.eye(4)
+    T[:3, 3] = [1, 2, 3]
+    np.savetxt(good, T + 1e-5 * np.eye(4) * np.array([1, 1, 1, 0]))  # slightly non-rigid
+    P = read_pose_file(good)
+    assert np.allclose(P, T, atol=1e-4)
+    assert np.allclose(P[:3, :3] @ P[:3, :3].T, np.eye(3), atol=1e-12)
+    three = tmp_path / "three.pose.txt"
+    np.savetxt(three, np.eye(3))
+    with pytest.raises(ImageError, match=r"three.pose.txt: expected a 4x4.*\(3, 3\)"):
+        read_pose_file(three)
+    skew = tmp_path / "skew.pose.txt"
+    S = np.eye(4)
+    S[0, 1] = 0.5
+    np.savetxt(skew, S)
+    with pytest.raises(ImageError, match="skew.pose.txt: not a rigid"):
+        read_pose_file(skew)
+    text = tmp_path / "text.pose.txt"
+    text.write_text("a b c d\n" * 4)
+    with pytest.raises(ImageError, match="text.pose.txt"):
+        read_pose_file(text)
+
+
+def test_records_pick_up_pose_files_only_when_complete(tmp_path):
+    _write_images(tmp_path, ["frame-000000.color.png", "frame-000001.color.png"])
+    np.savetxt(tmp_path / "frame-000000.pose.txt", np.eye(4))
+    recs = records_for_images(tmp_path, "100,100,20,15")
+    assert all(r.c2w is None for r in recs)  # one missing: no ground truth at all
+    np.savetxt(tmp_path / "frame-000001.pose.txt", np.eye(4))
+    recs = records_for_images(tmp_path, "100,100,20,15")
+    assert all(r.c2w is not None for r in recs)
+    assert [r.key for r in recs] == ["frame-000000.color.png", "frame-000001.color.png"]
+    assert all(r.c2w is None for r in records_for_images(tmp_path, "100,100,20,15", None, "none"))
+    with pytest.raises(ImageError, match="gt_poses folder not found"):
+        records_for_images(tmp_path, "100,100,20,15", gt_poses=str(tmp_path / "nope"))
+
+
+def _project(K, R, t, X):
+    x = (R @ X.T).T + t
+    uv = (K @ x.T).T
+    return uv[:, :2] / uv[:, 2:]
+
+
+def test_five_point_with_two_intrinsics_and_distortion():
+    rng = np.random.default_rng(1)
+    X = rng.uniform([-1, -1, 3], [1, 1, 5], (200, 3))
+    K1 = np.array([[500.0, 0, 320], [0, 500, 240], [0, 0, 1]])
+    K2 = np.array([[700.0, 0, 300], [0, 690, 250], [0, 0, 1]])
+    a = np.deg2rad(8.0)
+    R = np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]])
+    t = np.array([-0.5, 0.05, 0.1])
+    p1 = _project(K1, np.eye(3), np.zeros(3), X)
+    p2 = _project(K2, R, t, X)
+    dist2 = np.array([0.08, 0.0, 0.0, 0.0, 0.0])
+    # distort image 2's points with OpenCV's model: project through cv2.projectPoints
+    rvec, _ = cv2.Rodrigues(R)
+    p2d = cv2.projectPoints(X, rvec, t, K2, dist2)[0].reshape(-1, 2)
+    est = five_point(p1, p2, K1, K2=K2, threshold=0.5)
+    assert est is not None
+    R_est, t_est = est
+    assert np.degrees(np.arccos(np.clip((np.trace(R_est @ R.T) - 1) / 2, -1, 1))) < 0.1
+    assert np.dot(t_est, t / np.linalg.norm(t)) > 0.999
+    # ignoring the distortion biases the pose; passing it recovers it
+    est_d = five_point(p1, p2d, K1, K2=K2, dist2=dist2, threshold=0.5)
+    assert est_d is not None
+    assert np.degrees(np.arccos(np.clip((np.trace(est_d[0] @ R.T) - 1) / 2, -1, 1))) < 0.1
+    assert np.dot(est_d[1], t / np.linalg.norm(t)) > 0.999
+    with pytest.raises(ValueError, match="unknown 5-point method"):
+        five_point(p1, p2, K1, method="magic")
