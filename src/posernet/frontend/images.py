@@ -28,6 +28,7 @@ __all__ = [
     "IMAGE_SUFFIXES",
     "ImageError",
     "ImageRecord",
+    "intrinsics_matrix",
     "list_images",
     "parse_intrinsics",
     "read_image",
@@ -102,15 +103,18 @@ def read_image(path: str | os.PathLike[str]) -> np.ndarray:
     return img
 
 
-def _k_from(value: Any, where: str) -> tuple[np.ndarray, np.ndarray | None]:
-    """``(K, dist)`` from 4 numbers, a 3x3 matrix, or a mapping with fx/fy/cx/cy or K."""
+def intrinsics_matrix(
+    value: Any, where: str = "intrinsics"
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """``(K (3, 3), dist)`` from 4 numbers ``fx, fy, cx, cy``, a 3x3 matrix, or a mapping with
+    ``fx``/``fy``/``cx``/``cy`` or ``K`` (and optional ``dist``); errors start with ``where``."""
     dist = None
     if isinstance(value, Mapping):
         if "K" in value:
             K = np.asarray(value["K"], dtype=np.float64) if _numeric(value["K"]) else None
         elif all(k in value for k in ("fx", "fy", "cx", "cy")):
             vals = [value[k] for k in ("fx", "fy", "cx", "cy")]
-            K = _k_from(vals, where)[0] if _numeric(vals) else None
+            K = intrinsics_matrix(vals, where)[0] if _numeric(vals) else None
         else:
             raise ImageError(f"{where}: intrinsics need 'fx', 'fy', 'cx', 'cy' or 'K'")
         if K is None:
@@ -170,7 +174,7 @@ def parse_intrinsics(
             raise ImageError(f"intrinsics {spec!r}: expected 4 numbers FX,FY,CX,CY") from None
     if isinstance(spec, str | os.PathLike):
         return _intrinsics_file(Path(spec), keys)
-    shared = _k_from(spec, "intrinsics")
+    shared = intrinsics_matrix(spec, "intrinsics")
     return [shared] * len(keys)
 
 
@@ -183,7 +187,7 @@ def _intrinsics_file(path: Path, keys: Sequence[str]) -> list[tuple[np.ndarray, 
             K = np.loadtxt(path, dtype=np.float64, ndmin=2)
         except ValueError as exc:
             raise ImageError(f"{path}: not a 3x3 matrix of numbers ({exc})") from None
-        shared = _k_from(K.reshape(-1) if K.size == 4 else K, str(path))
+        shared = intrinsics_matrix(K.reshape(-1) if K.size == 4 else K, str(path))
         return [shared] * len(keys)
     try:
         data = json.loads(text)
@@ -199,38 +203,55 @@ def _intrinsics_file(path: Path, keys: Sequence[str]) -> list[tuple[np.ndarray, 
             entry = per.get(key, per.get(Path(key).name, default))
             if entry is None:
                 raise ImageError(f"{path}: no intrinsics for image {key!r} and no 'default'")
-            out.append(_k_from(entry, f"{path} [{key}]"))
+            out.append(intrinsics_matrix(entry, f"{path} [{key}]"))
         return out
-    shared = _k_from(data, str(path))
+    shared = intrinsics_matrix(data, str(path))
     return [shared] * len(keys)
 
 
-def read_pose_file(path: str | os.PathLike[str], tol: float = 1e-3) -> np.ndarray:
-    """A 4x4 camera-to-world matrix from a text file (7-Scenes ``.pose.txt``), validated.
+# Real 7-Scenes rotations are slightly non-orthonormal: accept max |R^T R - I| up to this and
+# re-orthonormalise; anything further off is not a rigid pose.
+ROTATION_TOL = 5e-3
 
-    The rotation is re-orthonormalised (SVD) when within ``tol`` of a rotation, since real pose
-    files carry a few digits only.
+
+def read_pose_file(path: str | os.PathLike[str]) -> np.ndarray:
+    """A rigid 4x4 camera-to-world matrix from a text file (7-Scenes ``.pose.txt``), validated.
+
+    The rotation is re-orthonormalised (SVD) when within :data:`ROTATION_TOL` of a rotation,
+    since real pose files carry a few digits only.
     """
     p = Path(path)
     if not p.is_file():
         raise ImageError(f"pose file not found: {p}")
     try:
-        M = np.loadtxt(p, dtype=np.float64, ndmin=2)
-    except ValueError as exc:
-        raise ImageError(f"pose file {p}: not a matrix of numbers ({exc})") from None
-    if M.shape != (4, 4):
-        raise ImageError(f"pose file {p}: expected a 4x4 matrix, got shape {M.shape}")
-    if not np.isfinite(M).all():
-        raise ImageError(f"pose file {p}: contains NaN or inf")
-    R = M[:3, :3]
-    if not np.allclose(M[3], [0.0, 0.0, 0.0, 1.0], atol=tol) or \
-            np.abs(R @ R.T - np.eye(3)).max() > max(tol, 1e-2) or np.linalg.det(R) < 0:
-        raise ImageError(f"pose file {p}: not a rigid transform (rotation not orthonormal with "
-                         "det +1, or last row not 0 0 0 1)")
+        text = p.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as e:
+        raise ImageError(f"cannot read pose file {p}: {e}") from None
+    rows = [line.split() for line in text.splitlines() if line.strip()]
+    try:
+        T = np.array([[float(x) for x in r] for r in rows], dtype=np.float64)
+    except ValueError:
+        raise ImageError(f"pose file {p} is not a 4x4 matrix of numbers") from None
+    if T.shape != (4, 4) or any(len(r) != 4 for r in rows):
+        raise ImageError(
+            f"pose file {p} is not a 4x4 matrix of numbers "
+            f"(found {len(rows)} rows of {sorted({len(r) for r in rows})} values)"
+        )
+    if not np.isfinite(T).all():
+        raise ImageError(f"pose file {p} holds non-finite values")
+    if not np.allclose(T[3], [0.0, 0.0, 0.0, 1.0], atol=1e-6):
+        raise ImageError(f"pose file {p}: last row must be 0 0 0 1, got {T[3].tolist()}")
+    R = T[:3, :3]
+    err = float(np.abs(R.T @ R - np.eye(3)).max())
+    if err > ROTATION_TOL or np.linalg.det(R) <= 0:
+        raise ImageError(
+            f"pose file {p} is not a rigid transform (rotation part off orthonormal by "
+            f"{err:.2g}, det {np.linalg.det(R):.3g})"
+        )
     U, _, Vt = np.linalg.svd(R)
-    out = M.copy()
+    out = np.eye(4)
     out[:3, :3] = U @ Vt
-    out[3] = [0.0, 0.0, 0.0, 1.0]
+    out[:3, 3] = T[:3, 3]
     return out
 
 
