@@ -2,9 +2,10 @@
 
 from __future__ import annotations
 
+import re
 import sys
 
-__all__ = ["quiet_lightning", "report_error", "set_threads", "user_errors"]
+__all__ = ["quiet_lightning", "quote_list_args", "report_error", "set_threads", "user_errors"]
 
 
 def user_errors() -> tuple[type[BaseException], ...]:
@@ -52,3 +53,10 @@ def set_threads(n: int | None) -> None:
         import torch
 
         torch.set_num_threads(int(n))
+
+
+def quote_list_args(argv: list[str], keys: tuple[str, ...]) -> list[str]:
+    """``key=a,b,c`` for ``key`` in ``keys`` would read as a Hydra sweep: pass it as one quoted
+    string instead (``intrinsics=585,585,320,240`` is what users type)."""
+    pattern = re.compile(rf"^({'|'.join(map(re.escape, keys))})=([^'\"\[].*,.*)$")
+    return [pattern.sub(r"\1='\2'", a) for a in argv]

@@ -1,13 +1,17 @@
-"""``posernet-make-data``: generate a synthetic dataset directory (Hydra app, ``conf/``).
+"""``posernet-make-data``: generate a graph dataset directory (Hydra app, ``conf/``), synthetic
+or from real images in the 7-Scenes layout.
 
 Examples::
 
     posernet-make-data dataset=paper out_dir=/tmp/posernet-paper workers=2
     posernet-make-data dataset=tiny out_dir=/tmp/tiny overwrite=true
     posernet-make-data preset=easy dataset.small.train=100 resume=true
+    posernet-make-data source=sevenscenes root=/data/7scenes scenes=[chess,fire] \
+        intrinsics=585,585,320,240 proposals=edge_boxes matcher=sift out_dir=/tmp/7s
 
-Errors a user can cause (bad option, existing directory, resume with another config) are
-printed as one line without a traceback, with exit status 2.
+Errors a user can cause (bad option, existing directory, resume with another config, a root
+that is not in 7-Scenes layout, bad intrinsics) are printed as one line without a traceback,
+with exit status 2.
 """
 
 from __future__ import annotations
@@ -19,6 +23,7 @@ import hydra
 from omegaconf import DictConfig, OmegaConf
 
 from . import CONFIG_DIR
+from .common import quote_list_args, report_error, user_errors
 
 __all__ = ["execute", "main", "run"]
 
@@ -43,10 +48,59 @@ def _dataset_config(cfg: DictConfig) -> Any:
     return OmegaConf.to_container(OmegaConf.merge(base, dot), resolve=True)
 
 
+FRONTEND_GROUPS = ("proposals", "matcher", "box_matching", "relpose")
+_SEVENSCENES_KEYS = ("root", "scenes", "intrinsics")
+
+
+def _run_sevenscenes(cfg: DictConfig) -> dict[str, Any]:
+    """``source=sevenscenes``: graphs of the images under ``root`` through the front end."""
+    from posernet.data.sevenscenes_graphs import generate_sevenscenes
+    from posernet.data.synthetic import ConfigError
+
+    for group in FRONTEND_GROUPS:
+        # full keys ("proposals.path") or relative ones, depending on the OmegaConf version
+        missing = sorted(k if k.startswith(f"{group}.") else f"{group}.{k}"
+                         for k in OmegaConf.missing_keys(cfg[group]))
+        if missing:
+            raise ConfigError(f"{group}={_choice(group)} needs "
+                              + ", ".join(f"{k}=..." for k in missing))
+    return generate_sevenscenes(
+        OmegaConf.to_container(cfg.sevenscenes, resolve=True),
+        cfg.out_dir or "outputs/data/sevenscenes",
+        frontend={g: OmegaConf.to_container(cfg[g], resolve=True) for g in FRONTEND_GROUPS},
+        seed=cfg.seed,
+        overwrite=bool(cfg.overwrite),
+        resume=bool(cfg.resume),
+        export_json_files=bool(cfg.export_json),
+        progress=bool(cfg.progress),
+    )
+
+
+def _choice(group: str) -> str:
+    from hydra.core.hydra_config import HydraConfig
+
+    try:
+        return str(HydraConfig.get().runtime.choices.get(group))
+    except ValueError:  # not running under Hydra
+        return "..."
+
+
 def run(cfg: DictConfig) -> dict[str, Any]:
     """Generate the dataset described by a composed ``make_data`` config; returns the manifest."""
-    from posernet.data.synthetic import generate_dataset
+    from posernet.data.synthetic import ConfigError, generate_dataset
 
+    source = str(cfg.get("source") or "synthetic")
+    if source == "sevenscenes":
+        return _run_sevenscenes(cfg)
+    if source != "synthetic":
+        raise ConfigError(f"invalid option source: must be synthetic or sevenscenes, got "
+                          f"{source!r}")
+    given = [k for k in _SEVENSCENES_KEYS if cfg.get(k) is not None]
+    if given:
+        raise ConfigError(f"{', '.join(k + '=' for k in given)} "
+                          f"{'is an option' if len(given) == 1 else 'are options'} of "
+                          f"source=sevenscenes (the synthetic generator takes "
+                          f"dataset.scenes=...); add source=sevenscenes")
     dataset = _dataset_config(cfg)
     out_dir = cfg.out_dir or f"outputs/data/{dataset.get('name', 'dataset')}"
     return generate_dataset(
@@ -63,6 +117,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
 
 def execute(cfg: DictConfig) -> int:
     """Run and turn user errors into one line on stderr; returns the exit status (0 or 2)."""
+    from posernet.data.sevenscenes import SevenScenesError
     from posernet.data.store import DatasetError
     from posernet.data.synthetic import (
         ConfigError,
@@ -70,7 +125,11 @@ def execute(cfg: DictConfig) -> int:
         GenerationError,
         SamplingError,
     )
+    from posernet.frontend.features import MatcherError
+    from posernet.frontend.images import ImageError
+    from posernet.frontend.proposals import ProposalError
     from posernet.graph import GraphValidationError
+
 
     try:
         run(cfg)
@@ -82,8 +141,13 @@ def execute(cfg: DictConfig) -> int:
         DatasetError,
         GraphValidationError,
         OSError,
+        SevenScenesError,
+        ImageError,
+        ProposalError,
+        MatcherError,
+        *user_errors(),  # failed instantiation of a front-end stage: its root cause
     ) as exc:
-        print(f"posernet-make-data: error: {exc}", file=sys.stderr)
+        report_error("posernet-make-data", exc)
         return 2
     return 0
 
@@ -97,6 +161,7 @@ def _app(cfg: DictConfig) -> None:
 
 def main() -> None:
     """Console-script entry point."""
+    sys.argv = quote_list_args(sys.argv, ("intrinsics", "scenes"))
     _app()
 
 

@@ -18,8 +18,8 @@ from .sampling import GraphStats, build_view_graph, sample_large, sample_small
 from .seeding import make_rng
 from .world import SceneWorld
 
-__all__ = ["Chunk", "merge_stats", "plan_chunks", "simulate_chunk", "simulate_graphs",
-           "split_chunk"]
+__all__ = ["ERROR_KEYS", "Chunk", "add_graph_stats", "empty_stats", "merge_stats", "plan_chunks",
+           "simulate_chunk", "simulate_graphs", "split_chunk"]
 
 ERROR_KEYS = ("kp_rot", "kp_tdir", "bb_rot", "bb_tdir")
 
@@ -59,7 +59,8 @@ def plan_chunks(options: DatasetOptions) -> list[Chunk]:
     return out
 
 
-def _empty_stats() -> dict[str, Any]:
+def empty_stats() -> dict[str, Any]:
+    """Statistics of a chunk with no graph yet (counters, per-graph ``errors`` lists)."""
     return {
         "graphs": 0, "nodes": 0, "edges": 0, "detections": 0, "matched_pairs": 0,
         "pairs_checked": 0, "image_pairs_matched": 0, "dropped_kp": 0, "dropped_bb": 0,
@@ -68,7 +69,8 @@ def _empty_stats() -> dict[str, Any]:
     }  # fmt: skip
 
 
-def _add(stats: dict[str, Any], g: ViewGraph, s: GraphStats) -> None:
+def add_graph_stats(stats: dict[str, Any], g: ViewGraph, s: GraphStats) -> None:
+    """Count graph ``g`` and its pair book-keeping ``s`` into chunk ``stats`` (in place)."""
     stats["graphs"] += 1
     stats["nodes"] += g.num_nodes
     stats["edges"] += g.num_edges
@@ -105,7 +107,7 @@ def simulate_chunk(
     seq = options.sequences
     window = round(options.sampling.window_s * seq.frames_per_sequence / seq.duration_s)
     graphs: list[ViewGraph] = []
-    stats = _empty_stats()
+    stats = empty_stats()
     indices = range(chunk.count) if graphs_range is None else graphs_range
     if indices.start < 0 or indices.stop > chunk.count:
         raise ValueError(f"graphs_range {indices} is outside the chunk's "
@@ -130,7 +132,7 @@ def simulate_chunk(
         }
         g, s = build_view_graph(world, nodes, meta)
         graphs.append(g)
-        _add(stats, g, s)
+        add_graph_stats(stats, g, s)
         if progress is not None:
             progress(1)
     stats["scene_frames"] = int(world.num_frames)

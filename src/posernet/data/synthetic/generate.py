@@ -41,9 +41,13 @@ __all__ = [
     "MANIFEST",
     "DatasetExistsError",
     "GenerationError",
+    "check_run_options",
     "export_json",
+    "finish_dataset",
     "generate_dataset",
+    "make_spec",
     "plan_parts",
+    "resumed_chunks",
 ]
 
 MANIFEST = "manifest.json"
@@ -63,17 +67,24 @@ class GenerationError(RuntimeError):
 # --------------------------------------------------------------------------- helpers
 
 
-def _spec(opts: DatasetOptions, seed: int) -> dict[str, Any]:
+def make_spec(name: str, seed: int, config: dict[str, Any], fmt: str = FORMAT,
+              version: int = VERSION) -> dict[str, Any]:
+    """What a dataset directory is made from (format, name, seed, config) and its hash: chunk
+    files of a resumed run are kept only when their stored hash matches."""
     spec = {
-        "format": FORMAT,
-        "version": VERSION,
-        "preset": opts.name,
+        "format": fmt,
+        "version": version,
+        "preset": name,
         "seed": int(seed),
-        "config": opts.to_dict(),
+        "config": config,
     }
     blob = json.dumps(spec, sort_keys=True).encode()
     spec["spec_hash"] = hashlib.sha256(blob).hexdigest()[:16]
     return spec
+
+
+def _spec(opts: DatasetOptions, seed: int) -> dict[str, Any]:
+    return make_spec(opts.name, seed, opts.to_dict())
 
 
 def _our_files(root: Path) -> list[Path]:
@@ -118,8 +129,10 @@ def _read_json(path: Path) -> dict[str, Any]:
         raise GenerationError(f"{path}: cannot read ({exc})") from exc
 
 
-def _prepare(root: Path, spec: dict[str, Any], overwrite: bool, resume: bool) -> None:
-    """Make ``root`` ready, honouring overwrite / resume; write the job file."""
+def _prepare(root: Path, spec: dict[str, Any], overwrite: bool, resume: bool,
+             prefix: str = "dataset") -> None:
+    """Make ``root`` ready, honouring overwrite / resume; write the job file. ``prefix`` names
+    the config in messages (``dataset.small.train: 2 -> 3``)."""
     if root.exists() and not root.is_dir():
         raise DatasetExistsError(f"output path {root} exists and is not a directory")
     if root.is_dir() and any(root.iterdir()):
@@ -137,7 +150,7 @@ def _prepare(root: Path, spec: dict[str, Any], overwrite: bool, resume: bool) ->
                 )
             old = _read_json(src)
             if old.get("spec_hash") != spec["spec_hash"]:
-                diff = _diff(old.get("config", {}), spec["config"])
+                diff = _diff(old.get("config", {}), spec["config"], prefix)
                 if old.get("seed") != spec["seed"]:
                     diff.insert(0, f"seed {old.get('seed')} -> {spec['seed']}")
                 raise GenerationError(
@@ -357,12 +370,7 @@ def generate_dataset(
     :class:`DatasetOptions`. ``echo`` receives the summary (``None``: silent).
     """
     opts = resolve_options(options)
-    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
-        raise ConfigError(f"invalid option seed: must be a non-negative integer, got {seed!r}")
-    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
-        raise ConfigError(f"invalid option workers: must be an integer >= 1, got {workers!r}")
-    if overwrite and resume:
-        raise ConfigError("invalid options: overwrite=true and resume=true exclude each other")
+    check_run_options(seed, workers, overwrite, resume)
     chunks = plan_chunks(opts)
     if not chunks:
         raise ConfigError(
@@ -374,6 +382,37 @@ def generate_dataset(
     _prepare(root, spec, overwrite, resume)
 
     t0 = time.perf_counter()
+    results, todo = resumed_chunks(root, chunks, spec, resume)
+    todo.sort(key=lambda c: -c.cost)  # biggest first: better load balance
+    results.update(_run_all(todo, opts, seed, root, spec["spec_hash"], workers, progress))
+    elapsed = time.perf_counter() - t0
+
+    manifest = finish_dataset(root, spec, chunks, results, export_json_files)
+    if echo is not None:
+        shown = dict(manifest, root=str(root))
+        echo(format_summary(shown))
+        echo(
+            f"generated {sum(c.count for c in todo)} graphs in {elapsed:.1f} s "
+            f"({len(todo)} of {len(chunks)} files, workers={workers})"
+        )
+    return manifest
+
+
+def check_run_options(seed: Any, workers: Any, overwrite: bool, resume: bool) -> None:
+    """Options every generator shares; :class:`ConfigError` naming the bad one."""
+    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
+        raise ConfigError(f"invalid option seed: must be a non-negative integer, got {seed!r}")
+    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
+        raise ConfigError(f"invalid option workers: must be an integer >= 1, got {workers!r}")
+    if overwrite and resume:
+        raise ConfigError("invalid options: overwrite=true and resume=true exclude each other")
+
+
+def resumed_chunks(
+    root: Path, chunks: list[Chunk], spec: dict[str, Any], resume: bool
+) -> tuple[dict[str, dict[str, Any]], list[Chunk]]:
+    """The statistics of the chunk files a resumed run keeps (complete, same spec hash) by
+    relpath, and the chunks still to make (in ``chunks`` order)."""
     results: dict[str, dict[str, Any]] = {}
     todo: list[Chunk] = []
     for c in chunks:
@@ -387,21 +426,25 @@ def generate_dataset(
             results[c.relpath] = extra["stats"]
         else:
             todo.append(c)
-    todo.sort(key=lambda c: -c.cost)  # biggest first: better load balance
-    results.update(_run_all(todo, opts, seed, root, spec["spec_hash"], workers, progress))
-    elapsed = time.perf_counter() - t0
+    return results, todo
 
+
+def finish_dataset(
+    root: Path,
+    spec: dict[str, Any],
+    chunks: list[Chunk],
+    results: dict[str, dict[str, Any]],
+    export_json_files: bool = False,
+    extra: Mapping[str, Any] | None = None,
+) -> dict[str, Any]:
+    """Write the manifest (``extra`` entries added; json export first when asked), last: the
+    dataset is then complete. Returns the manifest."""
     manifest = _manifest(root, spec, chunks, results)
+    if extra:
+        manifest.update(_json_safe(dict(extra)))
     if export_json_files:
         manifest["json"] = export_json(root)
     atomic_write_json(root / MANIFEST, manifest)  # last: the dataset is now complete
-    if echo is not None:
-        shown = dict(manifest, root=str(root))
-        echo(format_summary(shown))
-        echo(
-            f"generated {sum(c.count for c in todo)} graphs in {elapsed:.1f} s "
-            f"({len(todo)} of {len(chunks)} files, workers={workers})"
-        )
     return manifest
 
 

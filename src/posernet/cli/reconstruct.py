@@ -1,0 +1,187 @@
+"""``posernet-reconstruct``: a folder of photos in, absolute camera poses out.
+
+    posernet-reconstruct images=photos/ intrinsics=585,585,320,240 out_dir=out
+
+Runs ROI proposals -> keypoint matching -> box matching -> 5-point (KP) -> PoserNet (shipped
+checkpoint; ``refine=false`` skips it) -> motion averaging (``sync=``), then writes into
+``out_dir``: ``poses.json`` (format ``posernet-poses``), ``summary.json`` (counts and per-stage
+timings), ``matches_<k>.png`` (image pairs with their matched boxes) and ``cameras.png`` (the
+recovered cameras in 3D). With a pose file per image (``<name>.pose.txt``, 7-Scenes layout, or
+``gt_poses=DIR``) it also prints and writes the error tables (``table.md``, ``abs_table.md``).
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import hydra
+import torch
+from omegaconf import DictConfig, OmegaConf
+
+from . import CONFIG_DIR
+from .common import quote_list_args, report_error, set_threads, user_errors
+
+__all__ = ["main", "run"]
+
+
+def _writable_dir(path: Path) -> Path:
+    """Create ``path`` (or check it) before any work, so a bad out_dir fails at once."""
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise NotADirectoryError(f"out_dir {path}: cannot create it ({exc.strerror})") from None
+    probe = path / ".posernet-write-test"
+    try:
+        probe.write_bytes(b"")
+        probe.unlink()
+    except OSError as exc:
+        raise NotADirectoryError(f"out_dir {path}: not writable ({exc.strerror})") from None
+    return path
+
+
+def _pictures(rec: Any, out: Path, k: int) -> list[Path]:
+    """The ``k`` edges with the most matched boxes, drawn with their matches and boxes."""
+    import numpy as np
+
+    from ..frontend.features import draw_matches
+    from ..frontend.images import read_image
+
+    fe, g = rec.frontend, rec.graph
+    if k <= 0 or g.num_edges == 0:
+        return []
+    rows = torch.bincount(g.pair_edge, minlength=g.num_edges)
+    paths = []
+    for n, e in enumerate(torch.argsort(rows, descending=True, stable=True)[:k].tolist()):
+        i, j = (int(v) for v in g.edge_index[:, e])
+        a, b = (i, j) if i < j else (j, i)
+        pr = fe.pair(a, b)
+        ra, rb = fe.records[a], fe.records[b]
+        paths.append(draw_matches(
+            read_image(ra.path), read_image(rb.path), fe.matches[(a, b)], out / f"matches_{n}.png",
+            boxes_a=fe.boxes(a), boxes_b=fe.boxes(b),
+            box_pairs=np.stack([pr.box_a, pr.box_b], axis=1),
+            title=f"{ra.key} <-> {rb.key}: {pr.box_a.size} matched boxes"))
+    return paths
+
+
+def _camera_plot(rec: Any, out: Path) -> Path | None:
+    from ..metrics import align_to_ground_truth
+    from ..plots import plot_cameras
+    from ..reconstruct import gauge_fixed
+
+    res, stage, g = rec.result, rec.stage, rec.graph
+    if not res.absolute:
+        return None
+    solved = res.solved[stage][0].bool()
+    comp = res.component[stage][0]
+    if not bool(solved.any()):
+        return None
+    # the largest component: other components have their own, unrelated frame
+    main = int(torch.mode(comp[solved]).values)
+    keep = solved & (comp == main)
+    poses = {}
+    if g.pose_gt is not None:
+        gt = g.pose_gt.double()[keep]
+        poses["ground truth"] = gt
+        for s in res.absolute:
+            poses[s] = align_to_ground_truth(res.absolute[s][0].double()[keep], gt)
+    else:
+        poses[stage] = gauge_fixed(res.absolute[stage][0], keep, comp)[keep]
+    return plot_cameras(out / "cameras.png", poses,
+                        title=f"{int(keep.sum())} of {g.num_nodes} cameras (largest component)")
+
+
+def run(cfg: DictConfig) -> dict[str, Any]:
+    """Run the reconstruct job described by ``cfg``; returns the written files and tables."""
+    from hydra.utils import instantiate
+
+    from ..checkpoints import default_checkpoint
+    from ..frontend.images import records_for_images
+    from ..frontend.pipeline import ImageFrontend
+    from ..io import atomic_write_json
+    from ..nn import PoserNet
+    from ..pipeline import evaluate_result, result_tables
+    from ..reconstruct import reconstruct, write_poses_json
+    from ..sync import backend_from_config
+
+    t0 = time.perf_counter()
+    set_threads(cfg.get("num_threads"))
+    device = cfg.device if cfg.device != "auto" else (
+        "cuda" if torch.cuda.is_available() else "cpu")
+    if str(cfg.estimate) not in ("kp", "bb"):
+        raise ValueError(f"estimate must be kp or bb, got {cfg.estimate!r}")
+    out = _writable_dir(Path(cfg.out_dir))
+    records = records_for_images(cfg.images, OmegaConf.to_object(cfg.intrinsics)
+                                 if OmegaConf.is_config(cfg.intrinsics) else cfg.intrinsics,
+                                 cfg.get("pattern"), cfg.get("gt_poses"))
+    model, ckpt = None, None
+    if cfg.refine:
+        ckpt = Path(cfg.ckpt_path) if cfg.get("ckpt_path") else default_checkpoint()
+        model = PoserNet.from_checkpoint(ckpt, map_location=device)
+    backend = backend_from_config(OmegaConf.to_container(cfg.sync, resolve=True))
+    frontend = ImageFrontend(
+        records, instantiate(cfg.proposals), instantiate(cfg.matcher),
+        rules=instantiate(cfg.box_matching), pose=instantiate(cfg.relpose),
+        kp_top_pairs=int(cfg.kp_top_pairs), seed=int(cfg.seed), workers=int(cfg.workers))
+    has_gt = all(r.c2w is not None for r in records)
+    print(f"[1/3] {len(records)} images from {cfg.images} "
+          f"({'with' if has_gt else 'without'} ground-truth poses); matcher "
+          f"{getattr(frontend.matcher, 'name', type(frontend.matcher).__name__)}")
+    rec = reconstruct(frontend, model, backend, device=device, name=Path(cfg.images).name,
+                      estimate=str(cfg.estimate), progress=bool(cfg.progress))
+    print("[2/3] front end: " + "\n      ".join(frontend.summary.lines()))
+    info = {"images": str(cfg.images), "estimate": str(cfg.estimate),
+            "checkpoint": str(ckpt) if ckpt else None}
+    files: dict[str, Any] = {"poses": write_poses_json(out / "poses.json", rec, info)}
+    solved = sum(c["solved"] for c in _load(files["poses"])["cameras"].values())
+    print(f"[3/3] {'PoserNet + ' if model is not None else ''}{backend!r}: {solved} of "
+          f"{len(records)} cameras placed ({rec.graph.num_edges} edges)")
+    files["summary"] = atomic_write_json(out / "summary.json", {
+        **info, "frontend": frontend.summary.to_dict(), "cameras_placed": solved,
+        "edges": rec.graph.num_edges, "seconds_total": round(time.perf_counter() - t0, 2)})
+    files["pictures"] = _pictures(rec, out, int(cfg.pictures))
+    files["cameras_png"] = _camera_plot(rec, out)
+    if has_gt:
+        ev = evaluate_result(rec.result)
+        tables = result_tables(ev, label=str(cfg.estimate).upper(), backend=rec.result.backend,
+                               title=f": {len(records)} images of {Path(cfg.images).name}")
+        for key, stem in (("relative", "table"), ("absolute", "abs_table")):
+            if key in tables:
+                tables[key].write(out, stem, digits=int(cfg.digits))
+                print(tables[key].to_markdown(int(cfg.digits)) + "\n")
+        files["tables"] = tables
+        files["evaluation"] = ev
+    print(f"wrote {files['poses']} and pictures in {out} ({time.perf_counter() - t0:.0f} s)")
+    return files
+
+
+def _load(path: Path) -> dict[str, Any]:
+    import json
+
+    return json.loads(Path(path).read_text(encoding="utf-8"))
+
+
+@hydra.main(version_base="1.3", config_path=CONFIG_DIR, config_name="reconstruct")
+def _hydra_main(cfg: DictConfig) -> None:
+    from ..frontend.features import MatcherError
+    from ..frontend.images import ImageError
+    from ..frontend.proposals import ProposalError
+
+    try:
+        run(cfg)
+    except (*user_errors(), ImageError, ProposalError, MatcherError, ValueError) as exc:
+        report_error("posernet-reconstruct", exc)
+        sys.exit(1)
+
+
+def main() -> None:
+    """Console-script entry point (``posernet-reconstruct``)."""
+    sys.argv = quote_list_args(sys.argv, ("intrinsics",))
+    _hydra_main()
+
+
+if __name__ == "__main__":
+    main()
