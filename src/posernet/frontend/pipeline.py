@@ -1,0 +1,268 @@
+"""The front end over a set of images: ROI proposals and local features per image, keypoint
+matching, box matching and both 5-point estimates per image pair, view graphs of any subset.
+
+:class:`ImageFrontend` is lazy and caches: per-image work runs once (in ``workers`` threads:
+OpenCV and torch release the GIL), pairs are evaluated on demand (all pairs for a photo folder,
+a sampled few for a large 7-Scenes sequence). It exposes the same ``pair(u, v)`` as the
+synthetic generator's ``SceneWorld``, so graphs come from one assembly
+(:func:`~posernet.frontend.graphs.assemble_view_graph`).
+
+Per-stage wall times and counts (images without proposals, pairs with too few keypoint
+matches, unmatched pairs, failed 5-point estimates) are kept for the run's summary.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import time
+from collections import Counter
+from collections.abc import Iterable, Sequence
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from tqdm.auto import tqdm
+
+from ..graph import ViewGraph
+from .boxmatch import BoxMatchRules, box_centres, keypoints_in_matched_boxes, match_boxes
+from .graphs import GraphStats, PairResult, assemble_view_graph
+from .images import ImageRecord, read_image
+from .relpose import PoseOptions, five_point
+
+__all__ = ["FrontendSummary", "ImageFrontend", "pair_seed"]
+
+log = logging.getLogger("posernet.frontend")
+
+
+def pair_seed(seed: int, a: int, b: int) -> int:
+    """A RANSAC seed for images ``a < b`` that does not depend on evaluation order."""
+    h = hashlib.blake2b(f"{seed}:{a}:{b}".encode(), digest_size=4).digest()
+    return int.from_bytes(h, "little") & 0x7FFFFFFF
+
+
+@dataclass
+class FrontendSummary:
+    """Counts and per-stage wall times (seconds) of a front-end run."""
+
+    images: int = 0
+    images_without_boxes: int = 0
+    pairs: Counter = field(default_factory=Counter)  # status -> count, plus "too_few_matches"
+    seconds: Counter = field(default_factory=Counter)  # stage -> wall time
+
+    def lines(self) -> list[str]:
+        """Human-readable summary lines (counts, then time per image / per pair)."""
+        n_pairs = sum(v for k, v in self.pairs.items() if k != "too_few_matches")
+        s = self.seconds
+        out = [
+            f"images: {self.images} ({self.images_without_boxes} without any proposal)",
+            f"pairs: {n_pairs} checked, {self.pairs['edge']} edges; skipped: "
+            f"{self.pairs['too_few_matches']} with too few keypoint matches, "
+            f"{self.pairs['unmatched'] - self.pairs['too_few_matches']} with too few matched "
+            f"boxes, {self.pairs['kp_failed']} KP and {self.pairs['bb_failed']} BB 5-point "
+            "failures",
+        ]
+        if self.images:
+            per = ", ".join(f"{k} {1000 * s[k] / self.images:.0f} ms"
+                            for k in ("read", "proposals", "features") if k in s)
+            out.append(f"per image: {per}")
+        if n_pairs:
+            per = ", ".join(f"{k} {1000 * s[k] / n_pairs:.1f} ms"
+                            for k in ("matching", "box_matching", "five_point") if k in s)
+            out.append(f"per pair: {per}")
+        return out
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"images": self.images, "images_without_boxes": self.images_without_boxes,
+                "pairs": dict(self.pairs), "seconds": {k: round(v, 3)
+                                                       for k, v in self.seconds.items()}}
+
+
+@dataclass
+class _ImageData:
+    boxes: np.ndarray  # (B, 4) pixel xyxy
+    scores: np.ndarray  # (B,)
+    features: Any
+
+
+class ImageFrontend:
+    """Proposals, features, matches and 5-point estimates for a list of :class:`ImageRecord`.
+
+    Args:
+        records: the images (intrinsics per image; ground truth optional).
+        proposals: a callable ``(image, key) -> Proposals`` (:mod:`posernet.frontend.proposals`).
+        matcher: an object with ``extract(image)`` and ``match(a, b)``
+            (:mod:`posernet.frontend.features`).
+        rules: the box-matching rules (paper defaults, one-to-one).
+        pose: 5-point + RANSAC options.
+        kp_top_pairs: KP input from the keypoints of the ``kp_top_pairs`` box pairs sharing the
+            most matches (0: every matched box pair, the paper's rule).
+        seed: RANSAC seed base (per pair: :func:`pair_seed`).
+        workers: threads for the per-image stages.
+        keep_matches: keep every pair's keypoint matches (for pictures).
+    """
+
+    def __init__(
+        self,
+        records: Sequence[ImageRecord],
+        proposals: Any,
+        matcher: Any,
+        rules: BoxMatchRules | None = None,
+        pose: PoseOptions | None = None,
+        kp_top_pairs: int = 0,
+        seed: int = 0,
+        workers: int = 1,
+        keep_matches: bool = True,
+    ) -> None:
+        if not records:
+            raise ValueError("the front end needs at least one image")
+        self.records = list(records)
+        self.proposals = proposals
+        self.matcher = matcher
+        self.rules = rules or BoxMatchRules()
+        self.pose = pose or PoseOptions()
+        self.kp_top_pairs = int(kp_top_pairs)
+        self.seed = int(seed)
+        self.workers = max(1, int(workers))
+        self.keep_matches = bool(keep_matches)
+        self._images: dict[int, _ImageData] = {}
+        self._pairs: dict[tuple[int, int], PairResult] = {}
+        self.matches: dict[tuple[int, int], Any] = {}
+        self.summary = FrontendSummary(images=len(self.records))
+
+    # ------------------------------------------------------------------ images
+
+    def _process(self, i: int) -> tuple[int, _ImageData, dict[str, float]]:
+        r = self.records[i]
+        t0 = time.perf_counter()
+        img = read_image(r.path)
+        t1 = time.perf_counter()
+        h, w = img.shape[:2]
+        props = self.proposals(img, r.key)
+        t2 = time.perf_counter()
+        feats = self.matcher.extract(img)
+        t3 = time.perf_counter()
+        r.size = (int(w), int(h))
+        data = _ImageData(np.asarray(props.boxes, np.float64).reshape(-1, 4),
+                          np.asarray(props.scores, np.float64).reshape(-1), feats)
+        return i, data, {"read": t1 - t0, "proposals": t2 - t1, "features": t3 - t2}
+
+    def prepare(self, ids: Iterable[int] | None = None, progress: bool = True) -> None:
+        """Read, propose and extract features for images ``ids`` (default: all), once each."""
+        todo = [i for i in (range(len(self.records)) if ids is None else ids)
+                if i not in self._images]
+        if not todo:
+            return
+        bar = tqdm(total=len(todo), desc="images", unit="img", disable=not progress)
+        if self.workers > 1 and len(todo) > 1:
+            with ThreadPoolExecutor(self.workers) as pool:
+                results = pool.map(self._process, todo)
+                for i, data, secs in results:
+                    self._store(i, data, secs)
+                    bar.update(1)
+        else:
+            for i in todo:
+                self._store(*self._process(i))
+                bar.update(1)
+        bar.close()
+
+    def _store(self, i: int, data: _ImageData, secs: dict[str, float]) -> None:
+        self._images[i] = data
+        self.summary.seconds.update(secs)
+        if data.boxes.shape[0] == 0:
+            self.summary.images_without_boxes += 1
+            log.warning("image %s: no ROI proposal survived the filters; it cannot join a "
+                        "graph", self.records[i].key)
+
+    def image(self, i: int) -> _ImageData:
+        if i not in self._images:
+            self.prepare([i], progress=False)
+        return self._images[i]
+
+    def boxes(self, i: int) -> np.ndarray:
+        """Proposals of image ``i`` as pixel xyxy ``(B, 4)``."""
+        return self.image(i).boxes
+
+    # ------------------------------------------------------------------ pairs
+
+    def pair(self, i: int, j: int) -> PairResult:
+        """The evaluated pair of images ``i, j`` (stored once as ``min -> max``, cached)."""
+        a, b = (int(i), int(j)) if i < j else (int(j), int(i))
+        if a == b:
+            raise ValueError(f"a pair needs two different images, got {a} twice")
+        hit = self._pairs.get((a, b))
+        if hit is None:
+            hit = self._evaluate(a, b)
+            self._pairs[(a, b)] = hit
+            self.summary.pairs[hit.status] += 1
+        return hit
+
+    def _evaluate(self, a: int, b: int) -> PairResult:
+        A, B = self.image(a), self.image(b)
+        ra, rb = self.records[a], self.records[b]
+        sec = self.summary.seconds
+        t0 = time.perf_counter()
+        m = self.matcher.match(A.features, B.features)
+        t1 = time.perf_counter()
+        sec["matching"] += t1 - t0
+        if self.keep_matches:
+            self.matches[(a, b)] = m
+        none = np.zeros(0, np.int64)
+        rules = self.rules
+        if m.uv_a.shape[0] < rules.min_keypoints:  # cannot match a single box pair
+            self.summary.pairs["too_few_matches"] += 1
+            return PairResult(a, b, none, none, np.zeros(0, bool), 0, 0, None, None, "unmatched")
+        ia, ib, _ = match_boxes(m.uv_a, m.uv_b, A.boxes, B.boxes, rules.min_keypoints,
+                                rules.min_span, one_to_one=rules.one_to_one)
+        t2 = time.perf_counter()
+        sec["box_matching"] += t2 - t1
+        wrong = np.zeros(ia.size, bool)
+        if ia.size < rules.min_boxes:
+            return PairResult(a, b, ia, ib, wrong, 0, 0, None, None, "unmatched")
+        inside = keypoints_in_matched_boxes(m.uv_a, m.uv_b, A.boxes, B.boxes, ia, ib,
+                                            self.kp_top_pairs)
+        p1, p2 = m.uv_a[inside], m.uv_b[inside]
+        q, s = self.pose, pair_seed(self.seed, a, b)
+        common = {"prob": q.ransac_prob, "max_iters": q.max_iters, "seed": s, "method": q.method,
+                  "K2": rb.K, "dist1": ra.dist, "dist2": rb.dist}
+        kp = five_point(p1, p2, ra.K, q.kp_threshold, **common)
+        bb = five_point(box_centres(A.boxes[ia]), box_centres(B.boxes[ib]), ra.K,
+                        q.bb_threshold, **common)
+        sec["five_point"] += time.perf_counter() - t2
+        status = "edge" if kp is not None and bb is not None else (
+            "kp_failed" if kp is None else "bb_failed")
+        return PairResult(a, b, ia, ib, wrong, int(p1.shape[0]), 0, kp, bb, status)
+
+    def evaluate_pairs(self, pairs: Sequence[tuple[int, int]],
+                       progress: bool = True) -> list[PairResult]:
+        """Evaluate the given image pairs (with a progress bar); cached ones are free."""
+        self.prepare({i for p in pairs for i in p}, progress=progress)
+        out = []
+        for a, b in tqdm(pairs, desc="pairs", unit="pair", disable=not progress):
+            out.append(self.pair(a, b))
+        return out
+
+    # ------------------------------------------------------------------ graphs
+
+    def graph(self, ids: Sequence[int], meta: dict | None = None) -> tuple[ViewGraph, GraphStats]:
+        """The view graph of images ``ids`` (every pair evaluated); ground truth when every
+        image has a pose."""
+        ids = list(ids)
+        recs = [self.records[i] for i in ids]
+        self.prepare(ids, progress=False)
+        w2c = None
+        if all(r.c2w is not None for r in recs):
+            w2c = np.linalg.inv(np.stack([r.c2w for r in recs]))
+        meta = dict(meta or {})
+        meta.setdefault("camera_ids", [r.key for r in recs])
+        return assemble_view_graph(
+            ids,
+            self.pair,
+            [self.boxes(i) for i in ids],
+            np.stack([r.K for r in recs]),
+            np.array([r.size for r in recs], dtype=np.float64),
+            np.array([r.k1 for r in recs]),
+            w2c,
+            meta,
+        )
