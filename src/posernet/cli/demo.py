@@ -1,4 +1,11 @@
-"""``posernet-demo`` (``make demo``): the whole pipeline on a built-in synthetic default.
+"""``posernet-demo`` (``make demo``): the whole pipeline on built-in data.
+
+Images (``images.*``): a small scene is rendered offline in the 7-Scenes layout (reused when
+already there) and its test sequence goes through ``posernet-reconstruct``: ROI proposals,
+keypoint and box matching, 5-point, motion averaging; poses, pictures of matched boxes, the
+recovered cameras and (from the rendered pose files) error tables in ``out_dir/reconstruct``.
+
+Graphs:
 
 1. generate the ``demo`` synthetic dataset (seven scenes; reused when already complete);
 2. refine the test graphs' relative poses with the shipped PoserNet checkpoint (or, when none
@@ -54,6 +61,40 @@ def _model(cfg: DictConfig, data_dir: Path, out_dir: Path, device: str) -> tuple
     return PoserNet.from_checkpoint(ckpt, map_location=device), f"trained here: {ckpt}"
 
 
+def _image_demo(cfg: DictConfig, out: Path) -> dict[str, Any]:
+    """Render the demo scene (unless already rendered with the same settings) and run
+    ``posernet-reconstruct`` on its test sequence; returns that command's outputs."""
+    from hydra import compose
+
+    from ..data.render import read_render_info, render_intrinsics, render_sevenscenes
+    from .reconstruct import run as reconstruct
+
+    im = cfg.images
+    root = out / "scene"
+    folder = root / str(im.scene)
+    want = {"scene": str(im.scene), "seed": int(im.seed), "frames_per_sequence": int(im.frames),
+            "width": int(im.width), "height": int(im.height), "focal": float(im.focal),
+            "train_sequences": 0, "test_sequences": 1}
+    try:
+        have = read_render_info(folder)
+        fresh = any(have.get(k) != v for k, v in want.items())
+    except ValueError:  # not rendered yet
+        fresh = True
+    if fresh:
+        print(f"[images] rendering {im.frames} frames of '{im.scene}' -> {folder}")
+        render_sevenscenes(root, str(im.scene), seed=int(im.seed), train_sequences=0,
+                           test_sequences=1, frames_per_sequence=int(im.frames),
+                           width=int(im.width), height=int(im.height), focal=float(im.focal),
+                           overwrite=True)
+    intr = ",".join(f"{v:g}" for v in render_intrinsics(folder))
+    rcfg = compose("reconstruct", overrides=[
+        f"images={folder / 'seq-01'}", f"intrinsics='{intr}'", "pattern=*.color.png",
+        f"out_dir={out / 'reconstruct'}", f"matcher={im.matcher}", f"refine={im.refine}",
+        f"device={cfg.device}", f"num_threads={cfg.num_threads}", f"digits={cfg.digits}"])
+    print("[images] posernet-reconstruct on the rendered images")
+    return reconstruct(rcfg)
+
+
 def demo(cfg: DictConfig) -> dict[str, Any]:
     """Run the demo described by ``cfg``; returns the written files."""
     from ..data.store import open_split
@@ -69,6 +110,10 @@ def demo(cfg: DictConfig) -> dict[str, Any]:
     device = cfg.device if cfg.device != "auto" else ("cuda" if torch.cuda.is_available()
                                                       else "cpu")
     out = Path(cfg.out_dir)
+    files: dict[str, Any] = {}
+    if cfg.images.enabled:
+        files["images"] = _image_demo(cfg, out)
+        print(f"[images] done in {time.perf_counter() - t0:.0f} s\n")
     data_dir = out / "data"
     print(f"[1/4] synthetic dataset '{cfg.dataset.name}' -> {data_dir}")
     options = OmegaConf.to_container(cfg.dataset, resolve=True)
@@ -92,7 +137,6 @@ def demo(cfg: DictConfig) -> dict[str, Any]:
     tables = result_tables(ev, label=str(cfg.estimate).upper(), backend=result.backend,
                            title=f": {len(graphs)} synthetic test graphs (model {source})")
     print("[4/4] tables and plots\n")
-    files: dict[str, Any] = {}
     for key, stem in (("relative", "table"), ("absolute", "abs_table")):
         if key in tables:
             files[key] = tables[key].write(out, stem, digits=int(cfg.digits))
@@ -125,7 +169,8 @@ def demo(cfg: DictConfig) -> dict[str, Any]:
                                      title=f"{g.name} ({g.meta.get('scene', '')})"))
     files["camera_pngs"] = cams
     print(f"wrote {out}/table.md, abs_table.md, errors_sorted.png and {len(cams)} camera "
-          f"plots in {time.perf_counter() - t0:.0f} s")
+          f"plots" + (f"; {out}/reconstruct/: poses.json, matches_*.png, cameras.png"
+                      if cfg.images.enabled else "") + f" in {time.perf_counter() - t0:.0f} s")
     return files
 
 

@@ -3,7 +3,8 @@
     posernet-reconstruct images=photos/ intrinsics=585,585,320,240 out_dir=out
 
 Runs ROI proposals -> keypoint matching -> box matching -> 5-point (KP) -> PoserNet (shipped
-checkpoint; ``refine=false`` skips it) -> motion averaging (``sync=``), then writes into
+checkpoint, with ``refine=true``; off by default, see ``conf/reconstruct.yaml``) -> motion
+averaging (``sync=``), then writes into
 ``out_dir``: ``poses.json`` (format ``posernet-poses``), ``summary.json`` (counts and per-stage
 timings), ``matches_<k>.png`` (image pairs with their matched boxes) and ``cameras.png`` (the
 recovered cameras in 3D). With a pose file per image (``<name>.pose.txt``, 7-Scenes layout, or
@@ -53,8 +54,11 @@ def _pictures(rec: Any, out: Path, k: int) -> list[Path]:
     if k <= 0 or g.num_edges == 0:
         return []
     rows = torch.bincount(g.pair_edge, minlength=g.num_edges)
+    order = torch.argsort(rows, descending=True, stable=True)
+    # spread over the ranking: the best-matched pairs are neighbours, the others show more
+    picks = sorted({round(float(q)) for q in np.linspace(0, g.num_edges - 1, min(k, g.num_edges))})
     paths = []
-    for n, e in enumerate(torch.argsort(rows, descending=True, stable=True)[:k].tolist()):
+    for n, e in enumerate(order[picks].tolist()):
         i, j = (int(v) for v in g.edge_index[:, e])
         a, b = (i, j) if i < j else (j, i)
         pr = fe.pair(a, b)
@@ -62,7 +66,7 @@ def _pictures(rec: Any, out: Path, k: int) -> list[Path]:
         paths.append(draw_matches(
             read_image(ra.path), read_image(rb.path), fe.matches[(a, b)], out / f"matches_{n}.png",
             boxes_a=fe.boxes(a), boxes_b=fe.boxes(b),
-            box_pairs=np.stack([pr.box_a, pr.box_b], axis=1),
+            box_pairs=np.stack([pr.box_a, pr.box_b], axis=1), max_lines=80,
             title=f"{ra.key} <-> {rb.key}: {pr.box_a.size} matched boxes"))
     return paths
 

@@ -1,0 +1,167 @@
+"""``posernet-reconstruct`` end to end on a rendered scene: images in, camera poses out.
+
+One small scene (7-Scenes layout, 320x240) is rendered per module; the command runs on its
+test sequence, with the 7-Scenes pose files as ground truth, and on bad inputs.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from posernet.data.render import render_intrinsics, render_sevenscenes
+from posernet.data.sevenscenes import SevenScenesScene
+
+BIN = Path(sys.executable).parent
+W, H, F = 320, 240, 292.5
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory) -> Path:
+    root = tmp_path_factory.mktemp("render")
+    return render_sevenscenes(root, "chess", seed=3, train_sequences=0, test_sequences=1,
+                              frames_per_sequence=8, width=W, height=H, focal=F, progress=False)
+
+
+def _intr(scene: Path) -> str:
+    return ",".join(f"{v:g}" for v in render_intrinsics(scene))
+
+
+def _run(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess:
+    env = dict(os.environ, OMP_NUM_THREADS="1")
+    return subprocess.run([str(BIN / "posernet-reconstruct"), *args, "progress=false"],
+                          capture_output=True, text=True, cwd=cwd, env=env, timeout=600)
+
+
+def _rot_err_deg(Ra: np.ndarray, Rb: np.ndarray) -> float:
+    c = (np.trace(Ra @ Rb.T) - 1) / 2
+    return float(np.degrees(np.arccos(np.clip(c, -1, 1))))
+
+
+@pytest.mark.slow
+def test_reconstruct_recovers_rendered_rotations(scene, tmp_path):
+    out = tmp_path / "out"
+    r = _run(f"images={scene / 'seq-01'}", f"intrinsics={_intr(scene)}", f"out_dir={out}",
+             "matcher=sift", "refine=false")
+    assert r.returncode == 0, r.stderr
+    assert "posernet-reconstruct: error" not in r.stderr
+    poses = json.loads((out / "poses.json").read_text())
+    assert poses["format"] == "posernet-poses" and poses["stage"] == "initial"
+    cams = poses["cameras"]
+    assert len(cams) == 8 and all(c["solved"] for c in cams.values())
+    # ground truth read by the 7-Scenes reader on the same scene
+    reader = SevenScenesScene(scene, intrinsics=render_intrinsics(scene))
+    frames = {f.key.split("/")[-1]: f for f in reader.frames("test")}
+    names = sorted(cams)
+    R_est = np.stack([np.asarray(cams[n]["world_to_camera"])[:3, :3] for n in names])
+    R_gt = np.stack([reader.world_to_camera(frames[n])[:3, :3] for n in names])
+    # relative rotations between every camera pair: gauge-free
+    errs = [_rot_err_deg(R_est[j] @ R_est[i].T, R_gt[j] @ R_gt[i].T)
+            for i in range(len(names)) for j in range(i + 1, len(names))]
+    assert np.median(errs) < 2.0, errs
+    # the output's gauge: first camera of the component at the identity
+    assert np.allclose(np.asarray(cams[names[0]]["world_to_camera"]), np.eye(4), atol=1e-6)
+    # tables from the pose files, pictures and the summary
+    assert (out / "table.md").is_file() and (out / "abs_table.md").is_file()
+    assert "Absolute poses" in r.stdout
+    img = cv2.imread(str(out / "matches_0.png"))
+    assert img is not None and img.shape[1] > 2 * W - 10
+    assert cv2.imread(str(out / "cameras.png")) is not None
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["cameras_placed"] == 8
+    assert set(summary["frontend"]["seconds"]) >= {"proposals", "features", "matching"}
+
+
+@pytest.mark.slow
+def test_reconstruct_without_ground_truth_and_with_a_blank_image(scene, tmp_path):
+    """No pose files: no tables; a blank image gets no proposals and is reported unplaced."""
+    imgs = tmp_path / "photos"
+    imgs.mkdir()
+    for p in sorted((scene / "seq-01").glob("*.color.png"))[:5]:
+        shutil.copy(p, imgs / p.name.replace(".color", ""))
+    cv2.imwrite(str(imgs / "zz_blank.png"), np.full((H, W, 3), 127, np.uint8))
+    out = tmp_path / "out"
+    r = _run(f"images={imgs}", f"intrinsics=[{_intr(scene)}]", f"out_dir={out}",
+             "matcher=sift", "refine=true")
+    assert r.returncode == 0, r.stderr
+    assert "without ground-truth poses" in r.stdout
+    assert "1 without any proposal" in r.stdout
+    assert "with too few keypoint matches" in r.stdout
+    assert not (out / "table.md").exists()
+    cams = json.loads((out / "poses.json").read_text())["cameras"]
+    blank = cams["zz_blank.png"]
+    assert blank["solved"] is False and blank["camera_to_world"] is None
+    assert sum(c["solved"] for c in cams.values()) == 5
+    stage = json.loads((out / "poses.json").read_text())["stage"]
+    assert stage == "refined"
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["images=/nonexistent/photos", "intrinsics=500,500,160,120"], "image folder not found"),
+        (["intrinsics=500,500,160"], "4 numbers"),
+        (["intrinsics=[[1,0],[0,1]]"], r"shape \(2, 2\)"),
+        (["intrinsics=/nonexistent/cams.json"], "intrinsics file not found"),
+        (["intrinsics=500,500,160,120", "out_dir=/proc/posernet-out"], "out_dir /proc"),
+        (["intrinsics=500,500,160,120", "estimate=xx"], "estimate must be kp or bb"),
+        (["intrinsics=500,500,160,120", "refine=true", "ckpt_path=/nonexistent.ckpt"],
+         "nonexistent.ckpt"),
+        (["intrinsics=500,500,160,120", "proposals=file",
+          "proposals.path=/nonexistent/boxes.json"], "boxes.json"),
+    ],
+)
+def test_reconstruct_bad_input_is_one_line(scene, tmp_path, args, message):
+    if not any(a.startswith("images=") for a in args):
+        args = [f"images={scene / 'seq-01'}", *args]
+    if not any(a.startswith("out_dir=") for a in args):
+        args = [*args, f"out_dir={tmp_path / 'out'}"]
+    r = _run(*args, "matcher=sift")
+    assert r.returncode == 1, (r.stdout, r.stderr)
+    lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
+    assert lines[-1].startswith("posernet-reconstruct: error: "), r.stderr
+    assert "Traceback" not in r.stderr
+    import re
+
+    assert re.search(message, lines[-1]), lines[-1]
+    assert not (tmp_path / "out" / "poses.json").exists()
+
+
+@pytest.mark.slow
+def test_reconstruct_unreadable_image(scene, tmp_path):
+    imgs = tmp_path / "photos"
+    imgs.mkdir()
+    for p in sorted((scene / "seq-01").glob("*.color.png"))[:3]:
+        shutil.copy(p, imgs / p.name)
+    (imgs / "broken.png").write_bytes(b"\x89PNG not really")
+    r = _run(f"images={imgs}", f"intrinsics={_intr(scene)}", f"out_dir={tmp_path / 'o'}",
+             "matcher=sift")
+    assert r.returncode == 1
+    assert "broken.png" in r.stderr.splitlines()[-1]
+
+
+def test_gauge_fixed_puts_each_component_first_camera_at_identity():
+    from posernet.reconstruct import gauge_fixed
+    from posernet.testing import random_absolute_poses
+
+    T = random_absolute_poses(5, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    solved = torch.tensor([True, True, False, True, True])
+    comp = torch.tensor([0, 0, 0, 1, 1])
+    out = gauge_fixed(T, solved, comp)
+    assert torch.allclose(out[0], torch.eye(4, dtype=torch.float64), atol=1e-12)
+    assert torch.allclose(out[3], torch.eye(4, dtype=torch.float64), atol=1e-12)
+    assert torch.equal(out[2], T[2])
+    # relative poses inside a component are unchanged
+    from posernet.geometry import relative_pose
+
+    assert torch.allclose(relative_pose(out[0], out[1]), relative_pose(T[0], T[1]), atol=1e-12)
