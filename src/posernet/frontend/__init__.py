@@ -10,7 +10,7 @@ shares the box-matching rules, the 5-point step and the graph assembly.
 """
 
 from .boxmatch import BoxMatchRules, match_boxes
-from .features import Features, Matches, MatcherError, SiftMatcher, XFeatMatcher, make_matcher
+from .features import Features, MatcherError, Matches, SiftMatcher, XFeatMatcher, make_matcher
 from .graphs import PairResult, assemble_view_graph, grow_connected
 from .images import ImageError, ImageRecord, parse_intrinsics, read_image, records_for_images
 from .pipeline import FrontendSummary, ImageFrontend
