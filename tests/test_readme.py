@@ -21,6 +21,15 @@ def test_poserconv_example_runs():
     assert ns["out"].edge_pose.shape == (2, 7)
 
 
+def test_reconstruct_example_runs(tmp_path):
+    code = _block_after("## From images to camera poses").replace(
+        "/tmp/posernet-example", str(tmp_path))
+    ns: dict = {}
+    exec(compile(code, "README.md", "exec"), ns)
+    assert (tmp_path / "poses.json").is_file()
+    assert ns["rec"].graph.num_nodes == 6 and ns["rec"].graph.num_edges > 0
+
+
 def test_results_sections_quote_the_committed_digests():
     """Each results block of the README (``<!-- results:<scale>:begin -->``) is the runner's own
     digest of the committed run at that scale, verbatim."""

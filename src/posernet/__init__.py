@@ -26,6 +26,18 @@ from .nn import PoserConv, PoserNet, posernet_loss
 
 __version__ = "0.1.0"
 
+# The image front end (OpenCV, optional learned matchers) loads on first use, so that importing
+# the network or the geometry does not pay for it.
+_LAZY = {"frontend": ".frontend", "reconstruct": ".reconstruct"}
+
+
+def __getattr__(name: str) -> object:
+    if name in _LAZY:
+        import importlib
+
+        return importlib.import_module(_LAZY[name], __name__)
+    raise AttributeError(f"module 'posernet' has no attribute {name!r}")
+
 __all__ = [
     "GraphBatch",
     "GraphValidationError",
@@ -35,12 +47,14 @@ __all__ = [
     "__version__",
     "absolute_pose_errors",
     "denormalize_boxes",
+    "frontend",
     "geometry",
     "load_graphs",
     "node_attributes",
     "normalize_boxes",
     "per_graph_mean",
     "posernet_loss",
+    "reconstruct",
     "relative_pose_errors",
     "save_graphs",
     "sync",
