@@ -23,7 +23,8 @@ def test_shipped_checkpoint_loads():
 def test_demo_runs_the_whole_pipeline(tmp_path):
     out = tmp_path / "demo"
     cmd = [sys.executable, "-m", "posernet.cli.demo", f"out_dir={out}", "dataset=tiny",
-           "camera_plots=2"]
+           "camera_plots=2", "images.frames=6", "images.width=320", "images.height=240",
+           "images.focal=292.5", "images.matcher=sift"]
     r = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
     assert r.returncode == 0, r.stderr[-2000:]
     for name in ("table.md", "table.csv", "abs_table.md", "abs_table.csv",
@@ -31,8 +32,14 @@ def test_demo_runs_the_whole_pipeline(tmp_path):
         assert (out / name).is_file(), name
     assert "| KP | PoserNet |" in (out / "table.md").read_text()
     assert "eig_se3 + PoserNet" in (out / "abs_table.md").read_text()
+    # the image part: a rendered scene through posernet-reconstruct
+    for name in ("scene/office/render.json", "reconstruct/poses.json", "reconstruct/cameras.png",
+                 "reconstruct/matches_0.png", "reconstruct/abs_table.md"):
+        assert (out / name).is_file(), name
+    assert "rendering 6 frames" in r.stdout
     # A second run reuses the dataset (resume) and gives the same tables.
     first = (out / "table.md").read_text()
     r = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
     assert r.returncode == 0, r.stderr[-2000:]
     assert (out / "table.md").read_text() == first
+    assert "rendering" not in r.stdout  # the rendered scene is reused too
