@@ -149,6 +149,39 @@ def test_isolated_node_gets_zero_state_and_layer_repr() -> None:
     assert "PoserConv(node 4 -> 6" in repr(conv)
 
 
+@pytest.mark.parametrize("residual", [False, True])
+def test_last_round_layer_builds_only_what_its_edge_poses_need(residual: bool) -> None:
+    """update_nodes=False / update_edge_state=False: no Psi_N, a pose-only Psi_E, the same
+    edge poses as a full layer with the same weights, and weights of a full layer load."""
+    g = graph(4)
+    torch.manual_seed(3)
+    full = PoserConv(4, 8, edge_dim=3, residual=residual).double()
+    last = PoserConv(4, 8, edge_dim=3, residual=residual, update_nodes=False,
+                     update_edge_state=False).double()
+    assert last.psi_node is None and last.psi_edge.out_dim == 7
+    assert not any(k.startswith("psi_node.") for k in last.state_dict())
+    assert "update_nodes=False" in repr(last) and "update_edge_state=False" in repr(last)
+    last.load_state_dict(full.state_dict())  # strict: extra weights dropped, rows cut
+    state = torch.randn(g.num_edges, 2, 3, dtype=torch.float64)
+    a = full(g, edge_state=state)
+    b = last(g, edge_state=state)
+    assert b.x is None and b.edge_state is None
+    torch.testing.assert_close(b.edge_pose, a.edge_pose, atol=1e-12, rtol=1e-10)  # round-off
+    # every parameter of the trimmed layer reaches its output
+    b.edge_pose.sum().backward()
+    assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in last.parameters())
+    # a full layer can skip the node update for one call (a network sharing one layer)
+    inp = graph_inputs(g)
+    c = full._propagate(inp["x"], inp["edge_index"], inp["edge_pose"], inp["pair_edge"],
+                        inp["pair_box_src"], inp["pair_box_dst"], state, update_nodes=False,
+                        update_edge_state=False)
+    assert c.x is None and c.edge_state is None
+    torch.testing.assert_close(c.edge_pose, a.edge_pose, atol=0, rtol=0)
+    with pytest.raises(ValueError, match="update_nodes=False"):
+        last._propagate(inp["x"], inp["edge_index"], inp["edge_pose"], inp["pair_edge"],
+                        inp["pair_box_src"], inp["pair_box_dst"], state, update_nodes=True)
+
+
 def test_validation_errors() -> None:
     g = graph(3)
     conv = PoserConv(4, 8).double()

@@ -180,3 +180,80 @@ def test_optimizer_and_scheduler() -> None:
     assert isinstance(sched["scheduler"], torch.optim.lr_scheduler.ReduceLROnPlateau)
     assert sched["scheduler"].patience == 3 and sched["monitor"] == "val/loss"
     assert module.num_parameters == sum(p.numel() for p in module.model.parameters())
+
+
+# --------------------------------------------------------------------------- unused parameters
+
+MODEL_CONFIG_DIR = Path(__file__).resolve().parents[1] / "conf" / "model"
+MODEL_CONFIGS = sorted(p.stem for p in MODEL_CONFIG_DIR.glob("*.yaml"))
+SHIPPED = (Path(__file__).resolve().parents[1] / "src" / "posernet" / "checkpoints"
+           / "posernet_synthetic_kp.ckpt")
+
+
+def test_model_configs_are_found() -> None:
+    assert {"posernet", "posernet_large", "residual"} <= set(MODEL_CONFIGS)
+
+
+@pytest.mark.parametrize("name", MODEL_CONFIGS)
+def test_every_parameter_of_each_model_config_gets_a_gradient(name: str, data) -> None:
+    """DDP without find_unused_parameters: one training loss must reach every parameter."""
+    import hydra
+    from hydra import compose, initialize_config_dir
+
+    from posernet.cli import CONFIG_DIR
+    from posernet.nn import posernet_loss
+
+    with initialize_config_dir(config_dir=CONFIG_DIR, version_base="1.3"):
+        cfg = compose(config_name="train", overrides=[f"model={name}"])
+    torch.manual_seed(0)
+    module = hydra.utils.instantiate(cfg.model)
+    assert isinstance(module, PoserNetModule)
+    batch = GraphBatch.from_graphs(data[0][:4])
+    posernet_loss(module(batch), batch.edge_pose_gt, module.hparams.alpha).loss.backward()
+    for pname, p in module.named_parameters():
+        assert p.grad is not None, f"model={name}: {pname} is not used by the loss"
+        assert p.grad.abs().sum() > 0, f"model={name}: {pname} gets a zero gradient"
+
+
+def test_training_resumes_from_a_checkpoint_of_the_older_layout(data, tmp_path: Path) -> None:
+    """The shipped checkpoint still holds the last round's node MLP and its Adam state."""
+    import shutil
+
+    train, val = data
+    old = tmp_path / "old.ckpt"
+    shutil.copy(SHIPPED, old)
+    ckpt = torch.load(old, weights_only=True)
+    assert any(k.startswith("model.convs.1.psi_node.") for k in ckpt["state_dict"])
+    L.seed_everything(0, workers=True)
+    module = PoserNetModule(**ckpt["hyper_parameters"])
+    t = trainer(tmp_path, epochs=ckpt["epoch"] + 2, limit_train_batches=2, limit_val_batches=1)
+    t.fit(module, loader(train[:16]), loader(val[:8]), ckpt_path=old)
+    assert t.current_epoch == ckpt["epoch"] + 2
+    assert t.global_step == ckpt["global_step"] + 2
+
+
+def test_upgrade_optimizer_states_drops_and_cuts_the_old_entries() -> None:
+    from posernet.lit import upgrade_optimizer_states
+    from posernet.nn import PoserConv
+
+    module = PoserNetModule(depth=2, edge_hidden=3)
+    last = module.model.convs[1]
+    # the same module as built before: a full last layer (node MLP, hidden-state rows)
+    old = PoserNetModule(depth=2, edge_hidden=3)
+    old.model.convs[1] = PoserConv(last.node_in, last.node_out, 3)
+    opt = torch.optim.Adam(old.parameters(), lr=1e-3)
+    batch = GraphBatch.from_graphs(graphs(2, 5))
+    old(batch).square().sum().backward()
+    opt.step()
+    checkpoint = {"state_dict": old.state_dict(), "optimizer_states": [opt.state_dict()]}
+    assert upgrade_optimizer_states(checkpoint, module)
+    module.load_state_dict(checkpoint["state_dict"])  # strict
+    new_opt = torch.optim.Adam(module.parameters(), lr=1e-3)
+    new_opt.load_state_dict(checkpoint["optimizer_states"][0])
+    old_params = dict(old.named_parameters())
+    assert len(old_params) > len(list(module.parameters()))
+    for name, p in module.named_parameters():
+        ref = opt.state[old_params[name]]["exp_avg"]
+        torch.testing.assert_close(new_opt.state[p]["exp_avg"],
+                                   ref[tuple(slice(0, n) for n in p.shape)])
+    assert not upgrade_optimizer_states(checkpoint, module)  # already fits: left alone

@@ -28,7 +28,7 @@ from .nn.model import CHECKPOINT_TAG, CheckpointError
 from .nn.model import read_checkpoint as read_posernet_checkpoint
 
 __all__ = ["CHECKPOINT_TAG", "CheckpointError", "PoserNetModule", "checkpoint_callbacks",
-           "load_posernet_checkpoint", "read_posernet_checkpoint"]
+           "load_posernet_checkpoint", "read_posernet_checkpoint", "upgrade_optimizer_states"]
 
 
 
@@ -174,6 +174,12 @@ class PoserNetModule(L.LightningModule):
     def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
         checkpoint["posernet"] = {"tag": CHECKPOINT_TAG, "version": __version__}
 
+    def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        # Checkpoints written before the last round lost its unused node MLP: the network drops
+        # those weights itself (PoserConv._load_from_state_dict); the optimiser state of a
+        # resumed run must lose them too, or Adam's state would not fit the parameters.
+        upgrade_optimizer_states(checkpoint, self)
+
     @property
     def num_parameters(self) -> int:
         """Number of trainable parameters of the network."""
@@ -199,6 +205,54 @@ def checkpoint_callbacks(dirpath: str | os.PathLike[str], monitor: str = "val/lo
     last = ModelCheckpoint(dirpath=dirpath, filename="last", save_top_k=1,
                            enable_version_counter=False, auto_insert_metric_name=False)
     return [best, last]
+
+
+# --------------------------------------------------------------------------- old checkpoints
+
+
+def _fit_to(value: Any, shape: torch.Size) -> Any:
+    """A per-parameter optimiser tensor cut to ``shape`` (leading rows), others unchanged."""
+    if (isinstance(value, Tensor) and value.ndim == len(shape) and value.shape != shape
+            and all(a >= b for a, b in zip(value.shape, shape, strict=True))):
+        return value[tuple(slice(0, n) for n in shape)].clone()
+    return value
+
+
+def upgrade_optimizer_states(checkpoint: dict[str, Any], module: torch.nn.Module) -> bool:
+    """Fit the optimiser states of an older checkpoint to ``module``'s parameters, in place.
+
+    The checkpoint's ``state_dict`` names the parameters the optimiser was built on (in
+    ``module.parameters()`` order; PoserNet has no buffers). When some of them no longer exist
+    (the last round's node MLP) or lost rows (its hidden edge state output), their entries are
+    dropped / cut and the others renumbered. Returns True when something was changed; leaves
+    checkpoints that do not fit this pattern alone (Lightning then reports the mismatch).
+    """
+    state_dict = checkpoint.get("state_dict")
+    opt_states = checkpoint.get("optimizer_states")
+    if not isinstance(state_dict, dict) or not opt_states:
+        return False
+    params = dict(module.named_parameters())
+    old_names = list(state_dict)
+    new_names = list(params)
+    if old_names == new_names or not set(new_names) <= set(old_names):
+        return False
+    changed = False
+    for opt in opt_states:
+        groups = opt.get("param_groups") if isinstance(opt, dict) else None
+        if not groups or len(groups) != 1 or len(groups[0]["params"]) != len(old_names):
+            continue  # not one group over all parameters: cannot tell which is which
+        old_ids = list(groups[0]["params"])
+        position = {name: i for i, name in enumerate(old_names)}
+        old_state = opt.get("state", {})
+        new_state = {}
+        for j, name in enumerate(new_names):
+            entry = old_state.get(old_ids[position[name]])
+            if entry is not None:
+                new_state[j] = {k: _fit_to(v, params[name].shape) for k, v in entry.items()}
+        groups[0]["params"] = list(range(len(new_names)))
+        opt["state"] = new_state
+        changed = True
+    return changed
 
 
 # --------------------------------------------------------------------------- loading

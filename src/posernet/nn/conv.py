@@ -45,6 +45,16 @@ neighbours). With ``residual=True`` the pose part of ``Psi_E`` is a correction
 ``delta = [1 + d_q, d_t]`` composed with the current pose, ``P_ij = delta o e_ij``; otherwise
 the pose is regressed directly, as in the paper. Edges without any matched pair keep their
 pose and hidden state, and nodes without neighbours get a zero state.
+
+The last round of a network
+---------------------------
+Only the edge poses of the last round are read. A layer built with ``update_nodes=False`` has no
+``Psi_N`` at all and returns ``x = None``; with ``update_edge_state=False`` its ``Psi_E``
+predicts the pose only and it returns ``edge_state = None``. Nothing that cannot reach the
+output is built or computed, so every parameter gets a gradient (distributed data parallel
+training needs that) and the edge poses are exactly those of a full layer with the same
+``Psi_E`` pose weights. Weights saved from a full layer load into such a layer: the unused
+``Psi_N`` entries are dropped and ``Psi_E``'s last layer keeps its pose rows.
 """
 
 from __future__ import annotations
@@ -79,12 +89,13 @@ POSE_DIM = 7
 class PoserConvOutput(NamedTuple):
     """Result of one :class:`PoserConv` round.
 
-    ``x [N, node_out]`` new node states, ``edge_pose [E, 7]`` new pose of every stored
-    direction ``i -> j``, ``edge_state [E, 2, edge_dim]`` hidden state of the forward (index 0)
-    and backward (index 1) direction, or ``None`` when ``edge_dim == 0``.
+    ``x [N, node_out]`` new node states (``None`` when the layer does not update nodes),
+    ``edge_pose [E, 7]`` new pose of every stored direction ``i -> j``,
+    ``edge_state [E, 2, edge_dim]`` hidden state of the forward (index 0) and backward (index 1)
+    direction, or ``None`` when ``edge_dim == 0`` or the layer does not update it.
     """
 
-    x: Tensor
+    x: Tensor | None
     edge_pose: Tensor
     edge_state: Tensor | None
 
@@ -259,6 +270,11 @@ class PoserConv(nn.Module):
             itself (default False, the paper's direct regression).
         nested_mean: node update = mean over neighbours of the mean over their pairs (default
             True, the paper's equation); False = flat mean over all incoming pair messages.
+        update_nodes: build ``Psi_N`` and return new node states (default True). False for the
+            last round of a network, whose node states nothing reads: ``x`` is then ``None``.
+        update_edge_state: ``Psi_E`` also predicts the new hidden edge state (default True;
+            only matters when ``edge_dim > 0``). False for the last round of a network: the
+            input state is still read, the output ``edge_state`` is ``None``.
 
     Shapes:
         ``x [N, node_in]``, ``edge_index [2, E]`` (long), ``edge_pose [E, 7]``,
@@ -266,6 +282,8 @@ class PoserConv(nn.Module):
         ``edge_state [E, 2, edge_dim]`` (optional) ->
         :class:`PoserConvOutput` ``(x [N, node_out], edge_pose [E, 7], edge_state)``.
     """
+
+    psi_node: MLP | None
 
     def __init__(
         self,
@@ -277,6 +295,8 @@ class PoserConv(nn.Module):
         negative_slope: float = 0.01,
         residual: bool = False,
         nested_mean: bool = True,
+        update_nodes: bool = True,
+        update_edge_state: bool = True,
     ) -> None:
         super().__init__()
         if node_in < 1 or node_out < 1 or edge_dim < 0:
@@ -284,23 +304,49 @@ class PoserConv(nn.Module):
                              f"node_out={node_out}, edge_dim={edge_dim}")
         self.node_in, self.node_out, self.edge_dim = node_in, node_out, edge_dim
         self.residual, self.nested_mean = residual, nested_mean
+        self.update_nodes = bool(update_nodes)
+        self.update_edge_state = bool(update_edge_state) and edge_dim > 0
         in_dim = 2 * node_in + POSE_DIM + edge_dim + 2 * BOX_DIM
         # Psi_E regresses signed pose values: no activation after its last layer.
-        self.psi_edge = MLP(in_dim, POSE_DIM + edge_dim, hidden, num_layers, negative_slope,
+        edge_out = POSE_DIM + (edge_dim if self.update_edge_state else 0)
+        self.psi_edge = MLP(in_dim, edge_out, hidden, num_layers, negative_slope,
                             act_last=False)
-        # Psi_N: every layer followed by a leaky ReLU (paper, supplementary).
-        self.psi_node = MLP(in_dim, node_out, hidden, num_layers, negative_slope,
-                            act_last=True)
+        # Psi_N: every layer followed by a leaky ReLU (paper, supplementary). Not built when
+        # nothing reads the new node states (the last round of a network).
+        self.psi_node = (MLP(in_dim, node_out, hidden, num_layers, negative_slope,
+                             act_last=True) if self.update_nodes else None)
 
     def reset_parameters(self) -> None:
         self.psi_edge.reset_parameters()
-        self.psi_node.reset_parameters()
+        if self.psi_node is not None:
+            self.psi_node.reset_parameters()
+
+    def _load_from_state_dict(self, state_dict: dict[str, Any], prefix: str,
+                              *args: Any, **kwargs: Any) -> None:
+        """Load weights saved from a full layer (checkpoints written before the last round of a
+        network lost its unused parts): drop ``Psi_N`` when this layer has none, and keep only
+        the pose rows of ``Psi_E``'s last layer when this layer predicts no edge state."""
+        if self.psi_node is None:
+            for key in [k for k in state_dict if k.startswith(prefix + "psi_node.")]:
+                del state_dict[key]
+        if self.edge_dim and not self.update_edge_state:
+            index = len(self.psi_edge.net) - 1  # the last module of Psi_E is its last Linear
+            for name in ("weight", "bias"):
+                key = f"{prefix}psi_edge.net.{index}.{name}"
+                value = state_dict.get(key)
+                if isinstance(value, Tensor) and value.ndim and \
+                        value.shape[0] == POSE_DIM + self.edge_dim:
+                    state_dict[key] = value[:POSE_DIM]
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     def __repr__(self) -> str:
         return (f"{type(self).__name__}(node {self.node_in} -> {self.node_out}, "
                 f"edge_dim={self.edge_dim}, hidden={self.psi_edge.hidden}, "
                 f"layers={self.psi_edge.num_layers}, residual={self.residual}, "
-                f"nested_mean={self.nested_mean})")
+                f"nested_mean={self.nested_mean}"
+                + ("" if self.update_nodes else ", update_nodes=False")
+                + ("" if self.update_edge_state or not self.edge_dim
+                   else ", update_edge_state=False") + ")")
 
     def forward(
         self,
@@ -346,7 +392,19 @@ class PoserConv(nn.Module):
         box_src: Tensor,
         box_dst: Tensor,
         edge_state: Tensor | None,
+        update_nodes: bool | None = None,
+        update_edge_state: bool | None = None,
     ) -> PoserConvOutput:
+        """The round on validated tensors. ``update_nodes`` / ``update_edge_state`` (default:
+        the layer's own settings) may switch the node update / the hidden edge state output
+        off for one call, e.g. for the last round of a network that reuses one layer."""
+        if update_nodes is None:
+            update_nodes = self.update_nodes
+        elif update_nodes and self.psi_node is None:
+            raise ValueError(f"{type(self).__name__} was built with update_nodes=False")
+        if update_edge_state is None:
+            update_edge_state = self.update_edge_state
+        update_edge_state = update_edge_state and self.update_edge_state
         N, E = x.shape[0], edge_index.shape[1]
         src, dst = edge_index
         # Directed views: rows [0, E) are i -> j as stored, rows [E, 2E) the reverse j -> i.
@@ -382,11 +440,14 @@ class PoserConv(nn.Module):
         fwd, bwd = pred[:E], pred[E:]
         new_pose = symmetric_pose_mean(fwd, invert_pose_raw(bwd), edge_pose)
         new_state = None
-        if self.edge_dim:
+        if update_edge_state:
             s = torch.where(has, m_edge[:, POSE_DIM:], state_view)
             new_state = torch.stack((s[:E], s[E:]), dim=1)
+        if not update_nodes:
+            return PoserConvOutput(None, new_pose, new_state)
 
         # ---- node update: each node hears every neighbour through the view starting at itself.
+        assert self.psi_node is not None
         m_node = self.psi_node(z)  # [2M, node_out]
         if self.nested_mean:
             per_view = scatter_mean(m_node, view_pair, 0, 2 * E)  # mean over the pairs

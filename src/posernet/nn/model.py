@@ -10,6 +10,12 @@ Every round refines the pose of every stored edge ``i -> j``; the output is the 
 ``[qw, qx, qy, qz, tx, ty, tz]`` of the last round (sign-canonical quaternion; unit quaternion
 and unit translation when ``unit_output=True``). See :mod:`posernet.nn.conv` for the round and
 for why the output of a flipped edge is exactly the inverse pose.
+
+Only the edge poses of the last round are read, so the last round has no node-update network
+(and no hidden-edge-state output): every parameter reaches the loss, as distributed data
+parallel training requires. Checkpoints written before that change still load (their unused
+last-round weights are dropped, see :class:`~posernet.nn.conv.PoserConv`) and give the same
+outputs.
 """
 
 from __future__ import annotations
@@ -108,17 +114,20 @@ class PoserNet(nn.Module):
         self.depth, self.node_in, self.node_hidden = depth, node_in, node_hidden
         self.shared_weights, self.residual, self.unit_output = shared_weights, residual, unit_output
 
-        def conv(n_in: int) -> PoserConv:
+        def conv(n_in: int, last: bool) -> PoserConv:
+            # the last round's node states and hidden edge state are never read: not built
             return PoserConv(n_in, node_hidden, edge_hidden, mlp_hidden, mlp_layers,
-                             negative_slope, residual=residual, nested_mean=nested_mean)
+                             negative_slope, residual=residual, nested_mean=nested_mean,
+                             update_nodes=not last, update_edge_state=not last)
 
         if shared_weights:
             self.encoder: nn.Module = nn.Linear(node_in, node_hidden)
-            self.convs = nn.ModuleList([conv(node_hidden)])
+            # one layer for every round: it needs the node update unless it is the only round
+            self.convs = nn.ModuleList([conv(node_hidden, last=depth == 1)])
         else:
             self.encoder = nn.Identity()
-            self.convs = nn.ModuleList([conv(node_in)] +
-                                       [conv(node_hidden) for _ in range(depth - 1)])
+            self.convs = nn.ModuleList([conv(node_in if k == 0 else node_hidden,
+                                             last=k == depth - 1) for k in range(depth)])
 
     @classmethod
     def from_checkpoint(cls, path: str | os.PathLike[str],
@@ -126,6 +135,8 @@ class PoserNet(nn.Module):
         """The network of a ``PoserNetModule`` checkpoint, in eval mode, without Lightning.
 
         Raises :class:`CheckpointError` for a missing, foreign or mismatching checkpoint.
+        Checkpoints that still hold the last round's node-update weights load too (the unused
+        weights are dropped; the outputs are the same).
         """
         ckpt = read_checkpoint(path)
         hp = dict(ckpt.get("hyper_parameters") or {})
@@ -173,10 +184,11 @@ class PoserNet(nn.Module):
         outputs = []
         for k in range(self.depth):
             conv = self.convs[0 if self.shared_weights else k]
+            last = k == self.depth - 1  # only its edge poses are read
             h, pose, state = conv._propagate(
                 h, inputs["edge_index"], pose, inputs["pair_edge"], inputs["pair_box_src"],
                 inputs["pair_box_dst"], self._initial_state(conv, pose) if state is None
-                else state,
+                else state, update_nodes=not last, update_edge_state=not last,
             )
             outputs.append(self._finalise(pose))
         return outputs if return_all else outputs[-1]
