@@ -228,3 +228,17 @@ def test_refuses_empty_graph_list(tmp_path):
         save_graphs(tmp_path / "e.pt", [])
     with pytest.raises(GraphValidationError, match="empty list"):
         GraphBatch.from_graphs([])
+
+
+def test_save_refuses_what_load_would_reject(tmp_path):
+    gs = graphs(2)
+    ep = gs[1].edge_pose.clone()
+    ep[0, 5] = float("nan")
+    gs[1] = dataclasses.replace(gs[1], edge_pose=ep)
+    expected = r"n.pt: graph 1 \('g1'\): field 'edge_pose' has a NaN/inf value \(row 0\)"
+    with pytest.raises(GraphValidationError, match=expected):
+        save_graphs(tmp_path / "n.pt", gs)
+    bad_index = dataclasses.replace(graphs(1)[0], det_node=graphs(1)[0].det_node + 100)
+    with pytest.raises(GraphValidationError, match=r"graph 0 \('g0'\): index field 'det_node'"):
+        save_graphs(tmp_path / "n.pt", [bad_index])
+    assert list(tmp_path.iterdir()) == []

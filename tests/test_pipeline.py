@@ -90,6 +90,65 @@ def test_result_json_has_poses_for_every_edge_and_camera():
     assert torch.allclose(T @ torch.tensor(cam["camera_to_world"]), torch.eye(4), atol=1e-5)
 
 
+# --------------------------------------------------------------------------- input selection
+
+
+def fake_dataset(root: Path) -> Path:
+    """A posernet-make-data layout: small train/val/test and large test graphs + manifest."""
+    from posernet.io import atomic_write_json
+
+    layout = {("small", "train"): 3, ("small", "val"): 1, ("small", "test"): 2,
+              ("large", "test"): 1}
+    splits: dict = {}
+    for seed, ((size, split), n) in enumerate(layout.items()):
+        gs = graphs(n, seed=seed)
+        for k, g in enumerate(gs):
+            g.meta.update(split=split, size=size, name=f"{size}-{split}-{k}")
+        save_graphs(root / size / split / "heads.pt", gs)
+        splits.setdefault(size, {})[split] = ["heads"]
+    atomic_write_json(root / "manifest.json", {"splits": splits})
+    return root
+
+
+def test_dataset_root_uses_one_split_and_says_which(tmp_path):
+    from posernet.data.store import DatasetError
+    from posernet.pipeline import load_input_graphs
+
+    root = fake_dataset(tmp_path / "ds")
+    said: list[str] = []
+    gs = load_input_graphs(root, log=said.append)
+    assert [g.meta["split"] for g in gs] == ["test", "test"]
+    assert {g.meta["size"] for g in gs} == {"small"}
+    assert len(said) == 1 and "split=test size=small: 2 small test graphs" in said[0]
+    every = load_input_graphs(root, size="all")
+    assert sorted(g.name for g in every) == ["large-test-0", "small-test-0", "small-test-1"]
+    assert len(load_input_graphs(root, split="train")) == 3
+    with pytest.raises(DatasetError, match="size must be one of"):
+        load_input_graphs(root, size="medium")
+    with pytest.raises(DatasetError, match="no large val graphs"):
+        load_input_graphs(root, split="val", size="large")
+    # One split's folder needs no manifest.
+    assert len(load_input_graphs(root / "small" / "train")) == 3
+
+
+def test_folder_mixing_splits_without_manifest_is_refused(tmp_path):
+    from posernet.graph import GraphValidationError
+    from posernet.pipeline import load_input_graphs
+
+    root = fake_dataset(tmp_path / "ds")
+    (root / "manifest.json").unlink()
+    with pytest.raises(GraphValidationError, match=rf"{root}: its .pt files mix splits "
+                       r"\(test: 2 file\(s\).*train: 1 file\(s\)"):
+        load_input_graphs(root)
+    # Graphs without a split in their metadata: the folder names tell.
+    plain = tmp_path / "plain"
+    save_graphs(plain / "train" / "a.pt", graphs(1))
+    save_graphs(plain / "test" / "b.pt", graphs(1))
+    with pytest.raises(GraphValidationError, match="mix splits"):
+        load_input_graphs(plain)
+    assert len(load_input_graphs(plain / "test")) == 1
+
+
 # --------------------------------------------------------------------------- CLI
 
 
@@ -142,3 +201,17 @@ def test_refine_cli_bad_inputs_give_one_line_errors(tmp_path, checkpoint):
     r = run_refine(tmp_path / "b", f"input={pt}", f"ckpt_path={bogus}")
     assert r.returncode == 1 and "not a PoserNet checkpoint" in r.stderr
     assert not (tmp_path / "b" / "refined.json").exists()
+
+
+@pytest.mark.slow
+def test_refine_cli_on_a_dataset_root_uses_the_test_split(tmp_path, checkpoint):
+    root = fake_dataset(tmp_path / "ds")
+    r = run_refine(tmp_path / "out", f"input={root}", f"ckpt_path={checkpoint}", "sync=none")
+    assert r.returncode == 0, r.stderr
+    assert "dataset root; using split=test size=small: 2 small test graphs" in r.stdout
+    rec = json.loads((tmp_path / "out" / "refined.json").read_text())
+    assert [g["name"] for g in rec["graphs"]] == ["small-test-0", "small-test-1"]
+    (root / "manifest.json").unlink()
+    r = run_refine(tmp_path / "mixed", f"input={root}", f"ckpt_path={checkpoint}")
+    assert r.returncode == 1 and "mix splits" in r.stderr and str(root) in r.stderr
+    assert "Traceback" not in r.stderr

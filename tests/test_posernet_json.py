@@ -230,10 +230,80 @@ def _match_set(g) -> set:
     return out
 
 
-def test_writer_needs_absolute_poses(tmp_path):
+def test_writer_without_absolute_poses_keeps_relative_ground_truth(tmp_path):
     import dataclasses
 
-    g = dataclasses.replace(random_view_graph(), pose_gt=None)
-    with pytest.raises(GraphValidationError, match="needs 'pose_gt'"):
-        save_posernet_json(tmp_path / "x.json", {"test": [g]})
-    assert not (tmp_path / "x.json").exists()
+    g = dataclasses.replace(random_view_graph(dtype=torch.float64), pose_gt=None)
+    path = save_posernet_json(tmp_path / "x.json", {"test": [g]})
+    (back,) = load_posernet_json(path, dtype=torch.float64)
+    assert back.pose_gt is None and back.edge_pose_gt is not None and "gt" in back.estimates
+
+
+def strip_ground_truth(raw: dict, cameras: bool = True, pairs: bool = True) -> dict:
+    raw = copy.deepcopy(raw)
+    if cameras:
+        for cam in raw["cameras"].values():
+            del cam["camera_to_world"]
+    if pairs:
+        for row in raw["relative_poses"].values():
+            for entry in row.values():
+                del entry["ground_truth"]
+    return raw
+
+
+def test_reads_a_file_without_ground_truth(tmp_path):
+    (g,) = load_posernet_json(write(tmp_path, test=[strip_ground_truth(schema_graph())]))
+    g.validate()
+    assert g.pose_gt is None and g.edge_pose_gt is None
+    assert sorted(g.estimates) == ["bb", "kp"]
+    # Explicit nulls read as "no ground truth" too; relative ground truth alone is kept.
+    raw = strip_ground_truth(schema_graph(), pairs=False)
+    for cam in raw["cameras"].values():
+        cam["camera_to_world"] = None
+    (h,) = load_posernet_json(write(tmp_path, test=[raw], name="rel.json"), dtype=torch.float64)
+    assert h.pose_gt is None and h.edge_pose_gt is not None
+    ref = load_posernet_json(write(tmp_path, name="ref.json"), dtype=torch.float64)[0]
+    assert torch.allclose(h.edge_pose_gt, ref.edge_pose_gt)
+    with pytest.raises(GraphValidationError, match="'ground_truth' estimate"):
+        load_posernet_json(write(tmp_path, test=[strip_ground_truth(schema_graph())]),
+                           estimate="ground_truth")
+
+
+def test_partial_ground_truth_is_refused_not_filled_in(tmp_path):
+    raw = schema_graph()
+    del raw["cameras"]["b"]["camera_to_world"]
+    with pytest.raises(GraphValidationError, match="camera 'b' has no 'camera_to_world' while"):
+        load_posernet_json(write(tmp_path, test=[raw]))
+    raw = strip_ground_truth(schema_graph(), pairs=False)
+    del raw["relative_poses"]["b"]["c"]["ground_truth"]
+    with pytest.raises(GraphValidationError, match=r"pair \(b, c\) has no 'ground_truth'"):
+        load_posernet_json(write(tmp_path, test=[raw]))
+
+
+def test_distortion_feature_is_read_not_zeroed(tmp_path):
+    from posernet.graph import REF_K1
+
+    raw = schema_graph()
+    raw["cameras"]["a"]["k1"] = 0.2
+    raw["cameras"]["b"]["distortion"] = [-0.05, 0.01, 0.0, 0.0, 0.0]
+    (g,) = load_posernet_json(write(tmp_path, test=[raw]), dtype=torch.float64)
+    k1 = (g.node_attr[:, 3] * REF_K1).tolist()
+    assert k1 == pytest.approx([0.2, -0.05, 0.0])  # c has none: 0 (no distortion) assumed
+    (h,) = load_posernet_json(write(tmp_path, test=[raw]), dtype=torch.float64, default_k1=0.1)
+    assert (h.node_attr[:, 3] * REF_K1).tolist() == pytest.approx([0.2, -0.05, 0.1])
+    raw["cameras"]["c"]["k1"] = "strong"
+    with pytest.raises(GraphValidationError, match="camera 'c' 'k1' must be a number"):
+        load_posernet_json(write(tmp_path, test=[raw]))
+
+
+def test_round_trip_keeps_the_distortion_feature(tmp_path):
+    import dataclasses
+
+    from posernet.graph import node_attributes
+
+    g = random_view_graph(num_nodes=5, dtype=torch.float64)
+    k1 = torch.linspace(-0.1, 0.2, 5, dtype=torch.float64)
+    g = dataclasses.replace(g, node_attr=node_attributes(g.K, g.image_size, k1))
+    (back,) = load_posernet_json(save_posernet_json(tmp_path / "k.json", {"test": [g]}),
+                                 dtype=torch.float64)
+    assert torch.allclose(back.node_attr, g.node_attr, atol=1e-12)

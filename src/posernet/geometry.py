@@ -314,11 +314,22 @@ def angle_between_vectors(a: Tensor, b: Tensor) -> Tensor:
     return torch.atan2(_safe_norm(cross), (a * b).sum(-1))
 
 
-def rotation_error_deg(q_est: Tensor, q_gt: Tensor) -> Tensor:
-    """Relative rotation error in degrees between quaternions (*, 4) (sign invariant)."""
-    return torch.rad2deg(quaternion_angle(q_est, q_gt))
+def rotation_error_deg(q_est: Tensor, q_gt: Tensor, eps: float = 1e-6) -> Tensor:
+    """Relative rotation error in degrees between quaternions (*, 4) (sign invariant).
+
+    A quaternion of norm below ``eps`` is no rotation: its error is NaN (never 0).
+    """
+    err = torch.rad2deg(quaternion_angle(q_est, q_gt))
+    bad = (q_est.norm(dim=-1) < eps) | (q_gt.norm(dim=-1) < eps)
+    return torch.where(bad, torch.full_like(err, float("nan")), err)
 
 
-def translation_direction_error_deg(t_est: Tensor, t_gt: Tensor) -> Tensor:
-    """Angle in degrees between translation directions (*, 3) (scale ignored)."""
-    return angle_between_vectors(t_est, t_gt) * (180.0 / math.pi)
+def translation_direction_error_deg(t_est: Tensor, t_gt: Tensor, eps: float = 1e-6) -> Tensor:
+    """Angle in degrees between translation directions (*, 3) (scale ignored).
+
+    A translation shorter than ``eps`` (in the inputs' units) has no direction: its error is
+    NaN, never 0, so a zero vector is not scored as a perfect direction.
+    """
+    err = angle_between_vectors(t_est, t_gt) * (180.0 / math.pi)
+    bad = (t_est.norm(dim=-1) < eps) | (t_gt.norm(dim=-1) < eps)
+    return torch.where(bad, torch.full_like(err, float("nan")), err)

@@ -465,13 +465,18 @@ def save_graphs(path: str | os.PathLike[str], graphs: Sequence[ViewGraph],
                 extra: dict[str, Any] | None = None) -> Path:
     """Write graphs to one ``.pt`` file atomically (temp file + rename).
 
-    The graphs are stored concatenated (a handful of large tensors, fast to load) together with
-    their metadata. ``extra`` holds plain scalars/strings/lists saved beside them. The file loads
-    with ``torch.load(weights_only=True)``: no pickled code runs on load.
+    Every graph is checked first with :meth:`ViewGraph.validate` (the check :func:`load_graphs`
+    applies): a graph with a NaN value, a bad index or a wrong shape raises
+    :class:`GraphValidationError` naming the file, the graph and the field, and nothing is
+    written. The graphs are stored concatenated (a handful of large tensors, fast to load)
+    together with their metadata. ``extra`` holds plain scalars/strings/lists saved beside
+    them. The file loads with ``torch.load(weights_only=True)``: no pickled code runs on load.
     """
     graphs = list(graphs)
     if not graphs:
         raise GraphValidationError(f"{path}: refusing to write an empty graph file")
+    for i, g in enumerate(graphs):  # what load_graphs would refuse is never written
+        g.validate(where=f"{path}: graph {i} ({g.name!r})")
     batch = GraphBatch.from_graphs([g.to("cpu") for g in graphs])
     payload = {
         "format": FORMAT_NAME,

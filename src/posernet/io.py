@@ -2,32 +2,56 @@
 
 A reader therefore sees either the old file or the complete new one, never a half-written file,
 even when the writer is interrupted.
+
+Permissions: the temporary file is created with mode ``0o666`` and the kernel applies the
+process umask (and any default ACL of the folder), exactly as for ``open(path, "w")``. So an
+output written here gets the permissions of any other new file of the process (``0644`` under
+the usual umask ``022``, ``0664`` under ``002``), not the ``0600`` of :func:`tempfile.mkstemp`.
+A file that is replaced gets those permissions too (its old mode is not carried over).
+Every output of posernet goes through this module.
 """
 
 from __future__ import annotations
 
 import json
 import os
-import tempfile
+import secrets
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
-__all__ = ["atomic_path", "atomic_write_json", "atomic_write_text"]
+__all__ = ["atomic_path", "atomic_write_bytes", "atomic_write_json", "atomic_write_text"]
+
+_FLAGS = os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_CLOEXEC", 0) \
+    | getattr(os, "O_BINARY", 0)
+
+
+def _create_temp(folder: Path, name: str, suffix: str) -> Path:
+    """A new empty file ``folder/.name.<random><suffix>``, created with mode 0o666 & ~umask."""
+    for _ in range(100):
+        tmp = folder / f".{name}.{secrets.token_hex(6)}{suffix}"
+        try:
+            fd = os.open(tmp, _FLAGS, 0o666)
+        except FileExistsError:
+            continue
+        os.close(fd)
+        return tmp
+    raise FileExistsError(f"could not create a temporary file for {folder / name}")
 
 
 @contextmanager
-def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
+def atomic_path(path: str | os.PathLike[str], suffix: str = ".tmp") -> Iterator[Path]:
     """Yield a temporary path in the target's directory; rename it onto ``path`` on success.
 
-    On an exception the temporary file is removed and ``path`` is left untouched.
+    The temporary file exists (empty) when yielded; write to it by name. ``suffix`` is its
+    extension (e.g. ``".png"`` for writers that pick the format from the name). On an
+    exception the temporary file is removed and ``path`` is left untouched. The written file
+    has the process umask's permissions (see the module docstring).
     """
     target = Path(path)
     target.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
-    os.close(fd)
-    tmp_path = Path(tmp)
+    tmp_path = _create_temp(target.parent, target.name, suffix)
     try:
         yield tmp_path
         os.replace(tmp_path, target)
@@ -36,8 +60,15 @@ def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
         raise
 
 
+def atomic_write_bytes(path: str | os.PathLike[str], data: bytes) -> Path:
+    """Write ``data`` to ``path`` atomically; returns the path."""
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(data)
+    return Path(path)
+
+
 def atomic_write_text(path: str | os.PathLike[str], text: str) -> Path:
-    """Write ``text`` to ``path`` atomically; returns the path."""
+    """Write ``text`` to ``path`` atomically (UTF-8); returns the path."""
     with atomic_path(path) as tmp:
         tmp.write_text(text, encoding="utf-8")
     return Path(path)

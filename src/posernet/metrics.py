@@ -27,7 +27,9 @@ __all__ = [
     "align_to_ground_truth",
     "per_graph_mean",
     "relative_pose_errors",
+    "skipped_per_graph",
     "threshold_row",
+    "translation_direction_error_deg",
     "umeyama_alignment",
 ]
 
@@ -39,7 +41,10 @@ def relative_pose_errors(edge_pose: Tensor, edge_pose_gt: Tensor) -> tuple[Tenso
     """Per-edge rotation error and translation-direction error in degrees.
 
     Shapes: ``edge_pose, edge_pose_gt (E, 7)`` -> two ``(E,)`` tensors. Translations are compared
-    as directions (the 5-point algorithm gives unit vectors, the ground truth is metric).
+    as directions (the 5-point algorithm gives unit vectors, the ground truth is metric). An edge
+    whose estimated or true translation has (near) zero length has no direction: its
+    translation error is NaN, never 0 (likewise the rotation error of a zero quaternion).
+    :func:`per_graph_mean` skips NaN edges; :func:`skipped_per_graph` counts them.
     """
     if edge_pose.shape != edge_pose_gt.shape or edge_pose.shape[-1] != 7:
         raise ValueError(
@@ -52,29 +57,43 @@ def relative_pose_errors(edge_pose: Tensor, edge_pose_gt: Tensor) -> tuple[Tenso
 
 
 def per_graph_mean(values: Tensor, batch: Tensor, num_graphs: int) -> Tensor:
-    """Mean of ``values (K,)`` per graph given ``batch (K,)``; graphs with no entry give NaN.
+    """Mean of ``values (K,)`` per graph given ``batch (K,)``, skipping NaN entries.
 
-    NaN (not 0) marks a graph that has nothing to measure so it can be excluded explicitly.
+    A graph with no (non-NaN) entry gives NaN, not 0, so it can be excluded explicitly
+    (:func:`threshold_row` does). Count what was skipped with :func:`skipped_per_graph`.
     """
     if values.ndim != 1 or batch.shape != values.shape:
         raise ValueError(
             f"values and batch must be 1-D of equal length, got {tuple(values.shape)} and "
             f"{tuple(batch.shape)}"
         )
+    keep = ~torch.isnan(values)
+    values, batch = values[keep], batch[keep]
     sums = torch.zeros(num_graphs, dtype=values.dtype, device=values.device)
     sums.index_add_(0, batch, values)
     cnt = scatter_count(batch, num_graphs).to(values.dtype)
     return torch.where(cnt > 0, sums / cnt.clamp_min(1), torch.full_like(sums, float("nan")))
 
 
+def skipped_per_graph(values: Tensor, batch: Tensor, num_graphs: int) -> Tensor:
+    """Number of NaN entries of ``values (K,)`` per graph (``batch (K,)``), ``[B]`` long:
+    what :func:`per_graph_mean` left out."""
+    return scatter_count(batch[torch.isnan(values)], num_graphs)
+
+
 @dataclass(frozen=True)
 class ThresholdRow:
-    """Percentages of graphs under each threshold plus the median over graphs."""
+    """Percentages of graphs under each threshold plus the median over graphs.
+
+    ``count`` is the number of graphs measured; ``skipped`` the number of items (edges or
+    cameras) that had no measurable error and were left out of the per-graph means.
+    """
 
     thresholds: tuple[float, ...]
     percent_below: tuple[float, ...]
     median: float
     count: int
+    skipped: int = 0
 
     def as_dict(self, prefix: str = "") -> dict[str, float]:
         out = {f"{prefix}<{t:g}": p for t, p in zip(self.thresholds, self.percent_below,
@@ -84,21 +103,23 @@ class ThresholdRow:
 
 
 def threshold_row(per_graph: Tensor | Sequence[float],
-                  thresholds: Sequence[float] = ANGLE_THRESHOLDS_DEG) -> ThresholdRow:
+                  thresholds: Sequence[float] = ANGLE_THRESHOLDS_DEG,
+                  skipped: int = 0) -> ThresholdRow:
     """Summarise per-graph errors like the paper: % of graphs below each threshold, median.
 
-    NaN entries (graphs with nothing measured) are excluded and not counted.
+    NaN entries (graphs with nothing measured) are excluded and not counted. ``skipped`` is
+    recorded as is: the number of edges/cameras left out of the per-graph means.
     """
     x = torch.as_tensor(per_graph, dtype=torch.float64).flatten()
     x = x[~torch.isnan(x)]
     n = int(x.numel())
     if n == 0:
         return ThresholdRow(tuple(thresholds), tuple(float("nan") for _ in thresholds),
-                            float("nan"), 0)
+                            float("nan"), 0, int(skipped))
     pct = tuple(float((x < t).double().mean() * 100.0) for t in thresholds)
     # The median of an even count is the mean of the two middle values (numpy convention).
     median = float(x.quantile(0.5))
-    return ThresholdRow(tuple(float(t) for t in thresholds), pct, median, n)
+    return ThresholdRow(tuple(float(t) for t in thresholds), pct, median, n, int(skipped))
 
 
 # --------------------------------------------------------------------------- absolute poses

@@ -11,7 +11,7 @@ Used by ``posernet-refine``, ``posernet-demo`` and the experiment runner; usable
 from __future__ import annotations
 
 import os
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -27,6 +27,7 @@ from .metrics import (
     absolute_pose_errors,
     per_graph_mean,
     relative_pose_errors,
+    skipped_per_graph,
     threshold_row,
 )
 
@@ -41,11 +42,22 @@ STAGES = ("initial", "refined")
 
 
 def load_input_graphs(path: str | os.PathLike[str], split: str = "test",
-                      estimate: str | None = "kp", strict: bool = True) -> list[ViewGraph]:
-    """Graphs from a posernet ``.pt`` file, a folder of them, or an authors'-format ``.json``.
+                      estimate: str | None = "kp", strict: bool = True, size: str = "small",
+                      log: Callable[[str], None] | None = None) -> list[ViewGraph]:
+    """Graphs from a posernet ``.pt`` file, a folder of them, a dataset root or an authors' JSON.
+
+    * ``.json``: the ``split`` list of an authors'-format file (``strict`` applies).
+    * a dataset root made by ``posernet-make-data`` (it has ``manifest.json``): the graphs of
+      ``split`` (``train``/``val``/``test``) and ``size`` (``small``, ``large`` or ``all``);
+      the choice is reported through ``log``.
+    * any other folder: every ``.pt`` under it, which must all belong to one split (by each
+      graph's ``meta["split"]``, else by a ``train``/``val``/``test`` folder in its path):
+      a folder mixing splits without a manifest is refused, naming the folder.
+    * a ``.pt`` file: its graphs.
 
     ``estimate`` picks the initial poses to refine (``kp``/``bb``/...; ``None`` keeps the
-    stored ``edge_pose``). ``split`` and ``strict`` apply to JSON input.
+    stored ``edge_pose``). Ground truth is optional everywhere. ``log`` (e.g. ``print``)
+    receives one line saying what was selected from a dataset root.
     """
     path = Path(path)
     if path.suffix.lower() == ".json":
@@ -54,16 +66,21 @@ def load_input_graphs(path: str | os.PathLike[str], split: str = "test",
         return load_posernet_json(path, split=split, estimate=estimate or "feature_5pt",
                                   strict=strict)
     if path.is_dir():
-        files = sorted(path.rglob("*.pt"))
-        if not files:
-            raise FileNotFoundError(f"no graph files (*.pt) under {path}")
+        if (path / "manifest.json").is_file():
+            loaded = _load_dataset_root(path, split, size, log)
+        else:
+            files = sorted(path.rglob("*.pt"))
+            if not files:
+                raise FileNotFoundError(f"no graph files (*.pt) under {path}")
+            loaded = [(f, load_graphs(f)) for f in files]
+            _refuse_mixed_splits(path, loaded)
     elif path.is_file():
-        files = [path]
+        loaded = [(path, load_graphs(path))]
     else:
         raise FileNotFoundError(f"input graph file not found: {path}")
     graphs: list[ViewGraph] = []
-    for f in files:
-        for g in load_graphs(f):
+    for f, file_graphs in loaded:
+        for g in file_graphs:
             if estimate is not None:
                 if estimate not in g.estimates:
                     raise GraphValidationError(
@@ -75,6 +92,58 @@ def load_input_graphs(path: str | os.PathLike[str], split: str = "test",
     if not graphs:
         raise GraphValidationError(f"{path}: no graphs")
     return graphs
+
+
+def _load_dataset_root(root: Path, split: str, size: str,
+                       log: Callable[[str], None] | None) -> list[tuple[Path, list[ViewGraph]]]:
+    """``(file, graphs)`` of one split and size (or all sizes) of a posernet-make-data root."""
+    from .data.store import SIZES, SPLITS, DatasetError, available_scenes, read_manifest
+
+    if split not in SPLITS:
+        raise DatasetError(f"{root}: is a dataset root; split must be one of {list(SPLITS)}, "
+                           f"got {split!r}")
+    if size != "all" and size not in SIZES:
+        raise DatasetError(f"{root}: is a dataset root; size must be one of "
+                           f"{[*SIZES, 'all']}, got {size!r}")
+    read_manifest(root)
+    sizes = list(SIZES) if size == "all" else [size]
+    loaded: list[tuple[Path, list[ViewGraph]]] = []
+    counts: dict[str, int] = {}
+    for sz in sizes:
+        for scene in available_scenes(root, sz, split):
+            f = root / sz / split / f"{scene}.pt"
+            if not f.is_file():
+                raise DatasetError(f"{f}: listed in the manifest but missing")
+            loaded.append((f, load_graphs(f)))
+            counts[sz] = counts.get(sz, 0) + len(loaded[-1][1])
+    if not loaded:
+        raise DatasetError(f"{root}: the dataset has no {'/'.join(sizes)} {split} graphs "
+                           "(choose another split= or size=)")
+    if log is not None:
+        what = ", ".join(f"{n} {sz}" for sz, n in counts.items())
+        log(f"{root}: dataset root; using split={split} size={size}: {what} {split} graphs "
+            f"from {len(loaded)} file(s)")
+    return loaded
+
+
+def _refuse_mixed_splits(folder: Path, loaded: Sequence[tuple[Path, list[ViewGraph]]]) -> None:
+    """Raise when the ``.pt`` files under ``folder`` (no manifest) hold more than one split."""
+    from .data.store import SPLITS
+
+    by_split: dict[str, list[Path]] = {}
+    for f, graphs in loaded:
+        named = {str(g.meta["split"]) for g in graphs if g.meta.get("split")}
+        if not named:  # no split in the graphs: take it from the folders below ``folder``
+            named = {p for p in f.relative_to(folder).parts[:-1] if p in SPLITS}
+        for sp in named:
+            by_split.setdefault(sp, []).append(f)
+    if len(by_split) > 1:
+        desc = "; ".join(f"{sp}: {len(fs)} file(s), e.g. {fs[0].relative_to(folder)}"
+                         for sp, fs in sorted(by_split.items()))
+        raise GraphValidationError(
+            f"{folder}: its .pt files mix splits ({desc}) and it has no manifest.json; point "
+            "input= at one split's folder (e.g. <dataset>/small/test) or at a dataset root made "
+            "by posernet-make-data (then split= and size= choose)")
 
 
 @dataclass
@@ -160,43 +229,87 @@ def _global_components(per_graph: Sequence[Tensor]) -> Tensor:
 
 
 def evaluate_result(result: RefineResult, rotation_gauge: str = "rotations") -> dict[str, Any]:
-    """Per-graph errors and threshold rows for every stage present (needs ground truth).
+    """Per-graph errors and threshold rows for every stage present, where ground truth exists.
 
     Returns ``{"relative": {stage: {"rot": ThresholdRow, "tdir": ThresholdRow}},
-    "absolute": {stage: {"rot": ..., "trans": ...}}, "per_graph": {...}, "alignment": str}``.
+    "absolute": {stage: {"rot": ..., "trans": ...}}, "per_graph": {...}, "alignment": str,
+    "placed": {stage: {...}}, "graphs": B, "graphs_without_gt": {"relative": n, "absolute": n}}``.
     ``rotation_gauge`` (``centres`` or ``rotations``) picks how absolute rotations are aligned
     (:func:`posernet.metrics.absolute_pose_errors`).
-    Relative errors need ``edge_pose_gt``; absolute ones ``pose_gt`` and a backend. Graphs
-    without the needed ground truth raise a :class:`GraphValidationError` naming the graph.
+
+    What is not measurable is skipped and counted, never scored:
+
+    * Relative errors need ``edge_pose_gt``; a graph without it gets NaN per-graph errors (left
+      out of the rows) and is counted in ``graphs_without_gt["relative"]``. An edge whose
+      estimated or true translation has zero length has no direction: it is left out of its
+      graph's mean and counted (``ThresholdRow.skipped``, ``per_graph["rel_tdir_skipped_*"]``).
+    * Absolute errors need ``pose_gt`` and a backend; graphs without ``pose_gt`` are counted in
+      ``graphs_without_gt["absolute"]``. A camera the backend could not place (``solved``
+      False: no edge, or an unsolvable component) has no pose: it takes no part in the
+      alignment, a graph's error is the mean over its *placed* cameras, and the unplaced ones
+      are counted per graph (``per_graph["abs_unplaced_*"]``) and per stage (``placed``:
+      ``cameras``, ``placed``, ``graphs_with_unplaced``, ``graphs_with_none_placed``; a graph
+      with no camera placed has NaN errors and is left out of the rows).
+
+    Raises :class:`GraphValidationError` when no graph has any ground truth to measure.
     """
     graphs = result.graphs
-    missing = [g.name for g in graphs if g.edge_pose_gt is None]
-    if missing:
-        raise GraphValidationError(f"graph {missing[0]!r} has no ground truth (edge_pose_gt); "
-                                   "cannot measure errors")
-    batch = GraphBatch.from_graphs([g.to("cpu") for g in graphs])
-    B = batch.num_graphs
-    out: dict[str, Any] = {"relative": {}, "absolute": {}, "per_graph": {}}
-    for s, poses in result.edge_pose.items():
-        rot, tdir = relative_pose_errors(torch.cat(poses).to(batch.edge_pose_gt.dtype),
-                                         batch.edge_pose_gt)
-        r, t = per_graph_mean(rot, batch.edge_batch, B), per_graph_mean(tdir, batch.edge_batch, B)
-        out["per_graph"][f"rel_rot_{s}"], out["per_graph"][f"rel_tdir_{s}"] = r, t
-        out["relative"][s] = {"rot": threshold_row(r, ANGLE_THRESHOLDS_DEG),
-                              "tdir": threshold_row(t, ANGLE_THRESHOLDS_DEG)}
-    if result.absolute and batch.pose_gt is not None:
+    B = len(graphs)
+    rel_idx = [k for k, g in enumerate(graphs) if g.edge_pose_gt is not None]
+    abs_idx = [k for k, g in enumerate(graphs) if g.pose_gt is not None]
+    if not rel_idx and not (result.absolute and abs_idx):
+        raise GraphValidationError(
+            f"none of the {B} graph(s) has ground truth (edge_pose_gt"
+            f"{' or pose_gt' if result.absolute else ''}), e.g. {graphs[0].name!r}; "
+            "cannot measure errors")
+    out: dict[str, Any] = {"relative": {}, "absolute": {}, "per_graph": {}, "graphs": B,
+                           "graphs_without_gt": {"relative": B - len(rel_idx),
+                                                 "absolute": B - len(abs_idx)}}
+    nan = torch.full((B,), float("nan"), dtype=torch.float64)
+    if rel_idx:
+        sel = torch.tensor(rel_idx)
+        gt = torch.cat([graphs[k].edge_pose_gt.cpu() for k in rel_idx])
+        eb = sel.repeat_interleave(torch.tensor([graphs[k].num_edges for k in rel_idx]))
+        for s, poses in result.edge_pose.items():
+            est = torch.cat([poses[k] for k in rel_idx]).to(gt.dtype)
+            rot, tdir = relative_pose_errors(est, gt)
+            r, t = per_graph_mean(rot, eb, B), per_graph_mean(tdir, eb, B)
+            skip_r, skip_t = skipped_per_graph(rot, eb, B), skipped_per_graph(tdir, eb, B)
+            out["per_graph"][f"rel_rot_{s}"], out["per_graph"][f"rel_tdir_{s}"] = r, t
+            out["per_graph"][f"rel_rot_skipped_{s}"] = skip_r
+            out["per_graph"][f"rel_tdir_skipped_{s}"] = skip_t
+            out["relative"][s] = {
+                "rot": threshold_row(r, ANGLE_THRESHOLDS_DEG, skipped=int(skip_r.sum())),
+                "tdir": threshold_row(t, ANGLE_THRESHOLDS_DEG, skipped=int(skip_t.sum()))}
+    if result.absolute and abs_idx:
         metric = bool(result.backend and result.backend.get("scale") in ("given", "oracle"))
         out["alignment"] = "rigid" if metric else "similarity"
         out["rotation_gauge"] = rotation_gauge
+        out["placed"] = {}
+        sel = torch.tensor(abs_idx)
+        n_nodes = torch.tensor([graphs[k].num_nodes for k in abs_idx])
+        nb = sel.repeat_interleave(n_nodes)
+        gt = torch.cat([graphs[k].pose_gt.cpu() for k in abs_idx]).double()
         for s, poses in result.absolute.items():
-            comp = _global_components(result.component[s])
+            solved = [result.solved[s][k].bool() for k in range(B)]
+            comp = _global_components([result.component[s][k] for k in abs_idx])
+            valid = torch.cat([solved[k] for k in abs_idx])
             rot, pos = absolute_pose_errors(
-                torch.cat(poses).double(), batch.pose_gt.double(), batch.node_batch, B,
-                alignment=out["alignment"], component=comp, valid=torch.cat(result.solved[s]),
+                torch.cat([poses[k] for k in abs_idx]).double(), gt, nb, B,
+                alignment=out["alignment"], component=comp, valid=valid,
                 rotation_gauge=rotation_gauge)
+            unplaced = torch.tensor([int((~solved[k]).sum()) for k in range(B)])
             out["per_graph"][f"abs_rot_{s}"], out["per_graph"][f"abs_pos_{s}"] = rot, pos
+            out["per_graph"][f"abs_unplaced_{s}"] = unplaced
+            placed_k = n_nodes - unplaced[sel]
+            out["placed"][s] = {"cameras": int(n_nodes.sum()), "placed": int(placed_k.sum()),
+                                "graphs_with_unplaced": int((placed_k < n_nodes).sum()),
+                                "graphs_with_none_placed": int((placed_k == 0).sum())}
             out["absolute"][s] = {"rot": threshold_row(rot, ANGLE_THRESHOLDS_DEG),
                                   "trans": threshold_row(pos, METRE_THRESHOLDS)}
+    for s in result.edge_pose:  # keep the per-graph keys present, NaN where not measured
+        for key in ("rel_rot", "rel_tdir"):
+            out["per_graph"].setdefault(f"{key}_{s}", nan.clone())
     return out
 
 
@@ -212,12 +325,16 @@ def result_to_json(result: RefineResult, info: dict[str, Any] | None = None) -> 
 
     Per graph: ``edges`` (``source``/``target`` camera ids and, per stage, the relative pose of
     ``source -> target`` as ``q_wxyz``, ``t`` and the 4x4 ``matrix`` mapping source-camera points
-    into the target camera) and ``cameras`` (per stage, the world-to-camera pose after motion
-    averaging, its camera-to-world inverse, ``solved`` and ``component``).
+    into the target camera), ``cameras`` (per stage, the world-to-camera pose after motion
+    averaging, its camera-to-world inverse, ``q_wxyz``, ``t``, ``solved`` and ``component``) and
+    ``cameras_placed`` (per stage). A camera the backend could not place (``solved: false``)
+    has ``null`` poses and component: no pose is invented (as in ``posernet-poses``). The top
+    level ``cameras_placed`` gives ``{stage: {"placed": k, "cameras": n}}`` over all graphs.
     """
     from .geometry import invert_se3, pose_vec_to_matrix
 
     graphs_out = []
+    totals = {s: {"placed": 0, "cameras": 0} for s in result.absolute}
     for k, g in enumerate(result.graphs):
         ids = g.meta.get("camera_ids")
         if not (isinstance(ids, list) and len(ids) == g.num_nodes):
@@ -229,20 +346,36 @@ def result_to_json(result: RefineResult, info: dict[str, Any] | None = None) -> 
             rec.update({s: _pose_record(m[e]) for s, m in mats.items()})
             edges.append(rec)
         cams: dict[str, Any] = {}
+        placed = {s: 0 for s in result.absolute}
         for n, cid in enumerate(ids):
             cam: dict[str, Any] = {}
             for s, poses in result.absolute.items():
+                if not bool(result.solved[s][k][n]):
+                    cam[s] = {"world_to_camera": None, "camera_to_world": None,
+                              "q_wxyz": None, "t": None, "solved": False, "component": None}
+                    continue
                 T = poses[k][n].double()
                 cam[s] = {"world_to_camera": T.tolist(),
                           "camera_to_world": invert_se3(T).tolist(),
                           "q_wxyz": _pose_record(T)["q_wxyz"], "t": T[:3, 3].tolist(),
-                          "solved": bool(result.solved[s][k][n]),
+                          "solved": True,
                           "component": int(result.component[s][k][n])}
+                placed[s] += 1
             cams[str(cid)] = cam
-        graphs_out.append({"name": g.name, "scene": g.meta.get("scene"), "edges": edges,
-                           "cameras": cams})
-    return {"format": "posernet-refined", "version": 1, **(info or {}),
-            "backend": result.backend, "graphs": graphs_out}
+        for s, c in placed.items():
+            totals[s]["placed"] += c
+            totals[s]["cameras"] += g.num_nodes
+        rec_g: dict[str, Any] = {"name": g.name, "scene": g.meta.get("scene"), "edges": edges,
+                                 "cameras": cams}
+        if placed:
+            rec_g["cameras_placed"] = placed
+        graphs_out.append(rec_g)
+    out: dict[str, Any] = {"format": "posernet-refined", "version": 1, **(info or {}),
+                           "backend": result.backend}
+    if totals:
+        out["cameras_placed"] = totals
+    out["graphs"] = graphs_out
+    return out
 
 
 def result_tables(evaluation: dict[str, Any], label: str = "KP",
@@ -250,16 +383,27 @@ def result_tables(evaluation: dict[str, Any], label: str = "KP",
     """Paper-style :class:`~posernet.report.ResultTable`\\ s from :func:`evaluate_result`.
 
     ``relative`` (Table 1 layout: initial vs PoserNet) and, with motion averaging,
-    ``absolute`` (Table 3 layout), whose note states the scale policy and alignment.
+    ``absolute`` (Table 3 layout), whose note states the scale policy and alignment and whose
+    rows count the cameras placed (``Cameras placed: k of n``; errors are over placed cameras).
+    Graphs without ground truth and edges without a measurable error are counted in the notes.
     """
     from .report import ABSOLUTE_GROUPS, ResultTable, TableRow
 
     names = {"initial": "Initial", "refined": "PoserNet"}
-    tables: dict[str, Any] = {
-        "relative": ResultTable(
+    B = evaluation.get("graphs")
+    missing = evaluation.get("graphs_without_gt", {})
+
+    def unscored(kind: str, what: str) -> str | None:
+        n = int(missing.get(kind, 0))
+        return (f"{n} of {B} graph(s) have no ground-truth {what} and are not scored."
+                if n else None)
+
+    tables: dict[str, Any] = {}
+    if evaluation.get("relative"):
+        tables["relative"] = ResultTable(
             rows=[TableRow((label, names[s]), cells) for s, cells in
                   evaluation["relative"].items()],
-            title=f"Relative poses{title}")}
+            title=f"Relative poses{title}", note=unscored("relative", "relative poses"))
     if evaluation.get("absolute"):
         bname = (backend or {}).get("backend", "sync")
         stage = {"initial": bname, "refined": f"{bname} + PoserNet"}
@@ -268,8 +412,17 @@ def result_tables(evaluation: dict[str, Any], label: str = "KP",
         note = (f"Scale: {(backend or {}).get('scale_label', 'unknown')}; alignment: "
                 f"{evaluation.get('alignment')} (Umeyama on camera centres) per connected "
                 f"component; {gauge}")
+        extra = unscored("absolute", "camera poses")
+        if extra:
+            note += "\n" + extra
+        placed = evaluation.get("placed", {})
+
+        def count(s: str) -> tuple[int, int] | None:
+            p = placed.get(s)
+            return (int(p["placed"]), int(p["cameras"])) if p else None
+
         tables["absolute"] = ResultTable(
-            rows=[TableRow((label, stage[s]), cells) for s, cells in
+            rows=[TableRow((label, stage[s]), cells, placed=count(s)) for s, cells in
                   evaluation["absolute"].items()],
             groups=ABSOLUTE_GROUPS, title=f"Absolute poses after motion averaging{title}",
             note=note)

@@ -63,13 +63,16 @@ class TableRow:
     """One table row: its labels and one :class:`ThresholdRow` per metric group key.
 
     ``std`` (same keys) holds standard deviations when the row is a mean over seeds;
-    ``runs`` is the number of runs averaged (1 for a single run).
+    ``runs`` is the number of runs averaged (1 for a single run). ``placed`` is
+    ``(cameras placed, cameras)`` for rows of absolute poses (summed over runs): cameras that
+    motion averaging could not place have no error; they are counted here, not scored.
     """
 
     labels: tuple[str, ...]
     cells: Mapping[str, ThresholdRow]
     std: Mapping[str, ThresholdRow] | None = None
     runs: int = 1
+    placed: tuple[int, int] | None = None
 
 
 def relative_row(labels: Sequence[str], rot_per_graph: Tensor | Sequence[float],
@@ -83,7 +86,8 @@ def relative_row(labels: Sequence[str], rot_per_graph: Tensor | Sequence[float],
 def mean_std_row(rows: Sequence[TableRow], labels: Sequence[str] | None = None) -> TableRow:
     """Mean and sample standard deviation (``ddof=1``; 0 for one run) of rows over seeds.
 
-    All rows must have the same group keys and thresholds. Counts are averaged too.
+    All rows must have the same group keys and thresholds. Counts (graphs, skipped items) are
+    averaged too; placed cameras are summed over the rows.
     """
     rows = list(rows)
     if not rows:
@@ -100,10 +104,17 @@ def mean_std_row(rows: Sequence[TableRow], labels: Sequence[str] | None = None) 
         mean = vals.mean(0)
         sd = vals.std(0, correction=1) if len(parts) > 1 else torch.zeros_like(mean)
         count = round(sum(p.count for p in parts) / len(parts))
-        cells[key] = ThresholdRow(ths, tuple(mean[:-1].tolist()), float(mean[-1]), count)
-        std[key] = ThresholdRow(ths, tuple(sd[:-1].tolist()), float(sd[-1]), count)
+        skipped = round(sum(p.skipped for p in parts) / len(parts))
+        cells[key] = ThresholdRow(ths, tuple(mean[:-1].tolist()), float(mean[-1]), count,
+                                  skipped)
+        std[key] = ThresholdRow(ths, tuple(sd[:-1].tolist()), float(sd[-1]), count, skipped)
+    placed = None
+    if any(r.placed is not None for r in rows):
+        if any(r.placed is None for r in rows):
+            raise ValueError("mean_std_row: some rows count placed cameras and some do not")
+        placed = (sum(r.placed[0] for r in rows), sum(r.placed[1] for r in rows))
     return TableRow(tuple(labels) if labels is not None else rows[0].labels, cells, std,
-                    runs=len(rows))
+                    runs=len(rows), placed=placed)
 
 
 def _fmt(v: float, digits: int) -> str:
@@ -171,6 +182,7 @@ class ResultTable:
         counts = sorted({c.count for r in self.rows for c in r.cells.values()})
         if counts:
             lines.append(f"Graphs per row: {', '.join(str(c) for c in counts)}.")
+        lines += self._placed_lines() + self._skipped_lines()
         if any(r.runs > 1 for r in self.rows):
             runs = sorted({r.runs for r in self.rows if r.runs > 1})
             lines.append(f"Values are mean ± sample std over {', '.join(map(str, runs))} runs.")
@@ -178,10 +190,42 @@ class ResultTable:
             lines.append(self.note)
         return "\n".join(lines) + "\n"
 
+    def _placed_lines(self) -> list[str]:
+        """``Cameras placed: k of n`` for rows that count them (absolute poses)."""
+        rows = [r for r in self.rows if r.placed is not None]
+        if not rows:
+            return []
+        if len({r.placed for r in rows}) == 1 and len(rows) == len(self.rows):
+            k, n = rows[0].placed
+            text = f"Cameras placed: {k} of {n} in every row"
+        else:
+            text = "Cameras placed: " + "; ".join(
+                f"{' / '.join(r.labels)} {r.placed[0]} of {r.placed[1]}" for r in rows)
+        if any(r.placed[0] < r.placed[1] for r in rows):
+            text += (" (errors are means over each graph's placed cameras; unplaced cameras "
+                     "have no pose and are not scored, a graph with none placed is left out "
+                     "of its row)")
+        return [text + "."]
+
+    def _skipped_lines(self) -> list[str]:
+        """Items (edges/cameras) left out of the per-graph means, where there are any."""
+        parts = [f"{' / '.join(r.labels)} {g.key} {r.cells[g.key].skipped}"
+                 for r in self.rows for g in self.groups if r.cells[g.key].skipped]
+        if not parts:
+            return []
+        return ["Left out of the per-graph means (no measurable error, e.g. a zero-length "
+                "translation): " + "; ".join(parts) + "."]
+
     def to_csv(self) -> str:
-        """CSV with one column per label, threshold, median and count (plus ``_std`` columns)."""
+        """CSV with one column per label, threshold, median and count (plus ``_std`` columns).
+
+        ``{group}_skipped`` columns are added when some row left items out of its means, and
+        ``cameras_placed``/``cameras`` when rows count placed cameras.
+        """
         self._check()
         with_std = any(r.std is not None for r in self.rows)
+        with_skipped = any(c.skipped for r in self.rows for c in r.cells.values())
+        with_placed = any(r.placed is not None for r in self.rows)
         header = list(self.label_names)
         for g in self.groups:
             names = [f"{g.key}_lt{t:g}" for t in g.thresholds] + [f"{g.key}_median"]
@@ -189,7 +233,11 @@ class ResultTable:
             if with_std:
                 header += [n + "_std" for n in names]
             header.append(f"{g.key}_count")
+            if with_skipped:
+                header.append(f"{g.key}_skipped")
         header.append("runs")
+        if with_placed:
+            header += ["cameras_placed", "cameras"]
         buf = io.StringIO()
         w = csv.writer(buf, lineterminator="\n")
         w.writerow(header)
@@ -203,7 +251,11 @@ class ResultTable:
                     out += ([*s.percent_below, s.median] if s is not None
                             else [0.0] * (len(g.thresholds) + 1))
                 out.append(c.count)
+                if with_skipped:
+                    out.append(c.skipped)
             out.append(r.runs)
+            if with_placed:
+                out += list(r.placed) if r.placed is not None else ["", ""]
             w.writerow(out)
         return buf.getvalue()
 

@@ -14,6 +14,20 @@ The reader takes matched boxes from ``cameras[*].matches`` (they carry the coord
 edges from ``covisibility``. Cameras have no image size in the schema: an optional
 ``image_size`` entry (written by :func:`save_posernet_json`) is used when present, otherwise
 twice the principal point (exact for 7-Scenes' Kinect intrinsics).
+
+Ground truth is optional (for graphs to refine rather than evaluate): without
+``camera_to_world`` (absent or ``null``) on every camera the graph has no ``pose_gt``; its
+``edge_pose_gt`` then comes from ``relative_poses[i][f].ground_truth`` when every covisible pair
+has one, else it is absent too. Ground truth given for some cameras (or pairs) but not others
+is refused as malformed: nothing is filled in.
+
+Lens distortion (node feature ``k1``, as in the synthetic training graphs, see
+:func:`posernet.graph.node_attributes`): the schema has none. A camera's ``k1`` entry (written
+by :func:`save_posernet_json`) or the first coefficient of a ``distortion`` list (OpenCV order
+``k1, k2, p1, p2, k3``) is used when present; otherwise ``default_k1`` of
+:func:`load_posernet_json` (0: the images are assumed free of radial distortion, as posernet's
+image front end assumes without ``dist``). The ``paper`` synthetic preset, on which the shipped
+checkpoint was trained, simulates uncorrected Kinect frames with k1 = 0.2.
 """
 
 from __future__ import annotations
@@ -32,6 +46,7 @@ from torch import Tensor
 
 from ..geometry import invert_pose_vec, invert_se3, matrix_to_pose_vec, pose_vec_to_matrix
 from ..graph import (
+    REF_K1,
     GraphValidationError,
     ViewGraph,
     denormalize_boxes,
@@ -96,7 +111,28 @@ def _box(value: Any, what: str) -> tuple[float, float, float, float]:
     return box  # type: ignore[return-value]
 
 
-def _parse_graph(raw: Any, estimate: str, label: str) -> ViewGraph:
+def _k1(cam: Mapping, cid: str, default: float) -> float:
+    """The camera's first radial distortion coefficient (``k1`` or ``distortion[0]``)."""
+    value: Any = cam.get("k1")
+    what = f"camera {cid!r} 'k1'"
+    if value is None and cam.get("distortion") is not None:
+        dist = cam["distortion"]
+        if not isinstance(dist, (list, tuple)) or not dist:
+            raise _Malformed(f"camera {cid!r} 'distortion' must be a non-empty list "
+                             f"(k1, k2, p1, p2, k3), got {dist!r}")
+        value, what = dist[0], f"camera {cid!r} 'distortion[0]'"
+    if value is None:
+        return float(default)
+    try:
+        k1 = float(value)
+    except (TypeError, ValueError):
+        raise _Malformed(f"{what} must be a number, got {value!r}") from None
+    if not math.isfinite(k1):
+        raise _Malformed(f"{what} is not finite")
+    return k1
+
+
+def _parse_graph(raw: Any, estimate: str, label: str, default_k1: float = 0.0) -> ViewGraph:
     if not isinstance(raw, Mapping):
         raise _Malformed(f"graph is a {type(raw).__name__}, expected an object")
     cams = raw.get("cameras")
@@ -111,15 +147,19 @@ def _parse_graph(raw: Any, estimate: str, label: str) -> ViewGraph:
         raise _Malformed(f"covisibility size differs from the camera count ({N})")
     covis = _matrix(dets["covisibility"], (N, N), "'detections.covisibility'")
 
-    c2w, Ks, sizes, paths = [], [], [], []
+    c2w, Ks, sizes, paths, k1s = [], [], [], [], []
+    no_pose: list[str] = []
     for cid in ids:
         cam = cams[cid]
         if not isinstance(cam, Mapping):
             raise _Malformed(f"camera {cid!r} is not an object")
-        for key in ("camera_to_world", "K"):
-            if key not in cam:
-                raise _Malformed(f"camera {cid!r} has no {key!r}")
-        c2w.append(_rigid(cam["camera_to_world"], f"camera {cid!r} 'camera_to_world'"))
+        if "K" not in cam:
+            raise _Malformed(f"camera {cid!r} has no 'K'")
+        if cam.get("camera_to_world") is None:
+            no_pose.append(cid)
+        else:
+            c2w.append(_rigid(cam["camera_to_world"], f"camera {cid!r} 'camera_to_world'"))
+        k1s.append(_k1(cam, cid, default_k1))
         K = _matrix(cam["K"], (3, 3), f"camera {cid!r} 'K'")
         if K[0, 0] <= 0 or K[1, 1] <= 0:
             raise _Malformed(f"camera {cid!r} 'K' has a non-positive focal length")
@@ -132,7 +172,10 @@ def _parse_graph(raw: Any, estimate: str, label: str) -> ViewGraph:
             raise _Malformed(f"camera {cid!r} has a non-positive image size")
         sizes.append(size)
         paths.append(str(cam.get("image_path", "")))
-    pose_gt = invert_se3(torch.stack(c2w))
+    if c2w and no_pose:
+        raise _Malformed(f"camera {no_pose[0]!r} has no 'camera_to_world' while other cameras "
+                         "have one (give ground-truth poses for every camera or for none)")
+    pose_gt = invert_se3(torch.stack(c2w)) if c2w else None
     K = torch.stack(Ks)
     image_size = torch.stack(sizes)
 
@@ -150,7 +193,7 @@ def _parse_graph(raw: Any, estimate: str, label: str) -> ViewGraph:
         raise _Malformed("'relative_poses' is missing")
     names = [k for k in ESTIMATE_KEYS if k != "ground_truth"]
     est: dict[str, list[Tensor]] = {n: [] for n in names}
-    gt: list[Tensor] = []
+    gt: list[Tensor | None] = []
     for i, j in zip(src.tolist(), dst.tolist(), strict=True):
         a, b = ids[i], ids[j]
         entry, inverted = _rel_entry(rel, a, b)
@@ -160,15 +203,24 @@ def _parse_graph(raw: Any, estimate: str, label: str) -> ViewGraph:
             if n in entry:
                 T = _rigid(entry[n], f"relative_poses[{a}][{b}].{n}")
                 est[n].append(invert_se3(T) if inverted else T)
-        T_gt = pose_gt[j] @ invert_se3(pose_gt[i])
-        if "ground_truth" in entry:
+        T_gt = None if pose_gt is None else pose_gt[j] @ invert_se3(pose_gt[i])
+        if entry.get("ground_truth") is not None:
             T = _rigid(entry["ground_truth"], f"relative_poses[{a}][{b}].ground_truth")
             T_gt = invert_se3(T) if inverted else T
         gt.append(T_gt)
     E = src.numel()
     estimates = {ESTIMATE_KEYS[n]: _unit_t(matrix_to_pose_vec(torch.stack(v)))
                  for n, v in est.items() if len(v) == E}
-    estimates["gt"] = _unit_t(matrix_to_pose_vec(torch.stack(gt)))
+    with_gt = [T is not None for T in gt]
+    edge_pose_gt = None
+    if all(with_gt):
+        edge_pose_gt = matrix_to_pose_vec(torch.stack(gt))
+        estimates["gt"] = _unit_t(edge_pose_gt)
+    elif any(with_gt):
+        a, b = ids[int(src[with_gt.index(False)])], ids[int(dst[with_gt.index(False)])]
+        raise _Malformed(f"pair ({a}, {b}) has no 'ground_truth' relative pose while other "
+                         "pairs have one, and there are no camera poses to derive it from "
+                         "(give ground truth for every covisible pair or for none)")
     short = ESTIMATE_KEYS.get(estimate, estimate)
     if short not in estimates:
         missing = _JSON_NAME.get(short, short)
@@ -226,7 +278,7 @@ def _parse_graph(raw: Any, estimate: str, label: str) -> ViewGraph:
     if isinstance(origin, Mapping) and "file" in origin:
         meta["origin"] = f"{origin.get('file')}#{origin.get('id')}"
     return ViewGraph(
-        node_attr=node_attributes(K, image_size),
+        node_attr=node_attributes(K, image_size, torch.tensor(k1s, dtype=K.dtype)),
         K=K,
         image_size=image_size,
         edge_index=edge_index,
@@ -236,7 +288,7 @@ def _parse_graph(raw: Any, estimate: str, label: str) -> ViewGraph:
         pair_edge=torch.tensor(pair_edge, dtype=torch.long),
         pair_src=torch.tensor(pair_src, dtype=torch.long),
         pair_dst=torch.tensor(pair_dst, dtype=torch.long),
-        edge_pose_gt=matrix_to_pose_vec(torch.stack(gt)),
+        edge_pose_gt=edge_pose_gt,
         pose_gt=pose_gt,
         estimates=estimates,
         meta=meta,
@@ -278,6 +330,7 @@ def load_posernet_json(
     estimate: str = "feature_5pt",
     strict: bool = True,
     dtype: torch.dtype = torch.float32,
+    default_k1: float = 0.0,
 ) -> list[ViewGraph]:
     """Read one split of an authors'-format graph file into :class:`ViewGraph`\\ s.
 
@@ -290,10 +343,14 @@ def load_posernet_json(
         strict: raise :class:`GraphValidationError` naming the first malformed graph (True), or
             skip malformed graphs and emit one warning with their count and reasons (False).
         dtype: floating dtype of the returned tensors.
+        default_k1: radial distortion assumed for cameras without a ``k1``/``distortion``
+            entry (node feature ``k1``; see the module docstring).
 
     Edge translations in ``edge_pose``/``estimates`` are unit vectors; ``edge_pose_gt`` keeps the
-    metric translation. ``meta`` holds ``name`` (``file:split:index``), ``camera_ids`` and, when
-    an ``image_path`` reveals it, the 7-Scenes ``scene``.
+    metric translation. Without ground truth in the file (no ``camera_to_world``, no
+    ``ground_truth`` relative poses) ``pose_gt`` and ``edge_pose_gt`` are ``None``. ``meta``
+    holds ``name`` (``file:split:index``), ``camera_ids`` and, when an ``image_path`` reveals
+    it, the 7-Scenes ``scene``.
     """
     path = Path(path)
     if estimate not in ESTIMATE_KEYS and estimate not in _JSON_NAME:
@@ -322,7 +379,7 @@ def load_posernet_json(
     for gi, raw in enumerate(raw_graphs):
         label = f"{path.name}:{split}:{gi}"
         try:
-            g = _parse_graph(raw, estimate, label)
+            g = _parse_graph(raw, estimate, label, default_k1)
             g.validate(where=f"{path}: {split} graph {gi}")
         except (_Malformed, GraphValidationError) as exc:
             msg = f"{split} graph {gi}: {exc}"
@@ -341,27 +398,27 @@ def load_posernet_json(
 
 
 def _graph_to_json(g: ViewGraph, where: str) -> dict[str, Any]:
-    if g.pose_gt is None:
-        raise GraphValidationError(f"{where}: the authors' schema needs 'pose_gt' (absolute poses)")
     g = g.to("cpu").apply(lambda t: t.double() if t.is_floating_point() else t)
     N = g.num_nodes
     ids = g.meta.get("camera_ids")
     if not (isinstance(ids, list) and len(ids) == N and len(set(map(str, ids))) == N):
         ids = [str(i) for i in range(N)]
     ids = [str(c) for c in ids]
-    c2w = invert_se3(g.pose_gt)
+    c2w = None if g.pose_gt is None else invert_se3(g.pose_gt)
+    k1 = g.node_attr[:, 3] * REF_K1
     K = g.K
     boxes = denormalize_boxes(g.det_box, g.image_size[g.det_node]).tolist()
     scene = g.meta.get("scene")
     cams: dict[str, Any] = {}
     for n, cid in enumerate(ids):
-        cam = {
-            "camera_to_world": c2w[n].tolist(),
+        cam: dict[str, Any] = {} if c2w is None else {"camera_to_world": c2w[n].tolist()}
+        cam.update({
             "K": K[n].tolist(),
             "K_i": torch.linalg.inv(K[n]).tolist(),
             "image_size": g.image_size[n].tolist(),
+            "k1": float(k1[n]),
             "matches": {},
-        }
+        })
         if scene:
             cam["image_path"] = f"{scene}/{g.meta.get('split', 'synthetic')}/{g.name}/{cid}.png"
         cams[cid] = cam
@@ -379,10 +436,11 @@ def _graph_to_json(g: ViewGraph, where: str) -> dict[str, Any]:
     fwd_mats = {n: pose_vec_to_matrix(v).tolist() for n, v in estimates.items()}
     bwd_mats = {n: pose_vec_to_matrix(invert_pose_vec(v)).tolist() for n, v in estimates.items()}
     gt = g.edge_pose_gt
-    if gt is None:  # derive it from the absolute poses
+    if gt is None and g.pose_gt is not None:  # derive it from the absolute poses
         gt = matrix_to_pose_vec(g.pose_gt[dst] @ invert_se3(g.pose_gt[src]))
-    fwd_mats["ground_truth"] = pose_vec_to_matrix(gt).tolist()
-    bwd_mats["ground_truth"] = pose_vec_to_matrix(invert_pose_vec(gt)).tolist()
+    if gt is not None:  # no ground truth: none is written (nothing is invented)
+        fwd_mats["ground_truth"] = pose_vec_to_matrix(gt).tolist()
+        bwd_mats["ground_truth"] = pose_vec_to_matrix(invert_pose_vec(gt)).tolist()
     for e, (i, j) in enumerate(zip(src, dst, strict=True)):
         a, b = ids[i], ids[j]
         covis[i][j] = covis[j][i] = 1.0
@@ -412,7 +470,9 @@ def save_posernet_json(
     Estimates ``kp``/``bb``/``free`` become ``feature_5pt``/``bb_centre_5pt``/``free_keypoint``;
     a graph without ``estimates`` writes its ``edge_pose`` as ``feature_5pt``. Relative poses and
     matches are written from both sides, as in the released files; cameras gain an
-    ``image_size`` entry (ignored by readers that do not know it). Written atomically.
+    ``image_size`` and a ``k1`` entry (ignored by readers that do not know them). A graph without
+    ground truth is written without ``camera_to_world`` and ``ground_truth`` entries (the
+    authors' own reader needs them; :func:`load_posernet_json` does not). Written atomically.
     """
     if not splits:
         raise ValueError(f"{path}: nothing to write (no splits given)")

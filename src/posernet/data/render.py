@@ -27,7 +27,6 @@ import json
 import os
 import re
 import string
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -36,7 +35,7 @@ import numpy as np
 from scipy.interpolate import CubicSpline
 from tqdm.auto import tqdm
 
-from posernet.io import atomic_write_json, atomic_write_text
+from posernet.io import atomic_path, atomic_write_json, atomic_write_text
 
 from .synthetic.camera import cuboid_corners, look_at
 from .synthetic.scenes import FURNITURE, OBJECT, SCENE_PRESETS, STEP, Scene, build_scene
@@ -583,15 +582,9 @@ def make_trajectory(
 
 def _write_png(path: Path, img: np.ndarray) -> None:
     """Atomic ``cv2.imwrite`` (the temporary name keeps the .png extension cv2 needs)."""
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=".png", dir=path.parent)
-    os.close(fd)
-    try:
-        if not cv2.imwrite(tmp, img):
+    with atomic_path(path, suffix=".png") as tmp:
+        if not cv2.imwrite(str(tmp), img):
             raise OSError(f"cv2.imwrite failed to write {path}")
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 def _pose_text(T: np.ndarray) -> str:

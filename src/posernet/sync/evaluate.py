@@ -1,7 +1,9 @@
 """The paper's absolute-pose table (Table 3 format) for a backend on a batch of graphs.
 
 :func:`absolute_table` runs a backend, aligns every graph's estimate to its ground truth
-(per connected component; cameras that could not be placed are counted and left out) and
+(per connected component; cameras that could not be placed are counted, take no part in the
+alignment and are left out of their graph's mean error; a graph with none placed is left out
+of the rows) and
 summarises per-graph mean errors as the percentage of graphs under 3/5/10/30/45 degrees and
 0.05/0.1/0.25/0.5/0.75 m plus the medians. The returned dict records the alignment and the
 translation-scale policy (``oracle`` is flagged) so every table can state them.
@@ -41,8 +43,10 @@ def absolute_table(batch: GraphBatch | ViewGraph, edge_pose: Tensor | None = Non
 
     Returns a dict with ``rotation_deg`` and ``position_m`` (:class:`ThresholdRow`),
     ``alignment``, ``scale``, ``oracle``, ``backend`` (its ``describe()``), ``graphs``,
-    ``unlocalised_cameras``, ``disconnected_graphs``, ``unconverged_graphs``, ``per_graph``
-    (the per-graph mean errors) and ``result`` (the :class:`SyncResult`).
+    ``cameras``, ``cameras_placed``, ``unlocalised_cameras`` (= cameras - placed),
+    ``graphs_with_unplaced``, ``disconnected_graphs``, ``unconverged_graphs``, ``per_graph``
+    (the per-graph mean errors over placed cameras, and ``unplaced`` cameras per graph) and
+    ``result`` (the :class:`SyncResult`).
     """
     if isinstance(backend, str):
         from . import get_backend
@@ -69,6 +73,9 @@ def absolute_table(batch: GraphBatch | ViewGraph, edge_pose: Tensor | None = Non
     first = torch.full((B,), res.component.numel(), dtype=torch.long,
                        device=res.component.device)
     first.scatter_reduce_(0, struct["node_batch"], res.component, reduce="amin")
+    unplaced = torch.zeros(B, dtype=torch.long, device=res.solved.device)
+    unplaced.index_add_(0, struct["node_batch"].to(res.solved.device),
+                        (~res.solved.bool()).long())
     return {
         "rotation_deg": threshold_row(rot, ANGLE_THRESHOLDS_DEG),
         "position_m": threshold_row(pos, METRE_THRESHOLDS),
@@ -79,10 +86,13 @@ def absolute_table(batch: GraphBatch | ViewGraph, edge_pose: Tensor | None = Non
         "oracle": res.scale == "oracle",
         "backend": backend.describe(),
         "graphs": B,
-        "unlocalised_cameras": int((~res.solved).sum()),
+        "cameras": int(res.solved.numel()),
+        "cameras_placed": int(res.solved.bool().sum()),
+        "unlocalised_cameras": int((~res.solved.bool()).sum()),
+        "graphs_with_unplaced": int((unplaced > 0).sum()),
         "disconnected_graphs": int((comps_per_graph > first).sum()),
         "unconverged_graphs": int((~res.converged).sum()),
-        "per_graph": {"rotation_deg": rot, "position_m": pos},
+        "per_graph": {"rotation_deg": rot, "position_m": pos, "unplaced": unplaced},
         "result": res,
     }
 
@@ -110,10 +120,15 @@ def format_absolute_table(table: dict[str, Any], title: str | None = None) -> st
         + " | median | graphs |",
         _row("position", table["position_m"], "m"),
     ]
+    if "cameras" in table:
+        lines += ["", f"Cameras placed: {table['cameras_placed']} of {table['cameras']}."]
     notes = []
     if table["unlocalised_cameras"]:
-        notes.append(f"{table['unlocalised_cameras']} camera(s) without edges were not "
-                     "localised and are excluded")
+        notes.append(f"{table['unlocalised_cameras']} camera(s) in "
+                     f"{table.get('graphs_with_unplaced', '?')} graph(s) were not localised "
+                     "(no edge, or an unsolvable component): they have no pose and are left "
+                     "out of their graph's mean error, a graph with none placed is left out of "
+                     "the rows")
     if table["disconnected_graphs"]:
         notes.append(f"{table['disconnected_graphs']} graph(s) are disconnected; each "
                      "component was aligned on its own")
