@@ -48,7 +48,7 @@ def test_generates_prints_summary_and_refuses_to_overwrite(tmp_path: Path):
 
     # second run: refused with one line, no traceback
     code, _, stderr = finish(cli("dataset=tiny", f"out_dir={out}", *SMALL))
-    assert code == 2 and "already exists" in stderr and "Traceback" not in stderr
+    assert code == 1 and "already exists" in stderr and "Traceback" not in stderr
 
 
 def test_preset_alias_with_overrides_and_json_export(tmp_path: Path):
@@ -76,7 +76,7 @@ def test_bad_options_fail_cleanly(tmp_path: Path):
     ]
     for k, (p, (_, message)) in enumerate(zip(runs, bad, strict=True)):
         code, _, stderr = finish(p)
-        assert code == 2, stderr
+        assert code == 1, stderr
         assert message in stderr and "Traceback" not in stderr
         assert not (tmp_path / str(k) / "manifest.json").exists()
 
@@ -97,7 +97,7 @@ def test_execute_reports_user_errors_in_one_line(tmp_path, capsys, args, message
 
     with initialize_config_dir(config_dir=CONFIG_DIR, version_base="1.3"):
         cfg = compose("make_data", overrides=["dataset=tiny", f"out_dir={tmp_path}", *args])
-    assert execute(cfg) == 2
+    assert execute(cfg) == 1
     err = capsys.readouterr().err
     assert err.startswith("posernet-make-data: error:") and message in err
     assert len(err.strip().splitlines()) == 1

@@ -134,7 +134,7 @@ def test_cli_builds_loads_resumes_and_refuses_another_config(scenes_root: Path, 
     # another configuration: refused, nothing touched
     code, _, stderr = finish(cli(f"root={scenes_root}", f"out_dir={out}", "resume=true",
                                  "progress=false", *ARGS, "sevenscenes.locality=0.5"))
-    assert code == 2 and "different configuration" in stderr and "locality" in stderr
+    assert code == 1 and "different configuration" in stderr and "locality" in stderr
     assert len(stderr.strip().splitlines()) == 1
     assert (out / "manifest.json").is_file()
     assert all(p.stat().st_mtime_ns == mtimes[p] for p in files if p != lost)
@@ -143,7 +143,7 @@ def test_cli_builds_loads_resumes_and_refuses_another_config(scenes_root: Path, 
 def test_missing_root_in_a_subprocess_is_one_line(tmp_path: Path):
     code, _, stderr = finish(cli(f"root={tmp_path / 'nope'}", f"out_dir={tmp_path / 'ds'}",
                                  "intrinsics=585,585,320,240", "progress=false"))
-    assert code == 2, stderr
+    assert code == 1, stderr
     assert stderr.startswith("posernet-make-data: error:") and "does not exist" in stderr
     assert len(stderr.strip().splitlines()) == 1
     assert not (tmp_path / "ds").exists()
@@ -177,7 +177,7 @@ def test_user_errors_are_one_line_and_write_nothing(scenes_root, tmp_path, capsy
     out = tmp_path / "ds"
     cfg = compose("source=sevenscenes", f"out_dir={out}", "progress=false",
                   *[a.format(**paths) for a in args])
-    assert execute(cfg) == 2
+    assert execute(cfg) == 1
     assert message in one_line_error(capsys)
     assert not out.exists()
 
@@ -186,7 +186,7 @@ def test_sevenscenes_keys_are_refused_for_synthetic_data(tmp_path, capsys):
     from posernet.cli.make_data import execute
 
     cfg = compose("dataset=tiny", f"out_dir={tmp_path}", f"root={tmp_path}")
-    assert execute(cfg) == 2
+    assert execute(cfg) == 1
     assert "source=sevenscenes" in one_line_error(capsys)
 
 

@@ -1,11 +1,33 @@
-"""Pieces every ``posernet-*`` command shares: one-line user errors, thread count, logging."""
+"""Pieces every ``posernet-*`` command shares: the entry point with its config check and error
+policy, one-line user errors, the device and thread settings, logging.
+
+Error policy (the same for every command): a user error (bad config value, missing or
+malformed input, unwritable output, ``device=cuda`` without CUDA) is one line on stderr,
+``posernet-<cmd>: error: <message>``, exit status 1; Ctrl-C is one line,
+``posernet-<cmd>: interrupted`` (plus what can be resumed), exit status 130.
+"""
 
 from __future__ import annotations
 
 import re
+import signal
 import sys
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any, NoReturn, TypeVar
 
-__all__ = ["quiet_lightning", "quote_list_args", "report_error", "set_threads", "user_errors"]
+from .validation import ConfigValueError, check_config, writable_dir, writable_file
+
+__all__ = ["check_config", "interrupted", "quiet_lightning", "quote_list_args", "report_error",
+           "resolve_device", "run_app", "run_task", "set_threads", "user_errors", "writable_dir",
+           "writable_file"]
+
+T = TypeVar("T")
+
+EXIT_USER_ERROR = 1
+EXIT_INTERRUPTED = 130
+
+_sigint_seen = False  # set by our SIGINT handler: a Ctrl-C happened in this process
 
 
 def user_errors() -> tuple[type[BaseException], ...]:
@@ -16,17 +38,171 @@ def user_errors() -> tuple[type[BaseException], ...]:
     from ..graph import GraphValidationError
     from ..nn.model import CheckpointError
 
-    return (FileNotFoundError, NotADirectoryError, GraphValidationError, CheckpointError,
-            MissingMandatoryValue, InstantiationException)
+    return (ConfigValueError, FileNotFoundError, NotADirectoryError,
+            GraphValidationError, CheckpointError, MissingMandatoryValue, InstantiationException)
+
+
+def _one_line(message: str) -> str:
+    """A (possibly multi-line) message as one line, without OmegaConf's key/type trailer."""
+    lines = [ln.strip() for ln in message.splitlines()]
+    lines = [ln for ln in lines if ln and not ln.startswith(("full_key:", "object_type=",
+                                                               "reference_type="))]
+    return " ".join(lines)
 
 
 def report_error(prog: str, exc: BaseException) -> None:
-    """Print ``prog: error: message`` to stderr (for a failed instantiation: its root cause)."""
+    """Print ``prog: error: message`` (one line) to stderr; for a failed instantiation: its
+    root cause."""
     from hydra.errors import InstantiationException
 
     while isinstance(exc, InstantiationException) and exc.__cause__ is not None:
         exc = exc.__cause__
-    print(f"{prog}: error: {exc}", file=sys.stderr)
+    print(f"{prog}: error: {_one_line(str(exc)) or type(exc).__name__}", file=sys.stderr)
+
+
+def interrupted(prog: str, hint: str | None = None) -> NoReturn:
+    """Ctrl-C: one line (with what can be resumed), exit status 130."""
+    lead = "\n" if sys.stderr.isatty() else ""  # after the terminal's ^C (or a progress bar)
+    print(f"{lead}{prog}: interrupted" + (f"; {hint}" if hint else ""), file=sys.stderr)
+    raise SystemExit(EXIT_INTERRUPTED)
+
+
+def run_task(prog: str, task: Callable[[Any], T], cfg: Any, *,
+             errors: tuple[type[BaseException], ...] = (),
+             resume_hint: Callable[[Any], str | None] | None = None) -> T:
+    """``task(cfg)`` under the commands' error policy: a user error (:func:`user_errors` or
+    ``errors``) -> one line and ``SystemExit(1)``; Ctrl-C -> one line and ``SystemExit(130)``.
+
+    ``resume_hint(cfg)`` says what an interrupted run left that can be resumed (or None).
+    """
+
+    def hint() -> str | None:
+        try:
+            return resume_hint(cfg) if resume_hint is not None else None
+        except Exception:  # a hint never hides the interruption
+            return None
+
+    try:
+        return task(cfg)
+    except KeyboardInterrupt:
+        interrupted(prog, hint())
+    except SystemExit as exc:
+        # Lightning turns Ctrl-C into its own sys.exit(1) after a graceful shutdown
+        if _sigint_seen and exc.code not in (0, None, EXIT_INTERRUPTED):
+            interrupted(prog, hint())
+        raise
+    except (*user_errors(), *errors) as exc:
+        report_error(prog, exc)
+        raise SystemExit(EXIT_USER_ERROR) from None
+
+
+def _on_sigint(signum: int, frame: Any) -> None:
+    global _sigint_seen
+    _sigint_seen = True
+    raise KeyboardInterrupt
+
+
+def run_app(prog: str, config_name: str, app: Callable[[], Any], *,
+            list_args: tuple[str, ...] = ()) -> None:
+    """Console entry point of a command: check the config (before Hydra makes a run folder),
+    then run the Hydra ``app``; Ctrl-C anywhere is one line and exit status 130."""
+    if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
+        signal.signal(signal.SIGINT, _on_sigint)
+    try:
+        if list_args:
+            sys.argv = quote_list_args(sys.argv, list_args)
+        preflight(prog, config_name)
+        app()
+    except KeyboardInterrupt:
+        interrupted(prog)
+
+
+def preflight(prog: str, config_name: str, argv: list[str] | None = None) -> None:
+    """Compose the config from the command line as Hydra will and :func:`check_config` it, so
+    that a bad value, an unknown key or group option, or an unwritable output is one line
+    before Hydra creates a run folder. Skipped for Hydra's own modes (``--help``, ``--cfg``,
+    ``-m``, another config dir, ...): the command checks its config again when it starts."""
+    from hydra._internal.utils import get_args_parser
+
+    try:
+        args = get_args_parser().parse_args(sys.argv[1:] if argv is None else argv)
+    except SystemExit:  # Hydra reports its own usage errors
+        return
+    if (args.help or args.hydra_help or args.cfg or args.info or args.shell_completion
+            or args.multirun or args.config_path or args.config_name or args.config_dir
+            or args.experimental_rerun or args.run):
+        return
+    from hydra import compose, initialize_config_dir
+    from hydra.core.hydra_config import HydraConfig
+    from hydra.errors import HydraException
+    from hydra.types import RunMode
+    from omegaconf import open_dict, read_write
+    from omegaconf.errors import OmegaConfBaseException
+
+    from . import CONFIG_DIR
+
+    try:
+        with initialize_config_dir(config_dir=CONFIG_DIR, version_base="1.3",
+                                   job_name=config_name):
+            cfg = compose(config_name, overrides=list(args.overrides), return_hydra_config=True)
+    except (HydraException, OmegaConfBaseException) as exc:
+        print(f"{prog}: error: {hydra_error_message(exc, config_name)}", file=sys.stderr)
+        raise SystemExit(EXIT_USER_ERROR) from None
+    if cfg.hydra.get("mode") == RunMode.MULTIRUN:  # e.g. +experiment=depth_sweep
+        return
+    run_dir = Path(str(cfg.hydra.run.dir)).absolute()
+    with read_write(cfg.hydra), open_dict(cfg.hydra):
+        cfg.hydra.runtime.output_dir = str(run_dir)
+    hydra_config = HydraConfig.instance()
+    before = hydra_config.cfg
+    hydra_config.set_config(cfg)  # ${hydra:runtime.output_dir} resolves as in the run
+    try:
+        if run_dir != Path.cwd().absolute():
+            writable_dir(cfg.hydra.run.dir, "hydra.run.dir")
+        check_config(cfg, config_name)
+    except (*user_errors(), ValueError) as exc:
+        report_error(prog, exc)
+        raise SystemExit(EXIT_USER_ERROR) from None
+    finally:
+        hydra_config.cfg = before
+
+
+#: what an unknown key usually meant, by (config name, key)
+_KEY_HINTS = {("train", "device"): "the trainer picks it: trainer=gpu or trainer.accelerator=..."}
+
+
+def hydra_error_message(exc: BaseException, config_name: str = "") -> str:
+    """Hydra's composition errors (unknown key or group option, bad override syntax) in one
+    line, in the ``key: value is not ...`` form where it applies."""
+    from hydra.errors import MissingConfigException
+
+    msg = str(exc)
+    if isinstance(exc, MissingConfigException):
+        found = re.search(r"Could not find '(.+)/([^/']+)'", msg)
+        options = re.findall(r"^\t(\S+)$", msg.split("Config search path")[0], re.M)
+        if found and options:
+            return (f"{found.group(1).replace('/', '.')}: {found.group(2)!r} is not one of "
+                    f"{', '.join(options)}")
+    override = re.match(r"Could not override '([^']+)'", msg)
+    if override and "not in struct" in str(exc.__cause__):
+        key = override.group(1)
+        hint = _KEY_HINTS.get((config_name, key))
+        return f"{key}: no such key in this command's config" + (f" ({hint})" if hint else "")
+    cause = exc.__cause__
+    if cause is not None and str(cause) and str(cause) not in msg:
+        msg = f"{msg}: {cause}"
+    return _one_line(msg)
+
+
+def resolve_device(name: Any) -> str:
+    """``auto`` -> ``cuda`` when available, else ``cpu``; other names as given (checked by
+    :func:`check_config`)."""
+    name = str(name)
+    if name == "auto":
+        import torch
+
+        return "cuda" if torch.cuda.is_available() else "cpu"
+    return name
 
 
 def quiet_lightning() -> None:

@@ -17,28 +17,24 @@ Graphs:
 
 from __future__ import annotations
 
-import sys
 import time
 from pathlib import Path
 from typing import Any
 
 import hydra
-import torch
 from omegaconf import DictConfig, OmegaConf
 
 from . import CONFIG_DIR
-from .common import report_error, set_threads, user_errors
+from .common import check_config, resolve_device, run_app, run_task, set_threads
 
 __all__ = ["demo", "main"]
 
 
 def _model(cfg: DictConfig, data_dir: Path, out_dir: Path, device: str) -> tuple[Any, str]:
-    """The shipped (or given) checkpoint; without one, a model trained briefly here."""
+    """The shipped checkpoint; without one, a model trained briefly here."""
     from ..checkpoints import default_checkpoint
     from ..nn import PoserNet
 
-    if cfg.get("ckpt_path"):
-        return PoserNet.from_checkpoint(cfg.ckpt_path, map_location=device), str(cfg.ckpt_path)
     try:
         path = default_checkpoint()
         return PoserNet.from_checkpoint(path, map_location=device), f"shipped: {path.name}"
@@ -101,15 +97,21 @@ def demo(cfg: DictConfig) -> dict[str, Any]:
     from ..data.synthetic import generate_dataset
     from ..data.synthetic.generate import GenerationError
     from ..metrics import align_to_ground_truth
+    from ..nn import PoserNet
     from ..pipeline import evaluate_result, refine_graphs, result_tables
     from ..plots import plot_cameras, plot_sorted_errors
     from ..sync import backend_from_config
 
+    check_config(cfg, "demo")
     t0 = time.perf_counter()
     set_threads(cfg.get("num_threads"))
-    device = cfg.device if cfg.device != "auto" else ("cuda" if torch.cuda.is_available()
-                                                      else "cpu")
+    device = resolve_device(cfg.device)
+    given = None  # a checkpoint given on the command line: read before any work
+    if cfg.get("ckpt_path"):
+        given = (PoserNet.from_checkpoint(cfg.ckpt_path, map_location=device),
+                 str(cfg.ckpt_path))
     out = Path(cfg.out_dir)
+    out.mkdir(parents=True, exist_ok=True)
     files: dict[str, Any] = {}
     if cfg.images.enabled:
         files["images"] = _image_demo(cfg, out)
@@ -127,7 +129,7 @@ def demo(cfg: DictConfig) -> dict[str, Any]:
         generate_dataset(options, data_dir, overwrite=True, **kw)
     graphs = [g.with_estimate(str(cfg.estimate)) for g in open_split(data_dir, "small", "test")]
     print("[2/4] model")
-    model, source = _model(cfg, data_dir, out, device)
+    model, source = given or _model(cfg, data_dir, out, device)
     backend = backend_from_config(OmegaConf.to_container(cfg.sync, resolve=True))
     print(f"[3/4] refining {len(graphs)} test graphs ({source}) and motion averaging "
           f"({backend!r})")
@@ -174,18 +176,20 @@ def demo(cfg: DictConfig) -> dict[str, Any]:
     return files
 
 
+def _resume_hint(cfg: DictConfig) -> str | None:
+    if Path(str(cfg.out_dir)).is_dir():
+        return f"run it again: what is done in {cfg.out_dir} (images, dataset) is reused"
+    return None
+
+
 @hydra.main(version_base="1.3", config_path=CONFIG_DIR, config_name="demo")
 def _hydra_main(cfg: DictConfig) -> None:
-    try:
-        demo(cfg)
-    except (*user_errors(), ValueError) as exc:
-        report_error("posernet-demo", exc)
-        sys.exit(1)
+    run_task("posernet-demo", demo, cfg, errors=(ValueError,), resume_hint=_resume_hint)
 
 
 def main() -> None:
     """Console-script entry point (``posernet-demo``)."""
-    _hydra_main()
+    run_app("posernet-demo", "demo", _hydra_main)
 
 
 if __name__ == "__main__":

@@ -14,7 +14,6 @@ and an absolute-pose table is written (``abs_table.md`` / ``abs_table.csv``).
 
 from __future__ import annotations
 
-import sys
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import Any
@@ -24,15 +23,9 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from . import CONFIG_DIR
-from .common import quiet_lightning, report_error, set_threads, user_errors
+from .common import check_config, quiet_lightning, resolve_device, run_app, run_task, set_threads
 
 __all__ = ["evaluate", "main"]
-
-
-def _device(name: str) -> torch.device:
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    return torch.device(name)
 
 
 def _batches_from_files(path: Path, estimate: str | None, batch_size: int) -> Iterator[Any]:
@@ -64,9 +57,10 @@ def evaluate(cfg: DictConfig) -> dict[str, Any]:
     from ..nn import PoserNet
     from ..report import ResultTable, relative_row
 
+    check_config(cfg, "eval")
     quiet_lightning()
     set_threads(cfg.get("num_threads"))
-    device = _device(str(cfg.device))
+    device = torch.device(resolve_device(cfg.device))
     # The bare network: evaluating needs neither Lightning nor the optimiser state.
     module = PoserNet.from_checkpoint(cfg.ckpt_path, map_location=device)
     batches, source = _test_batches(cfg)
@@ -163,16 +157,12 @@ def _absolute_table(abs_errs: dict[str, Any], label: str, sync_name: str,
 
 @hydra.main(version_base="1.3", config_path=CONFIG_DIR, config_name="eval")
 def _hydra_main(cfg: DictConfig) -> None:
-    try:
-        evaluate(cfg)
-    except user_errors() as exc:
-        report_error("posernet-eval", exc)
-        sys.exit(1)
+    run_task("posernet-eval", evaluate, cfg, errors=(ValueError,))
 
 
 def main() -> None:
     """Console-script entry point (``posernet-eval``)."""
-    _hydra_main()
+    run_app("posernet-eval", "eval", _hydra_main)
 
 
 if __name__ == "__main__":

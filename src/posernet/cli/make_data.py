@@ -10,8 +10,9 @@ Examples::
         intrinsics=585,585,320,240 proposals=edge_boxes matcher=sift out_dir=/tmp/7s
 
 Errors a user can cause (bad option, existing directory, resume with another config, a root
-that is not in 7-Scenes layout, bad intrinsics) are printed as one line without a traceback,
-with exit status 2.
+that is not in 7-Scenes layout, bad intrinsics, an unwritable out_dir) are printed as one line
+without a traceback, with exit status 1. Ctrl-C stops with exit status 130; the complete files
+are kept and ``resume=true`` finishes the dataset.
 """
 
 from __future__ import annotations
@@ -23,7 +24,7 @@ import hydra
 from omegaconf import DictConfig, OmegaConf
 
 from . import CONFIG_DIR
-from .common import quote_list_args, report_error, user_errors
+from .common import check_config, run_app, run_task
 
 __all__ = ["execute", "main", "run"]
 
@@ -55,18 +56,10 @@ _SEVENSCENES_KEYS = ("root", "scenes", "intrinsics")
 def _run_sevenscenes(cfg: DictConfig) -> dict[str, Any]:
     """``source=sevenscenes``: graphs of the images under ``root`` through the front end."""
     from posernet.data.sevenscenes_graphs import generate_sevenscenes
-    from posernet.data.synthetic import ConfigError
 
-    for group in FRONTEND_GROUPS:
-        # full keys ("proposals.path") or relative ones, depending on the OmegaConf version
-        missing = sorted(k if k.startswith(f"{group}.") else f"{group}.{k}"
-                         for k in OmegaConf.missing_keys(cfg[group]))
-        if missing:
-            raise ConfigError(f"{group}={_choice(group)} needs "
-                              + ", ".join(f"{k}=..." for k in missing))
     return generate_sevenscenes(
         OmegaConf.to_container(cfg.sevenscenes, resolve=True),
-        cfg.out_dir or "outputs/data/sevenscenes",
+        _out_dir(cfg),
         frontend={g: OmegaConf.to_container(cfg[g], resolve=True) for g in FRONTEND_GROUPS},
         seed=cfg.seed,
         overwrite=bool(cfg.overwrite),
@@ -76,36 +69,31 @@ def _run_sevenscenes(cfg: DictConfig) -> dict[str, Any]:
     )
 
 
-def _choice(group: str) -> str:
-    from hydra.core.hydra_config import HydraConfig
-
-    try:
-        return str(HydraConfig.get().runtime.choices.get(group))
-    except ValueError:  # not running under Hydra
-        return "..."
+def _out_dir(cfg: DictConfig) -> str:
+    """``out_dir``, by default ``outputs/data/<preset name>`` (``.../sevenscenes``)."""
+    if cfg.get("out_dir"):
+        return str(cfg.out_dir)
+    if cfg.get("source") == "sevenscenes":
+        return "outputs/data/sevenscenes"
+    return f"outputs/data/{cfg.get('preset') or cfg.dataset.get('name', 'dataset')}"
 
 
 def run(cfg: DictConfig) -> dict[str, Any]:
     """Generate the dataset described by a composed ``make_data`` config; returns the manifest."""
     from posernet.data.synthetic import ConfigError, generate_dataset
 
-    source = str(cfg.get("source") or "synthetic")
-    if source == "sevenscenes":
+    check_config(cfg, "make_data")
+    if cfg.get("source") == "sevenscenes":
         return _run_sevenscenes(cfg)
-    if source != "synthetic":
-        raise ConfigError(f"invalid option source: must be synthetic or sevenscenes, got "
-                          f"{source!r}")
     given = [k for k in _SEVENSCENES_KEYS if cfg.get(k) is not None]
     if given:
         raise ConfigError(f"{', '.join(k + '=' for k in given)} "
                           f"{'is an option' if len(given) == 1 else 'are options'} of "
                           f"source=sevenscenes (the synthetic generator takes "
                           f"dataset.scenes=...); add source=sevenscenes")
-    dataset = _dataset_config(cfg)
-    out_dir = cfg.out_dir or f"outputs/data/{dataset.get('name', 'dataset')}"
     return generate_dataset(
-        dataset,
-        out_dir,
+        _dataset_config(cfg),
+        _out_dir(cfg),
         seed=cfg.seed,
         workers=cfg.workers,
         overwrite=bool(cfg.overwrite),
@@ -115,8 +103,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     )
 
 
-def execute(cfg: DictConfig) -> int:
-    """Run and turn user errors into one line on stderr; returns the exit status (0 or 2)."""
+def _user_errors() -> tuple[type[BaseException], ...]:
     from posernet.data.sevenscenes import SevenScenesError
     from posernet.data.store import DatasetError
     from posernet.data.synthetic import (
@@ -128,27 +115,31 @@ def execute(cfg: DictConfig) -> int:
     from posernet.frontend.features import MatcherError
     from posernet.frontend.images import ImageError
     from posernet.frontend.proposals import ProposalError
-    from posernet.graph import GraphValidationError
+
+    return (ConfigError, DatasetExistsError, GenerationError, SamplingError, DatasetError, OSError,
+            SevenScenesError, ImageError, ProposalError, MatcherError)
 
 
+def _resume_hint(cfg: DictConfig) -> str | None:
+    """After Ctrl-C: how to finish the dataset, when its folder was started."""
+    from pathlib import Path
+
+    from posernet.data.synthetic.generate import JOB_FILE
+
+    out = _out_dir(cfg)
+    if (Path(out) / JOB_FILE).is_file():
+        return f"the complete files in {out} are kept: run it again with resume=true to finish"
+    return None
+
+
+def execute(cfg: DictConfig) -> int:
+    """Run under the commands' error policy; returns the exit status: 0, 1 (a user error,
+    reported in one line on stderr) or 130 (interrupted)."""
     try:
-        run(cfg)
-    except (
-        ConfigError,
-        DatasetExistsError,
-        GenerationError,
-        SamplingError,
-        DatasetError,
-        GraphValidationError,
-        OSError,
-        SevenScenesError,
-        ImageError,
-        ProposalError,
-        MatcherError,
-        *user_errors(),  # failed instantiation of a front-end stage: its root cause
-    ) as exc:
-        report_error("posernet-make-data", exc)
-        return 2
+        run_task("posernet-make-data", run, cfg, errors=_user_errors(),
+                 resume_hint=_resume_hint)
+    except SystemExit as exc:
+        return int(exc.code or 0)
     return 0
 
 
@@ -161,8 +152,7 @@ def _app(cfg: DictConfig) -> None:
 
 def main() -> None:
     """Console-script entry point."""
-    sys.argv = quote_list_args(sys.argv, ("intrinsics", "scenes"))
-    _app()
+    run_app("posernet-make-data", "make_data", _app, list_args=("intrinsics", "scenes"))
 
 
 if __name__ == "__main__":

@@ -13,7 +13,6 @@ recovered cameras in 3D). With a pose file per image (``<name>.pose.txt``, 7-Sce
 
 from __future__ import annotations
 
-import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -23,24 +22,9 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from . import CONFIG_DIR
-from .common import quote_list_args, report_error, set_threads, user_errors
+from .common import check_config, resolve_device, run_app, run_task, set_threads
 
 __all__ = ["main", "run"]
-
-
-def _writable_dir(path: Path) -> Path:
-    """Create ``path`` (or check it) before any work, so a bad out_dir fails at once."""
-    try:
-        path.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise NotADirectoryError(f"out_dir {path}: cannot create it ({exc.strerror})") from None
-    probe = path / ".posernet-write-test"
-    try:
-        probe.write_bytes(b"")
-        probe.unlink()
-    except OSError as exc:
-        raise NotADirectoryError(f"out_dir {path}: not writable ({exc.strerror})") from None
-    return path
 
 
 def _pictures(rec: Any, out: Path, k: int) -> list[Path]:
@@ -111,13 +95,11 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     from ..reconstruct import reconstruct, write_poses_json
     from ..sync import backend_from_config
 
+    check_config(cfg, "reconstruct")  # out_dir included: made only once there is output
     t0 = time.perf_counter()
     set_threads(cfg.get("num_threads"))
-    device = cfg.device if cfg.device != "auto" else (
-        "cuda" if torch.cuda.is_available() else "cpu")
-    if str(cfg.estimate) not in ("kp", "bb"):
-        raise ValueError(f"estimate must be kp or bb, got {cfg.estimate!r}")
-    out = _writable_dir(Path(cfg.out_dir))
+    device = resolve_device(cfg.device)
+    out = Path(cfg.out_dir)
     records = records_for_images(cfg.images, OmegaConf.to_object(cfg.intrinsics)
                                  if OmegaConf.is_config(cfg.intrinsics) else cfg.intrinsics,
                                  cfg.get("pattern"), cfg.get("gt_poses"))
@@ -139,6 +121,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     print("[2/3] front end: " + "\n      ".join(frontend.summary.lines()))
     info = {"images": str(cfg.images), "estimate": str(cfg.estimate),
             "checkpoint": str(ckpt) if ckpt else None}
+    out.mkdir(parents=True, exist_ok=True)
     files: dict[str, Any] = {"poses": write_poses_json(out / "poses.json", rec, info)}
     solved = sum(c["solved"] for c in _load(files["poses"])["cameras"].values())
     print(f"[3/3] {'PoserNet + ' if model is not None else ''}{backend!r}: {solved} of "
@@ -170,21 +153,13 @@ def _load(path: Path) -> dict[str, Any]:
 
 @hydra.main(version_base="1.3", config_path=CONFIG_DIR, config_name="reconstruct")
 def _hydra_main(cfg: DictConfig) -> None:
-    from ..frontend.features import MatcherError
-    from ..frontend.images import ImageError
-    from ..frontend.proposals import ProposalError
-
-    try:
-        run(cfg)
-    except (*user_errors(), ImageError, ProposalError, MatcherError, ValueError) as exc:
-        report_error("posernet-reconstruct", exc)
-        sys.exit(1)
+    # ImageError, ProposalError and MatcherError are ValueErrors
+    run_task("posernet-reconstruct", run, cfg, errors=(ValueError,))
 
 
 def main() -> None:
     """Console-script entry point (``posernet-reconstruct``)."""
-    sys.argv = quote_list_args(sys.argv, ("intrinsics",))
-    _hydra_main()
+    run_app("posernet-reconstruct", "reconstruct", _hydra_main, list_args=("intrinsics",))
 
 
 if __name__ == "__main__":

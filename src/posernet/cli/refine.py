@@ -10,16 +10,14 @@ tables are printed and written next to it (``table.md``/``.csv``, ``abs_table.md
 
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 from typing import Any
 
 import hydra
-import torch
 from omegaconf import DictConfig, OmegaConf
 
 from . import CONFIG_DIR
-from .common import report_error, set_threads, user_errors
+from .common import check_config, resolve_device, run_app, run_task, set_threads
 
 __all__ = ["main", "refine"]
 
@@ -38,22 +36,22 @@ def refine(cfg: DictConfig) -> dict[str, Any]:
     )
     from ..sync import backend_from_config
 
+    check_config(cfg, "refine")
     set_threads(cfg.get("num_threads"))
-    device = cfg.device
-    if device == "auto":
-        device = "cuda" if torch.cuda.is_available() else "cpu"
+    device = resolve_device(cfg.device)
     ckpt = Path(cfg.ckpt_path) if cfg.get("ckpt_path") else default_checkpoint()
     model = PoserNet.from_checkpoint(ckpt, map_location=device)
     backend = backend_from_config(OmegaConf.to_container(cfg.sync, resolve=True)) \
         if cfg.get("sync") else None
     estimate = cfg.get("estimate")
     graphs = load_input_graphs(cfg.input, split=cfg.split, estimate=estimate,
-                               strict=bool(cfg.strict))
+                               strict=bool(cfg.strict), size=str(cfg.get("size", "small")),
+                               log=print)
     result = refine_graphs(model, graphs, backend=backend, batch_size=int(cfg.batch_size),
                            device=device)
     info = {"input": str(cfg.input), "estimate": estimate, "checkpoint": str(ckpt)}
     out = {"output": atomic_write_json(cfg.output, result_to_json(result, info), indent=1)}
-    if all(g.edge_pose_gt is not None for g in graphs):
+    if any(g.edge_pose_gt is not None for g in graphs):  # graphs without it are counted
         ev = evaluate_result(result)
         tables = result_tables(ev, label=str(estimate or "input").upper(),
                                backend=result.backend, title=f": {len(graphs)} graphs")
@@ -69,16 +67,12 @@ def refine(cfg: DictConfig) -> dict[str, Any]:
 
 @hydra.main(version_base="1.3", config_path=CONFIG_DIR, config_name="refine")
 def _hydra_main(cfg: DictConfig) -> None:
-    try:
-        refine(cfg)
-    except (*user_errors(), ValueError) as exc:
-        report_error("posernet-refine", exc)
-        sys.exit(1)
+    run_task("posernet-refine", refine, cfg, errors=(ValueError,))
 
 
 def main() -> None:
     """Console-script entry point (``posernet-refine``)."""
-    _hydra_main()
+    run_app("posernet-refine", "refine", _hydra_main)
 
 
 if __name__ == "__main__":

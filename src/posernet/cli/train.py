@@ -12,12 +12,22 @@ Each run writes ``checkpoints/best.ckpt``, ``checkpoints/last.ckpt``, ``logs/met
 ``metrics.json`` into its Hydra output folder (one subfolder per job in a sweep). The task
 function returns the best value of ``optimized_metric`` (default ``val/loss``) so sweepers can
 minimise it.
+
+Resuming (``ckpt_path=RUN/checkpoints/last.ckpt``) continues the run in its own folder ``RUN``
+(unless ``hydra.run.dir`` or ``out_dir`` is given): the best checkpoint keeps competing with the
+best model found before the interruption, ``metrics.json`` is rewritten there, the new epochs
+are appended to ``logs/metrics.csv`` and the resumed job's Hydra config goes to
+``RUN/.hydra/resume_<date>_<time>`` (the original ``.hydra`` files stay).
 """
 
 from __future__ import annotations
 
+import csv
 import math
+import os
+import re
 import sys
+import time
 from pathlib import Path
 from typing import Any
 
@@ -25,9 +35,120 @@ import hydra
 from omegaconf import DictConfig
 
 from . import CONFIG_DIR
-from .common import quiet_lightning, report_error, set_threads, user_errors
+from .common import check_config, quiet_lightning, run_app, run_task, set_threads
 
-__all__ = ["main", "train"]
+__all__ = ["main", "resume_overrides", "run_dir_of_checkpoint", "train"]
+
+_CKPT_ARG = re.compile(r"^\+{0,2}ckpt_path=(.*)$")
+_RUN_DIR_ARGS = re.compile(r"^\+{0,2}(hydra\.run\.dir|out_dir)=")
+
+
+def run_dir_of_checkpoint(ckpt_path: str | os.PathLike[str]) -> Path | None:
+    """The run folder of a checkpoint written by ``posernet-train`` (``RUN/checkpoints/x.ckpt``
+    -> ``RUN``, absolute), or ``None`` for a checkpoint stored elsewhere."""
+    p = Path(ckpt_path).expanduser().resolve()
+    return p.parent.parent if p.parent.name == "checkpoints" else None
+
+
+def resume_overrides(argv: list[str]) -> list[str]:
+    """Command-line overrides that make a resumed run continue in its own folder.
+
+    With ``ckpt_path=RUN/checkpoints/*.ckpt`` (an existing file) and neither ``hydra.run.dir``
+    nor ``out_dir`` given, appends ``hydra.run.dir=RUN`` and puts this job's Hydra config in
+    ``RUN/.hydra/resume_<date>_<time>``. Sweeps (``-m``) and other commands are left alone.
+    """
+    if any(a in ("-m", "--multirun") for a in argv) or any(_RUN_DIR_ARGS.match(a) for a in argv):
+        return list(argv)
+    values = [m.group(1) for m in map(_CKPT_ARG.match, argv) if m]
+    if not values:
+        return list(argv)
+    value = values[-1].strip()
+    if len(value) >= 2 and value[0] == value[-1] and value[0] in "'\"":
+        value = value[1:-1]
+    if value in ("", "null", "last") or not Path(value).expanduser().is_file():
+        return list(argv)  # nothing to continue (a missing file is reported by train())
+    run_dir = run_dir_of_checkpoint(value)
+    if run_dir is None or '"' in str(run_dir):
+        return list(argv)
+    stamp = time.strftime("%Y-%m-%d_%H-%M-%S")
+    return [*argv, f'hydra.run.dir="{run_dir}"', f"hydra.output_subdir=.hydra/resume_{stamp}"]
+
+
+def _continues_run(ckpt_path: Any, out_dir: Path) -> bool:
+    """Whether ``ckpt_path`` is a checkpoint of the run folder ``out_dir`` (resume in place)."""
+    if ckpt_path in (None, "last"):
+        return False
+    run_dir = run_dir_of_checkpoint(ckpt_path)
+    return run_dir is not None and run_dir == out_dir.resolve()
+
+
+def _relocation_callback(ckpt_path: str) -> Any:
+    """A callback that lets the checkpoint callbacks of a run folder that was moved (or copied)
+    since ``ckpt_path`` was written keep their best-so-far state on resume.
+
+    Lightning restores ``best_model_score`` only when the saved ``dirpath`` equals the current
+    one; when the checkpoint lies in the current ``dirpath``, the saved paths are re-based."""
+    from lightning.pytorch.callbacks import Callback, ModelCheckpoint
+
+    ckpt_dir = os.path.realpath(Path(ckpt_path).expanduser().parent)
+
+    class _ContinueRun(Callback):
+        def on_load_checkpoint(self, trainer: Any, pl_module: Any,
+                               checkpoint: dict[str, Any]) -> None:
+            states = checkpoint.get("callbacks") or {}
+            for cb in trainer.checkpoint_callbacks:
+                state = states.get(cb.state_key) if isinstance(cb, ModelCheckpoint) else None
+                if not isinstance(state, dict) or not cb.dirpath or cb.dirpath != ckpt_dir:
+                    continue
+                old = state.get("dirpath")
+                if not isinstance(old, str) or old == cb.dirpath:
+                    continue
+
+                def move(path: Any, old: str = old, new: str = cb.dirpath) -> Any:
+                    if isinstance(path, str) and path and Path(path).parent == Path(old):
+                        return os.path.join(new, Path(path).name)
+                    return path
+
+                state["dirpath"] = cb.dirpath
+                for key in ("best_model_path", "kth_best_model_path", "last_model_path"):
+                    if key in state:
+                        state[key] = move(state[key])
+                if isinstance(state.get("best_k_models"), dict):
+                    state["best_k_models"] = {move(k): v for k, v in
+                                              state["best_k_models"].items()}
+
+    return _ContinueRun()
+
+
+def _merge_csv_log(path: Path, history: Path, epoch: int, global_step: int) -> None:
+    """Rewrite ``path`` as the rows of ``history`` written before the resumed checkpoint (epoch
+    ``<= epoch``; rows without an epoch: ``step < global_step``) followed by ``path``'s rows."""
+
+    def rows(p: Path) -> tuple[list[str], list[dict[str, str]]]:
+        if not p.is_file():
+            return [], []
+        with p.open(newline="") as f:
+            reader = csv.DictReader(f)
+            return list(reader.fieldnames or []), list(reader)
+
+    def before(row: dict[str, str]) -> bool:
+        try:
+            if row.get("epoch"):
+                return float(row["epoch"]) <= epoch
+            return float(row.get("step") or "nan") < global_step
+        except ValueError:
+            return True
+
+    old_keys, old_rows = rows(history)
+    new_keys, new_rows = rows(path)
+    keys = sorted(set(old_keys) | set(new_keys))
+    tmp = path.with_name(path.name + ".tmp")
+    with tmp.open("w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=keys)
+        writer.writeheader()
+        writer.writerows([r for r in old_rows if before(r)] + new_rows)
+    os.replace(tmp, path)
+    history.unlink()
 
 
 def _instantiate_dict(cfg: DictConfig | None) -> list[Any]:
@@ -40,32 +161,60 @@ def _instantiate_dict(cfg: DictConfig | None) -> list[Any]:
 
 def train(cfg: DictConfig) -> float:
     """Train from a composed config; return the best ``cfg.optimized_metric`` (NaN if none)."""
+    import warnings
+
     import lightning as L
     import torch
     from lightning.pytorch.callbacks import ModelCheckpoint
+    from lightning.pytorch.loggers import CSVLogger
 
     from ..io import atomic_write_json
     from ..lit import PoserNetModule, read_posernet_checkpoint
 
+    check_config(cfg, "train")  # every value, CUDA, a writable out_dir: before any output
     quiet_lightning()
     set_threads(cfg.get("num_threads"))
     L.seed_everything(int(cfg.seed), workers=True)
     out_dir = Path(cfg.out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    if cfg.get("ckpt_path") not in (None, "last"):
-        read_posernet_checkpoint(cfg.ckpt_path)  # clear error before Lightning's deep one
+    ckpt_path = cfg.get("ckpt_path")
+    resumed: dict[str, Any] = {}
+    if ckpt_path not in (None, "last"):
+        resumed = read_posernet_checkpoint(ckpt_path)  # clear error before Lightning's deep one
+    in_place = _continues_run(ckpt_path, out_dir)
 
     datamodule = hydra.utils.instantiate(cfg.data)
     model: PoserNetModule = hydra.utils.instantiate(cfg.model)
     if not isinstance(model, PoserNetModule):
         raise TypeError(f"model config must build a PoserNetModule, got {type(model).__name__}")
     callbacks = _instantiate_dict(cfg.get("callbacks"))
+    if in_place:
+        callbacks.append(_relocation_callback(str(ckpt_path)))
     logger = hydra.utils.instantiate(cfg.logger) if cfg.get("logger") else False
     trainer: L.Trainer = hydra.utils.instantiate(cfg.trainer, callbacks=callbacks, logger=logger)
+    history: Path | None = None
     if trainer.is_global_zero:
         print(f"PoserNet: {model.num_parameters} parameters; output folder {out_dir}")
+        if in_place:
+            print(f"Resuming from {ckpt_path}: continuing the run in {out_dir}")
+        elif ckpt_path not in (None, "last"):
+            print(f"Resuming from {ckpt_path} in a new folder {out_dir}")
+        if in_place and isinstance(logger, CSVLogger):
+            # Lightning's CSV logger deletes an existing metrics.csv: keep the earlier epochs.
+            log_csv = Path(logger.log_dir) / "metrics.csv"
+            if log_csv.is_file():
+                history = log_csv.with_name("metrics.before_resume.csv")
+                os.replace(log_csv, history)
+                warnings.filterwarnings("ignore", message=r"Experiment logs directory .*")
+        if in_place:  # expected when a run continues in its folder
+            warnings.filterwarnings("ignore", message=r"Checkpoint directory .* not empty")
 
-    trainer.fit(model, datamodule=datamodule, ckpt_path=cfg.get("ckpt_path"))
+    try:
+        trainer.fit(model, datamodule=datamodule, ckpt_path=ckpt_path)
+    finally:
+        if history is not None:
+            _merge_csv_log(history.with_name("metrics.csv"), history,
+                           int(resumed.get("epoch", 0)), int(resumed.get("global_step", 0)))
 
     checkpoints = [c for c in trainer.callbacks if isinstance(c, ModelCheckpoint)]
     # the monitored one keeps the best model; one without a monitor keeps the latest epoch
@@ -108,16 +257,19 @@ def train(cfg: DictConfig) -> float:
 
 @hydra.main(version_base="1.3", config_path=CONFIG_DIR, config_name="train")
 def _hydra_main(cfg: DictConfig) -> float:
-    try:
-        return train(cfg)
-    except user_errors() as exc:
-        report_error("posernet-train", exc)
-        sys.exit(1)
+    return run_task("posernet-train", train, cfg, resume_hint=_resume_hint)
+
+
+def _resume_hint(cfg: DictConfig) -> str | None:
+    """After Ctrl-C: the checkpoint to resume from, when the run wrote one."""
+    last = Path(str(cfg.out_dir)) / "checkpoints" / "last.ckpt"
+    return f"resume with ckpt_path={last}" if last.is_file() else None
 
 
 def main() -> None:
     """Console-script entry point (``posernet-train``)."""
-    _hydra_main()
+    sys.argv[1:] = resume_overrides(sys.argv[1:])
+    run_app("posernet-train", "train", _hydra_main)
 
 
 if __name__ == "__main__":

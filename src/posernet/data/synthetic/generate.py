@@ -23,6 +23,8 @@ import json
 import multiprocessing as mp
 import os
 import queue as queue_mod
+import signal
+import threading
 import time
 from collections.abc import Callable, Mapping
 from pathlib import Path
@@ -299,9 +301,18 @@ def _run_all(
             return results
         ctx = mp.get_context("spawn")
         q = ctx.Queue()
-        with ctx.Pool(
-            processes=min(workers, len(parts)), initializer=_init_worker, initargs=(q,)
-        ) as pool:
+        # Ctrl-C reaches the whole process group: workers start with SIGINT ignored (inherited)
+        # so that only this process stops, terminates the pool and keeps the complete files
+        main = threading.current_thread() is threading.main_thread()
+        sigint = signal.signal(signal.SIGINT, signal.SIG_IGN) if main else None
+        try:
+            pool = ctx.Pool(
+                processes=min(workers, len(parts)), initializer=_init_worker, initargs=(q,)
+            )
+        finally:
+            if main:
+                signal.signal(signal.SIGINT, sigint)
+        with pool:
             pending = [(c, rng, pool.apply_async(_simulate_part, (opts_dict, c, seed, rng)))
                        for c, rng in parts]
             while pending:

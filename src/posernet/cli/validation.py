@@ -1,0 +1,467 @@
+"""One config check for every ``posernet-*`` command, run before any work or output.
+
+:func:`check_config` takes a command's composed config and checks, in this order:
+
+1. every plain value of the command's top-level keys and of its groups (``model``, ``data``,
+   ``trainer``, ``sync``, the front end's ``proposals``/``matcher``/``box_matching``/
+   ``relpose``, the demo's ``images``) against a small schema: type, range or choices, and that
+   a required value (``???``) was given;
+2. what a group's own constructor checks across fields (the sync backend: its scale policy,
+   gtsam installed; the demo's synthetic dataset options), by building it early;
+3. the machine: ``device=cuda`` (``trainer.accelerator=gpu``) needs CUDA;
+4. the outputs: every folder or file the command will write can be written (nothing is
+   created: a probe file in the nearest existing folder is removed at once).
+
+Any failure is one :class:`ConfigValueError` whose message names the key, the value and what
+is expected: ``model.depth: 'abc' is not an integer >= 1``. Keys absent from a config (a
+group without that option) are skipped; the input files themselves are read, and reported, by
+the loaders.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import re
+import tempfile
+from collections.abc import Callable, Iterable, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+__all__ = ["COMMANDS", "ConfigValueError", "check_config", "writable_dir", "writable_file"]
+
+
+class ConfigValueError(ValueError):
+    """A config value of the wrong type, out of range, not a valid choice or not usable here."""
+
+
+# --------------------------------------------------------------------------- rules
+
+
+@dataclass(frozen=True)
+class Rule:
+    """What one key accepts: ``expected`` says it in words, ``test`` checks a value."""
+
+    expected: str
+    test: Callable[[Any], bool]
+    null: bool = False  # None accepted
+
+    def ok(self, value: Any) -> bool:
+        return (value is None and self.null) or (value is not None and self.test(value))
+
+    def describe(self) -> str:
+        return f"{self.expected} or null" if self.null else self.expected
+
+
+def _is_int(v: Any) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
+def _is_number(v: Any) -> bool:
+    return (isinstance(v, int | float) and not isinstance(v, bool)) and math.isfinite(v)
+
+
+def _bounds(lo: float | None, hi: float | None, lo_open: bool, hi_open: bool) -> str:
+    if lo is not None and hi is not None:
+        return f" in {'(' if lo_open else '['}{lo:g}, {hi:g}{')' if hi_open else ']'}"
+    if lo is not None:
+        return f" {'>' if lo_open else '>='} {lo:g}"
+    if hi is not None:
+        return f" {'<' if hi_open else '<='} {hi:g}"
+    return ""
+
+
+def _within(v: float, lo: float | None, hi: float | None, lo_open: bool, hi_open: bool) -> bool:
+    if lo is not None and (v <= lo if lo_open else v < lo):
+        return False
+    return not (hi is not None and (v >= hi if hi_open else v > hi))
+
+
+def integer(lo: int | None = None, hi: int | None = None, *, null: bool = False) -> Rule:
+    return Rule(f"an integer{_bounds(lo, hi, False, False)}",
+                lambda v: _is_int(v) and _within(v, lo, hi, False, False), null)
+
+
+def number(lo: float | None = None, hi: float | None = None, *, lo_open: bool = False,
+           hi_open: bool = False, null: bool = False) -> Rule:
+    return Rule(f"a number{_bounds(lo, hi, lo_open, hi_open)}",
+                lambda v: _is_number(v) and _within(v, lo, hi, lo_open, hi_open), null)
+
+
+def positive(*, null: bool = False) -> Rule:
+    return number(0, lo_open=True, null=null)
+
+
+def boolean(*, null: bool = False) -> Rule:
+    return Rule("true or false", lambda v: isinstance(v, bool), null)
+
+
+def choice(*options: str, null: bool = False) -> Rule:
+    return Rule(f"one of {', '.join(options)}", lambda v: isinstance(v, str) and v in options,
+                null)
+
+
+def text(*, null: bool = False) -> Rule:
+    return Rule("a string", lambda v: isinstance(v, str) and v != "", null)
+
+
+def path(*, null: bool = False) -> Rule:
+    """A file or folder name (a number is a valid name too: ``out_dir=2024``)."""
+    return Rule("a path", lambda v: (isinstance(v, str) and v != "") or _is_int(v), null)
+
+
+def anything(expected: str = "a value") -> Rule:
+    """Checked by the command itself (e.g. intrinsics: a string, a list or a file)."""
+    return Rule(expected, lambda v: True, True)
+
+
+def one_of(*rules: Rule, expected: str | None = None) -> Rule:
+    """A value any of ``rules`` accepts."""
+    null = any(r.null for r in rules)
+    return Rule(expected or " or ".join(r.expected for r in rules),
+                lambda v: any(r.ok(v) for r in rules), null)
+
+
+DEVICE = Rule("one of cpu, cuda, cuda:N, auto",
+              lambda v: isinstance(v, str) and bool(re.fullmatch(r"cpu|cuda|cuda:\d+|auto", v)))
+THREADS = integer(1, null=True)
+DIGITS = integer(0, 12)
+SEED = integer(0)
+ESTIMATE = choice("kp", "bb")
+#: initial poses read from graph files (``.json``: also the free keypoint 5-point; null: the
+#: stored edge_pose)
+ESTIMATE_IN = choice("kp", "bb", "free", "gt", null=True)
+SIZE = choice("small", "large")
+INTRINSICS = "FX,FY,CX,CY, [FX,FY,CX,CY] or a JSON / 3x3 text file"
+
+
+# --------------------------------------------------------------------------- schema
+
+Schema = Mapping[str, Rule]
+
+MODEL: Schema = {
+    "depth": integer(1), "node_hidden": integer(1), "edge_hidden": integer(0),
+    "mlp_hidden": integer(1), "mlp_layers": integer(1), "negative_slope": number(),
+    "shared_weights": boolean(), "residual": boolean(), "unit_output": boolean(),
+    "nested_mean": boolean(), "alpha": number(0), "lr": positive(), "weight_decay": number(0),
+    "lr_patience": integer(0), "lr_factor": number(0, 1, lo_open=True, hi_open=True),
+    "min_lr": number(0),
+}
+
+DATA: Schema = {
+    "root": path(), "estimate": ESTIMATE, "size": SIZE, "batch_size": integer(1),
+    "eval_batch_size": integer(1, null=True), "num_workers": integer(0),
+    "leave_out_scene": text(null=True), "test_size": choice("small", "large", null=True),
+    "val_size": choice("small", "large", null=True), "shuffle": boolean(), "seed": SEED,
+}
+
+#: the Lightning Trainer arguments of conf/trainer/*.yaml (others pass through unchecked)
+TRAINER: Schema = {
+    "accelerator": choice("auto", "cpu", "gpu", "cuda", "mps", "tpu"),
+    "devices": one_of(integer(-1), choice("auto"),
+                      Rule("a list of integers", lambda v: isinstance(v, list) and bool(v)
+                           and all(_is_int(x) for x in v)),
+                      expected="an integer, a list of integers or auto"),
+    "strategy": text(), "max_epochs": integer(-1, null=True), "min_epochs": integer(0, null=True),
+    "max_steps": integer(-1), "fast_dev_run": one_of(boolean(), integer(0)),
+    "gradient_clip_val": number(0, null=True),
+    "gradient_clip_algorithm": choice("norm", "value", null=True),
+    "deterministic": one_of(boolean(null=True), choice("warn")),
+    "log_every_n_steps": integer(1), "check_val_every_n_epoch": integer(1, null=True),
+    "num_sanity_val_steps": integer(-1), "enable_progress_bar": boolean(),
+    "enable_model_summary": boolean(), "enable_checkpointing": boolean(),
+    "default_root_dir": path(null=True),
+}
+
+#: options of every motion-averaging backend (conf/sync/*.yaml); cross-field rules (the scale
+#: policies a backend supports, p_min <= p_max) are the backend's own, checked by building it
+SYNC: Schema = {
+    "name": text(), "scale": choice("unit", "given", "oracle", "free"),
+    "disconnected": choice("components", "error"), "robust": boolean(),
+    "max_iters": integer(1), "tol": positive(), "theta": positive(),
+    "solver": choice("auto", "dense", "krylov"), "dense_max_nodes": integer(1),
+    "krylov_tol": positive(), "krylov_max_cycles": integer(1), "seed": integer(),
+    "refine_iters": integer(0), "translation_iters": integer(1),
+    "rotation_sigma": positive(), "direction_sigma": positive(), "p_min": integer(3),
+    "p_max": integer(3), "huber": boolean(), "lm_tol": positive(), "max_iterations": integer(1),
+}
+
+PROPOSALS: Schema = {
+    "path": path(), "top_k": integer(1, null=True),
+    "max_area": number(0, 1, lo_open=True, null=True), "min_size": number(0),
+    "strategy": choice("single", "fast", "quality"), "resize": integer(32, null=True),
+}
+
+MATCHER: Schema = {
+    "name": choice("auto", "sift", "xfeat", "xfeat+lighterglue"),
+    "max_features": integer(1), "ratio": number(0, 1, lo_open=True), "mutual": boolean(),
+    "rootsift": boolean(), "contrast_threshold": number(0, 1), "top_k": integer(1),
+    "lighterglue": boolean(), "min_cossim": number(-1, 1), "device": DEVICE,
+}
+
+BOX_MATCHING: Schema = {
+    "min_keypoints": integer(1), "min_span": number(0, 1), "min_boxes": integer(1),
+    "one_to_one": boolean(),
+}
+
+RELPOSE: Schema = {
+    "method": choice("usac", "ransac"), "ransac_prob": number(0, 1, lo_open=True, hi_open=True),
+    "kp_threshold": positive(), "bb_threshold": positive(), "max_iters": integer(1),
+}
+
+FRONTEND = {"proposals": PROPOSALS, "matcher": MATCHER, "box_matching": BOX_MATCHING,
+            "relpose": RELPOSE}
+
+
+def _matcher_configs() -> tuple[str, ...]:
+    from . import CONFIG_DIR
+
+    return tuple(sorted(p.stem for p in Path(CONFIG_DIR, "matcher").glob("*.yaml"))) or (
+        "auto", "sift", "xfeat", "xfeat_lighterglue")
+
+
+def _images(cfg: Any) -> Schema:  # posernet-demo's part 1
+    from ..data.synthetic.scenes import SCENE_PRESETS
+
+    return {"enabled": boolean(), "scene": choice(*sorted(SCENE_PRESETS)), "seed": SEED,
+            "frames": integer(2), "width": integer(16), "height": integer(16),
+            "focal": positive(), "matcher": choice(*_matcher_configs()), "refine": boolean()}
+
+
+@dataclass(frozen=True)
+class Command:
+    """A command's schema: its top-level keys, its groups, and what it writes."""
+
+    keys: Schema
+    groups: Mapping[str, Schema | Callable[[Any], Schema]]
+    #: the outputs, ``(key, path, "dir" | "file")``, from the config
+    outputs: Callable[[Any], Iterable[tuple[str, Any, str]]]
+    #: groups checked only when this function of the config says so
+    when: Mapping[str, Callable[[Any], bool]] | None = None
+    #: keys naming a device (a CUDA one needs CUDA)
+    devices: tuple[str, ...] = ("device",)
+    #: checks across fields that a group's own constructor makes (run before any work)
+    checks: tuple[Callable[[Any], None], ...] = ()
+
+
+def _outputs(*pairs: tuple[str, str]) -> Callable[[Any], list[tuple[str, Any, str]]]:
+    def get(cfg: Any) -> list[tuple[str, Any, str]]:
+        return [(k, v, kind) for k, kind in pairs
+                if (v := _value(cfg, k)) not in (_ABSENT, _MISSING, None)]
+    return get
+
+
+def _make_data_outputs(cfg: Any) -> list[tuple[str, Any, str]]:
+    out = _value(cfg, "out_dir")
+    # default outputs/data/<preset name>: its nearest existing folder is the same one
+    return [("out_dir", out if out not in (None, _ABSENT) else "outputs/data", "dir")]
+
+
+def _sevenscenes(cfg: Any) -> bool:
+    return _value(cfg, "source") == "sevenscenes"
+
+
+def _check_sync(cfg: Any) -> None:
+    """Build the backend: its own cross-field rules, before any work."""
+    sync = _value(cfg, "sync")
+    if not isinstance(sync, dict) or sync.get("name") in (None, "none"):
+        return
+    from ..sync import backend_from_config
+
+    try:
+        backend_from_config(sync)
+    except ValueError as exc:
+        raise ConfigValueError(f"sync={sync['name']}: {_first_line(exc)}") from None
+
+
+def _check_dataset(cfg: Any) -> None:
+    """The demo's synthetic dataset options (their ConfigError names the bad key)."""
+    dataset = _value(cfg, "dataset")
+    if isinstance(dataset, dict):
+        from ..data.synthetic.config import resolve_options
+
+        resolve_options(dataset)
+
+
+COMMANDS: dict[str, Command] = {
+    "train": Command(
+        keys={"seed": SEED, "ckpt_path": path(null=True), "optimized_metric": text(),
+              "test_after_training": boolean(), "num_threads": THREADS, "out_dir": path()},
+        groups={"data": DATA, "model": MODEL, "trainer": TRAINER, "sync": SYNC},
+        outputs=_outputs(("out_dir", "dir")), devices=("trainer.accelerator",),
+        checks=(_check_sync,)),
+    "eval": Command(
+        keys={"seed": SEED, "ckpt_path": path(), "graphs": path(null=True),
+              "estimate": ESTIMATE_IN, "batch_size": integer(1), "device": DEVICE,
+              "digits": DIGITS, "num_threads": THREADS, "out_dir": path()},
+        groups={"data": DATA, "sync": SYNC}, outputs=_outputs(("out_dir", "dir")),
+        checks=(_check_sync,)),
+    "refine": Command(
+        keys={"input": path(), "split": text(), "size": choice("small", "large", "all"),
+              "estimate": ESTIMATE_IN, "strict": boolean(),
+              "ckpt_path": path(null=True), "output": path(), "batch_size": integer(1),
+              "device": DEVICE, "num_threads": THREADS, "digits": DIGITS, "out_dir": path()},
+        groups={"sync": SYNC}, outputs=_outputs(("output", "file")), checks=(_check_sync,)),
+    "demo": Command(
+        keys={"out_dir": path(), "seed": SEED, "workers": integer(1), "estimate": ESTIMATE,
+              "ckpt_path": path(null=True), "train_epochs": integer(1),
+              "camera_plots": integer(0), "batch_size": integer(1), "device": DEVICE,
+              "num_threads": THREADS, "digits": DIGITS},
+        groups={"images": _images, "sync": SYNC}, outputs=_outputs(("out_dir", "dir")),
+        checks=(_check_sync, _check_dataset)),
+    "reconstruct": Command(
+        keys={"images": path(), "pattern": text(null=True), "intrinsics": anything(INTRINSICS),
+              "gt_poses": path(null=True), "out_dir": path(), "refine": boolean(),
+              "ckpt_path": path(null=True), "estimate": ESTIMATE, "kp_top_pairs": integer(0),
+              "seed": SEED, "workers": integer(1), "pictures": integer(0), "device": DEVICE,
+              "num_threads": THREADS, "progress": boolean(), "digits": DIGITS},
+        groups={**FRONTEND, "sync": SYNC}, outputs=_outputs(("out_dir", "dir")),
+        devices=("device", "matcher.device"), checks=(_check_sync,)),
+    "make_data": Command(
+        keys={"source": choice("synthetic", "sevenscenes"), "out_dir": path(null=True),
+              "preset": text(null=True), "seed": SEED, "workers": integer(1),
+              "overwrite": boolean(), "resume": boolean(), "export_json": boolean(),
+              "progress": boolean(), "root": path(null=True),
+              "scenes": anything("a list of scene folders"), "intrinsics": anything(INTRINSICS),
+              "frame_step": integer(1)},
+        groups=FRONTEND, when=dict.fromkeys(FRONTEND, _sevenscenes),
+        outputs=_make_data_outputs, devices=()),
+}
+
+
+# --------------------------------------------------------------------------- reading values
+
+_ABSENT = object()  # the config has no such key
+_MISSING = object()  # a required value (???) that was not given
+
+
+def _value(cfg: Any, key: str) -> Any:
+    """``cfg``'s value at dotted ``key`` as plain Python, or ``_ABSENT`` / ``_MISSING``."""
+    from omegaconf import DictConfig, ListConfig, OmegaConf
+    from omegaconf.errors import OmegaConfBaseException
+
+    node = cfg
+    *parents, leaf = key.split(".")
+    for p in parents:
+        if not isinstance(node, DictConfig) or p not in node:
+            return _ABSENT
+        node = node[p]
+    if not isinstance(node, DictConfig):
+        return _ABSENT
+    if leaf not in node:
+        return _MISSING if leaf in node.keys() and OmegaConf.is_missing(node, leaf) else _ABSENT
+    try:
+        value = node[leaf]
+        if isinstance(value, DictConfig | ListConfig):
+            value = OmegaConf.to_container(value, resolve=True)
+    except OmegaConfBaseException as exc:
+        if "HydraConfig was not set" in str(exc):  # ${hydra:...} outside a Hydra run
+            return _ABSENT
+        raise ConfigValueError(f"{key}: cannot resolve its value ({_first_line(exc)})") from None
+    return value
+
+
+def _first_line(exc: BaseException) -> str:
+    return next((ln.strip() for ln in str(exc).splitlines() if ln.strip()), type(exc).__name__)
+
+
+def _check_schema(cfg: Any, schema: Schema, prefix: str = "") -> None:
+    for key, rule in schema.items():
+        full = prefix + key
+        value = _value(cfg, full)
+        if value is _ABSENT:
+            continue
+        if value is _MISSING:
+            raise ConfigValueError(f"{full}: a value is required ({full}=<{rule.expected}>)")
+        if not rule.ok(value):
+            raise ConfigValueError(f"{full}: {value!r} is not {rule.describe()}")
+
+
+def _check_required(cfg: Any, group: str) -> None:
+    """Every ``???`` of a group, also options the schema does not list."""
+    from omegaconf import OmegaConf
+
+    # full keys ("proposals.path") or relative ones, depending on the OmegaConf version
+    missing = sorted(k if k.startswith(f"{group}.") else f"{group}.{k}"
+                     for k in OmegaConf.missing_keys(cfg[group]))
+    if missing:
+        raise ConfigValueError(f"{missing[0]}: a value is required ({missing[0]}=...)")
+
+
+# --------------------------------------------------------------------------- checks
+
+
+def check_config(cfg: Any, command: str) -> None:
+    """Check the composed config of ``command`` (a key of :data:`COMMANDS`) before any work;
+    :class:`ConfigValueError` (one line) for the first problem found."""
+    spec = COMMANDS[command]
+    # groups first: a top-level value may be one of theirs (eval's estimate: ${data.estimate})
+    for group, schema in spec.groups.items():
+        if spec.when and group in spec.when and not spec.when[group](cfg):
+            continue
+        if _value(cfg, group) in (_ABSENT, None):
+            continue
+        _check_schema(cfg, schema(cfg) if callable(schema) else schema, group + ".")
+        _check_required(cfg, group)
+    _check_schema(cfg, spec.keys)
+    for check in spec.checks:
+        check(cfg)
+    for key in spec.devices:
+        _check_cuda(key, _value(cfg, key))
+    for key, value, kind in spec.outputs(cfg):
+        (writable_dir if kind == "dir" else writable_file)(value, key)
+
+
+def _check_cuda(key: str, value: Any) -> None:
+    if not isinstance(value, str) or not (value.startswith("cuda") or value == "gpu"):
+        return
+    import torch
+
+    if not torch.cuda.is_available():
+        raise ConfigValueError(f"{key}={value} but CUDA is not available")
+
+
+# --------------------------------------------------------------------------- outputs
+
+
+def _nearest_existing(p: Path) -> Path:
+    q = p
+    while not os.path.lexists(q) and q.parent != q:
+        q = q.parent
+    return q
+
+
+def writable_dir(folder: Any, key: str = "out_dir") -> Path:
+    """Check that ``folder`` is (or can be made) a folder that takes files; creates nothing.
+
+    The nearest existing folder on its path gets a probe file, removed at once. Raises
+    :class:`ConfigValueError` naming ``key`` and the path as given.
+    """
+    p = Path(str(folder))
+    q = _nearest_existing(p.absolute())
+    where = "it" if q == p.absolute() else str(q)
+    if not q.is_dir():
+        raise ConfigValueError(f"{key}: {str(folder)!r} is not a writable folder "
+                               f"({where} is not a folder)")
+    try:
+        fd, probe = tempfile.mkstemp(prefix=".posernet-write-test-", dir=q)
+        os.close(fd)
+        os.unlink(probe)
+    except OSError as exc:
+        raise ConfigValueError(f"{key}: {str(folder)!r} is not a writable folder "
+                               f"(cannot write in {q}: {exc.strerror})") from None
+    return p
+
+
+def writable_file(file: Any, key: str = "output") -> Path:
+    """Check that file ``file`` can be written (created or replaced); creates nothing."""
+    p = Path(str(file))
+    if p.is_dir():
+        raise ConfigValueError(f"{key}: {str(file)!r} is not a writable file (it is a folder)")
+    try:
+        writable_dir(p.parent, key)
+    except ConfigValueError as exc:
+        detail = str(exc).split(" is not a writable folder ", 1)[-1]
+        raise ConfigValueError(f"{key}: {str(file)!r} is not a writable file {detail}") from None
+    return p

@@ -1,0 +1,304 @@
+"""The config check every posernet-* command runs first (posernet.cli.validation) and the shared
+error policy (posernet.cli.common): in-process, fast. The commands themselves, as subprocesses,
+are in test_failures.py."""
+
+from __future__ import annotations
+
+import signal
+from pathlib import Path
+
+import pytest
+import torch
+from hydra import compose, initialize_config_dir
+
+from posernet.cli import CONFIG_DIR
+from posernet.cli.common import hydra_error_message, preflight, run_task
+from posernet.cli.validation import (
+    COMMANDS,
+    ConfigValueError,
+    check_config,
+    writable_dir,
+    writable_file,
+)
+
+REQUIRED = {  # the values a command cannot run without (??? in its config)
+    "train": [], "eval": ["ckpt_path=x.ckpt"], "refine": ["input=x.json"], "demo": [],
+    "reconstruct": ["images=photos", "intrinsics='1,1,1,1'"], "make_data": [],
+}
+
+
+def cfg_of(command: str, *overrides: str, tmp: Path | None = None):
+    outs = {"train": "out_dir", "eval": "out_dir", "refine": "output", "demo": "out_dir",
+            "reconstruct": "out_dir", "make_data": "out_dir"}
+    given = [*REQUIRED[command], *overrides]
+    if tmp is not None and not any(o.startswith(outs[command] + "=") for o in given):
+        given.append(f"{outs[command]}={tmp / 'out'}")
+    with initialize_config_dir(config_dir=CONFIG_DIR, version_base="1.3"):
+        return compose(command, overrides=given)
+
+
+# ------------------------------------------------------------------------- the shipped configs
+
+
+@pytest.mark.parametrize("command", sorted(COMMANDS))
+def test_default_configs_pass(command, tmp_path):
+    check_config(cfg_of(command, tmp=tmp_path), command)
+    assert not (tmp_path / "out").exists()  # checked, not created
+
+
+def _choices(group: str) -> list[str]:
+    return sorted(p.stem for p in (Path(CONFIG_DIR) / group).glob("*.yaml"))
+
+
+@pytest.mark.parametrize(("command", "group", "option"), [
+    *[("train", g, o) for g in ("model", "data", "sync", "callbacks") for o in _choices(g)],
+    *[("train", "trainer", "cpu")],
+    *[("train", "+experiment", o) for o in _choices("experiment")],
+    *[("reconstruct", g, o) for g in ("proposals", "matcher", "box_matching", "relpose", "sync")
+      for o in _choices(g)],
+    *[("make_data", "dataset", o) for o in _choices("dataset")],
+])
+def test_every_shipped_group_option_passes(command, group, option, tmp_path):
+    if option == "gtsam":
+        pytest.importorskip("gtsam")
+    extra = ["proposals.path=boxes.json"] if option == "file" else []
+    check_config(cfg_of(command, f"{group}={option}", *extra, tmp=tmp_path), command)
+
+
+# ------------------------------------------------------------------------- bad values
+
+BAD = [
+    # the three the issue starts from: a clear line instead of a late traceback
+    ("train", "model.depth=abc", "model.depth: 'abc' is not an integer >= 1"),
+    ("train", "model.depth=2.5", "model.depth: 2.5 is not an integer >= 1"),
+    ("train", "model.alpha=abc", "model.alpha: 'abc' is not a number >= 0"),
+    ("train", "model.lr=0", "model.lr: 0 is not a number > 0"),
+    ("train", "model.lr_factor=1.5", r"model.lr_factor: 1.5 is not a number in \(0, 1\)"),
+    ("train", "model.residual=maybe", "model.residual: 'maybe' is not true or false"),
+    ("train", "data.batch_size=0", "data.batch_size: 0 is not an integer >= 1"),
+    ("train", "data.estimate=xx", "data.estimate: 'xx' is not one of kp, bb"),
+    ("train", "data.size=huge", "data.size: 'huge' is not one of small, large"),
+    ("train", "num_threads=0", "num_threads: 0 is not an integer >= 1 or null"),
+    ("train", "seed=-1", "seed: -1 is not an integer >= 0"),
+    ("train", "trainer.max_epochs=ten", "trainer.max_epochs: 'ten' is not an integer >= -1"),
+    ("train", "trainer.accelerator=gpx", "trainer.accelerator: 'gpx' is not one of auto, cpu"),
+    ("train", "test_after_training=1", "test_after_training: 1 is not true or false"),
+    ("eval", "estimate=xx", "estimate: 'xx' is not one of kp, bb, free, gt or null"),
+    ("eval", "digits=-1", r"digits: -1 is not an integer in \[0, 12\]"),
+    ("eval", "ckpt_path=null", "ckpt_path: None is not a path"),
+    ("refine", "device=gpu", "device: 'gpu' is not one of cpu, cuda, cuda:N, auto"),
+    ("refine", "strict=yes", "strict: 'yes' is not true or false"),
+    ("refine", "sync.scale=bogus", "sync.scale: 'bogus' is not one of unit, given, oracle, free"),
+    ("refine", "sync.max_iters=0", "sync.max_iters: 0 is not an integer >= 1"),
+    ("refine", "sync.scale=free", "sync=eig_se3: scale='free' is not supported"),  # backend's
+    ("demo", "estimate=free", "estimate: 'free' is not one of kp, bb"),
+    ("demo", "images.frames=1", "images.frames: 1 is not an integer >= 2"),
+    ("demo", "images.matcher=orb", "images.matcher: 'orb' is not one of auto, sift"),
+    ("demo", "images.scene=garage", "images.scene: 'garage' is not one of chess"),
+    ("demo", "dataset.small.graph_size=1", "dataset.small.graph_size"),  # the options' own
+    ("reconstruct", "workers=0", "workers: 0 is not an integer >= 1"),
+    ("reconstruct", "proposals.top_k=abc", "proposals.top_k: 'abc' is not an integer >= 1"),
+    ("reconstruct", "proposals.max_area=2", r"proposals.max_area: 2 is not a number in \(0, 1\]"),
+    ("reconstruct", "box_matching.min_keypoints=0",
+     "box_matching.min_keypoints: 0 is not an integer >= 1"),
+    ("reconstruct", "relpose.method=lmeds", "relpose.method: 'lmeds' is not one of usac, ransac"),
+    ("reconstruct", "matcher=sift matcher.ratio=0",
+     r"matcher.ratio: 0 is not a number in \(0, 1\]"),
+    ("reconstruct", "proposals=file", r"proposals.path: a value is required"),
+    ("make_data", "source=flickr", "source: 'flickr' is not one of synthetic, sevenscenes"),
+    ("make_data", "workers=abc", "workers: 'abc' is not an integer >= 1"),
+    ("make_data", "source=sevenscenes frame_step=0", "frame_step: 0 is not an integer >= 1"),
+    ("make_data", "source=sevenscenes matcher=sift matcher.max_features=-5",
+     "matcher.max_features: -5 is not an integer >= 1"),
+]
+
+
+@pytest.mark.parametrize(("command", "overrides", "message"), BAD)
+def test_bad_value_is_one_line_naming_key_value_and_expectation(command, overrides, message,
+                                                                tmp_path):
+    cfg = cfg_of(command, *overrides.split(), tmp=tmp_path)
+    with pytest.raises(ValueError, match=message) as info:
+        check_config(cfg, command)
+    assert "\n" not in str(info.value)
+
+
+def test_front_end_is_checked_only_for_images(tmp_path):
+    # synthetic data never builds the front end: its options do not matter there
+    check_config(cfg_of("make_data", "proposals=file", tmp=tmp_path), "make_data")
+
+
+def test_required_value(tmp_path):
+    with initialize_config_dir(config_dir=CONFIG_DIR, version_base="1.3"):
+        cfg = compose("refine", overrides=[f"output={tmp_path}/r.json"])
+    with pytest.raises(ConfigValueError, match=r"^input: a value is required \(input=<a path>\)"):
+        check_config(cfg, "refine")
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="CUDA is available here")
+@pytest.mark.parametrize(("command", "override", "message"), [
+    ("eval", "device=cuda", "device=cuda but CUDA is not available"),
+    ("refine", "device=cuda:1", "device=cuda:1 but CUDA is not available"),
+    ("demo", "device=cuda", "device=cuda but CUDA is not available"),
+    ("reconstruct", "device=cuda", "device=cuda but CUDA is not available"),
+    ("train", "trainer=gpu", "trainer.accelerator=gpu but CUDA is not available"),
+])
+def test_cuda_without_cuda(command, override, message, tmp_path):
+    with pytest.raises(ConfigValueError, match=f"^{message}$"):
+        check_config(cfg_of(command, override, tmp=tmp_path), command)
+
+
+# ------------------------------------------------------------------------- output paths
+
+
+def test_writable_dir_creates_nothing(tmp_path):
+    target = tmp_path / "a" / "b"
+    assert writable_dir(target) == target
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_unwritable_outputs_name_the_users_path(tmp_path):
+    (tmp_path / "file").write_text("x")
+    with pytest.raises(ConfigValueError, match=r"^out_dir: '.*/file/sub' is not a writable "
+                                               r"folder \(.*/file is not a folder\)$"):
+        writable_dir(tmp_path / "file" / "sub")
+    with pytest.raises(ConfigValueError, match=r"^out_dir: '/proc/nope/x' is not a writable "
+                                               r"folder \(cannot write in /proc"):
+        writable_dir("/proc/nope/x")
+    with pytest.raises(ConfigValueError, match=r"^output: '/proc/x/r.json' is not a writable "
+                                               r"file \(cannot write in /proc"):
+        writable_file("/proc/x/r.json")
+    with pytest.raises(ConfigValueError, match=r"is not a writable file \(it is a folder\)"):
+        writable_file(tmp_path, "output")
+
+
+# ------------------------------------------------------------------------- commands check first
+
+
+def test_task_functions_check_before_writing(tmp_path):
+    """The Python entry points (what Hydra calls) check the config before any output."""
+    from posernet.cli.demo import demo
+    from posernet.cli.evaluate import evaluate
+    from posernet.cli.make_data import run as make_data
+    from posernet.cli.reconstruct import run as reconstruct
+    from posernet.cli.refine import refine
+    from posernet.cli.train import train
+
+    out = tmp_path / "out"
+    for fn, command, bad in ((train, "train", "model.depth=abc"), (evaluate, "eval", "seed=x"),
+                             (refine, "refine", "batch_size=0"), (demo, "demo", "workers=0"),
+                             (reconstruct, "reconstruct", "pictures=-1"),
+                             (make_data, "make_data", "seed=x")):
+        cfg = cfg_of(command, bad, tmp=tmp_path)
+        with pytest.raises(ConfigValueError):
+            fn(cfg)
+        assert not out.exists(), command
+
+
+def test_make_data_execute_exits_1(tmp_path, capsys):
+    from posernet.cli.make_data import execute
+
+    assert execute(cfg_of("make_data", "dataset=tiny", "workers=0", tmp=tmp_path)) == 1
+    assert capsys.readouterr().err == (
+        "posernet-make-data: error: workers: 0 is not an integer >= 1\n")
+
+
+# ------------------------------------------------------------------------- preflight (main())
+
+
+@pytest.mark.parametrize(("argv", "message"), [
+    (["model.depth=abc"], "model.depth: 'abc' is not an integer >= 1"),
+    (["sync=nope"], "sync: 'nope' is not one of eig_se3, gtsam, none, rotation_translation"),
+    (["model.dept=3"], "model.dept: no such key in this command's config"),
+    (["device=cuda"], "device: no such key in this command's config (the trainer picks it"),
+    (["hydra.run.dir=/proc/posernet-run"], "hydra.run.dir: '/proc/posernet-run' is not a "
+                                            "writable folder"),
+])
+def test_preflight_reports_before_hydra_makes_a_run_folder(argv, message, tmp_path, capsys,
+                                                           monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    argv = [*argv] if any(a.startswith("hydra.") for a in argv) else \
+        [*argv, f"hydra.run.dir={tmp_path / 'run'}"]
+    with pytest.raises(SystemExit) as exc:
+        preflight("posernet-train", "train", argv)
+    assert exc.value.code == 1
+    err = capsys.readouterr().err
+    assert err.startswith(f"posernet-train: error: {message}") and err.count("\n") == 1
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("argv", [["--help"], ["--cfg", "job"], ["-m", "model.depth=2,3"]])
+def test_preflight_leaves_hydras_own_modes_alone(argv):
+    preflight("posernet-train", "train", argv)  # no exit: Hydra handles these
+
+
+def test_preflight_passes_a_good_command_line(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    preflight("posernet-refine", "refine", ["input=x.json"])
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_hydra_error_message_of_a_bad_override():
+    from hydra.errors import OverrideParseException
+
+    msg = hydra_error_message(OverrideParseException("a\nb", "no viable alternative"))
+    assert "\n" not in msg
+
+
+# ------------------------------------------------------------------------- run_task
+
+
+def test_run_task_policy(capsys):
+    def user_error(cfg):
+        raise FileNotFoundError("input graph file not found: x.pt")
+
+    def ctrl_c(cfg):
+        raise KeyboardInterrupt
+
+    with pytest.raises(SystemExit) as exc:
+        run_task("posernet-x", user_error, None)
+    assert exc.value.code == 1
+    assert capsys.readouterr().err == "posernet-x: error: input graph file not found: x.pt\n"
+    with pytest.raises(SystemExit) as exc:
+        run_task("posernet-x", ctrl_c, None, resume_hint=lambda cfg: "resume=true finishes it")
+    assert exc.value.code == 130
+    assert capsys.readouterr().err == "posernet-x: interrupted; resume=true finishes it\n"
+
+    def bug(cfg):
+        raise RuntimeError("bug")
+
+    with pytest.raises(RuntimeError):  # a bug stays a traceback
+        run_task("posernet-x", bug, None)
+
+
+def test_lightning_exit_after_ctrl_c_is_an_interruption(capsys, monkeypatch):
+    """Lightning catches Ctrl-C itself and calls sys.exit(1): still exit status 130."""
+    import posernet.cli.common as common
+
+    def fit(cfg):
+        common._on_sigint(signal.SIGINT, None)
+
+    def lightning_fit(cfg):
+        try:
+            fit(cfg)
+        except KeyboardInterrupt:
+            raise SystemExit(1) from None
+
+    monkeypatch.setattr(common, "_sigint_seen", False)
+    with pytest.raises(SystemExit) as exc:
+        run_task("posernet-train", lightning_fit, None)
+    assert exc.value.code == 130
+    assert capsys.readouterr().err == "posernet-train: interrupted\n"
+
+
+def test_multiline_messages_become_one_line(capsys):
+    from omegaconf import OmegaConf
+    from omegaconf.errors import MissingMandatoryValue
+
+    cfg = OmegaConf.create({"input": "???"})
+    with pytest.raises(MissingMandatoryValue) as exc:
+        _ = cfg.input
+    from posernet.cli.common import report_error
+
+    report_error("posernet-x", exc.value)
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "full_key" not in err
