@@ -118,7 +118,7 @@ def intrinsics_matrix(
         else:
             raise ImageError(f"{where}: intrinsics need 'fx', 'fy', 'cx', 'cy' or 'K'")
         if K is None:
-            raise ImageError(f"{where}: intrinsics must be numbers")
+            raise ImageError(f"{where}: values must be numbers")
         if value.get("dist") is not None:
             d = value["dist"]
             if not _numeric(d) or np.asarray(d, dtype=np.float64).ndim != 1 or \
@@ -128,7 +128,7 @@ def intrinsics_matrix(
             dist = np.asarray(d, dtype=np.float64)
     else:
         if not _numeric(value):
-            raise ImageError(f"{where}: intrinsics must be numbers, got {value!r}")
+            raise ImageError(f"{where}: values must be numbers, got {value!r}")
         a = np.asarray(value, dtype=np.float64)
         if a.shape == (4,):
             fx, fy, cx, cy = a
@@ -136,7 +136,7 @@ def intrinsics_matrix(
         elif a.shape == (3, 3):
             K = a
         else:
-            raise ImageError(f"{where}: intrinsics must be 4 numbers fx,fy,cx,cy or a 3x3 "
+            raise ImageError(f"{where}: expected 4 numbers fx,fy,cx,cy or a 3x3 "
                              f"matrix, got shape {a.shape}")
     if K.shape != (3, 3):
         raise ImageError(f"{where}: K must be 3x3, got shape {K.shape}")
