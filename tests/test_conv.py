@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import subprocess
 import sys
@@ -172,14 +173,18 @@ def test_last_round_layer_builds_only_what_its_edge_poses_need(residual: bool) -
     assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in last.parameters())
     # a full layer can skip the node update for one call (a network sharing one layer)
     inp = graph_inputs(g)
-    c = full._propagate(inp["x"], inp["edge_index"], inp["edge_pose"], inp["pair_edge"],
-                        inp["pair_box_src"], inp["pair_box_dst"], state, update_nodes=False,
-                        update_edge_state=False)
+    c = full.propagate(inp["x"], inp["edge_index"], inp["edge_pose"], inp["pair_edge"],
+                       inp["pair_box_src"], inp["pair_box_dst"], state, update_nodes=False,
+                       update_edge_state=False)
     assert c.x is None and c.edge_state is None
     torch.testing.assert_close(c.edge_pose, a.edge_pose, atol=0, rtol=0)
     with pytest.raises(ValueError, match="update_nodes=False"):
-        last._propagate(inp["x"], inp["edge_index"], inp["edge_pose"], inp["pair_edge"],
-                        inp["pair_box_src"], inp["pair_box_dst"], state, update_nodes=True)
+        last.propagate(inp["x"], inp["edge_index"], inp["edge_pose"], inp["pair_edge"],
+                       inp["pair_box_src"], inp["pair_box_dst"], state, update_nodes=True)
+    # the checked entry point takes the same per-call switches
+    d = full(g, edge_state=state, update_nodes=False, update_edge_state=False)
+    assert d.x is None and d.edge_state is None
+    torch.testing.assert_close(d.edge_pose, a.edge_pose, atol=0, rtol=0)
 
 
 def test_validation_errors() -> None:
@@ -197,9 +202,95 @@ def test_validation_errors() -> None:
 
 
 def test_nn_package_imports_neither_lightning_nor_hydra() -> None:
+    """Nor torch_geometric: only ``posernet.nn.pyg`` (imported explicitly) needs it."""
     code = ("import sys, posernet.nn; "
             "bad = [m for m in sys.modules if m.split('.')[0] in ('lightning', 'hydra', "
-            "'pytorch_lightning', 'omegaconf')]; print(bad); sys.exit(1 if bad else 0)")
+            "'pytorch_lightning', 'omegaconf', 'torch_geometric')]; print(bad); "
+            "sys.exit(1 if bad else 0)")
     res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          timeout=120)
     assert res.returncode == 0, res.stdout + res.stderr
+
+
+# --------------------------------------------------------------------------- PyG-style API
+
+
+def test_pyg_argument_names_and_the_old_names_build_the_same_layer() -> None:
+    torch.manual_seed(0)
+    new = PoserConv(in_channels=4, out_channels=8, edge_dim=2, hidden_channels=16, num_layers=2)
+    torch.manual_seed(0)
+    old = PoserConv(node_in=4, node_out=8, edge_dim=2, hidden=16, num_layers=2)
+    torch.manual_seed(0)
+    positional = PoserConv(4, 8, 2, 16, 2)
+    for conv in (old, positional):
+        assert {k: v.shape for k, v in conv.state_dict().items()} == \
+            {k: v.shape for k, v in new.state_dict().items()}
+        for k, v in conv.state_dict().items():
+            torch.testing.assert_close(v, new.state_dict()[k], atol=0, rtol=0)
+    assert (new.in_channels, new.out_channels, new.hidden_channels, new.num_layers) == \
+        (4, 8, 16, 2)
+    assert (new.node_in, new.node_out, new.hidden) == (4, 8, 16)  # old attribute names
+    assert new.message_dim == PoserConv.message_size(4, 2) == 2 * 4 + 7 + 2 + 8
+    assert repr(new).startswith("PoserConv(node 4 -> 8, edge_dim=2, hidden=16, layers=2")
+    with pytest.raises(TypeError, match="in_channels or its old name node_in, not both"):
+        PoserConv(4, node_in=4)
+    with pytest.raises(TypeError, match="out_channels or its old name node_out"):
+        PoserConv(4, out_channels=8, node_out=8)
+    with pytest.raises(TypeError, match="needs in_channels"):
+        PoserConv()
+    with pytest.raises(ValueError, match="sizes must be positive"):
+        PoserConv(in_channels=0)
+
+
+def test_injected_psi_networks() -> None:
+    g = graph(5)
+    torch.manual_seed(4)
+    ref = PoserConv(4, 8, edge_dim=3).double()
+    # the built-in networks passed in: the same layer
+    same = PoserConv(4, 8, edge_dim=3, psi_edge=copy.deepcopy(ref.psi_edge),
+                     psi_node=copy.deepcopy(ref.psi_node))
+    for u, v in zip(same(g), ref(g), strict=True):
+        torch.testing.assert_close(u, v, atol=0, rtol=0)
+    # networks of your own: any module of the right sizes
+    d = PoserConv.message_size(4, edge_dim=3)
+    psi_edge = torch.nn.Sequential(torch.nn.Linear(d, 20), torch.nn.Tanh(),
+                                   torch.nn.Linear(20, 7 + 3))
+    psi_node = torch.nn.Sequential(torch.nn.Linear(d, 5), torch.nn.GELU())
+    conv = PoserConv(4, 5, edge_dim=3, psi_edge=psi_edge, psi_node=psi_node).double()
+    assert conv.psi_edge is psi_edge and conv.psi_node is psi_node
+    assert "psi_edge=Sequential" in repr(conv) and "psi_node=Sequential" in repr(conv)
+    out = conv(g)
+    assert out.x.shape == (g.num_nodes, 5) and out.edge_state.shape == (g.num_edges, 2, 3)
+    (out.x.sum() + out.edge_pose.sum() + out.edge_state.sum()).backward()
+    assert all(p.grad is not None for p in conv.parameters())
+    before = [p.detach().clone() for p in conv.parameters()]
+    conv.reset_parameters()  # reaches the Linear layers inside the Sequential
+    assert all(not torch.equal(a, b) for a, b in zip(before, conv.parameters(), strict=True))
+    # a network of the wrong width fails with the sizes in the message
+    bad = PoserConv(4, 5, psi_edge=torch.nn.Linear(PoserConv.message_size(4), 6)).double()
+    with pytest.raises(ValueError, match=r"psi_edge maps \[\d+, 23\] messages to .*, 6\), "
+                                         r"expected \[\d+, 7\]"):
+        bad(g)
+    bad_node = PoserConv(4, 5, psi_node=torch.nn.Linear(PoserConv.message_size(4), 4)).double()
+    with pytest.raises(ValueError, match=r"psi_node maps .* expected \[\d+, 5\]"):
+        bad_node(g)
+    with pytest.raises(ValueError, match="psi_node was given but update_nodes=False"):
+        PoserConv(4, 5, update_nodes=False, psi_node=torch.nn.Linear(23, 5))
+    with pytest.raises(TypeError, match="psi_edge must be a torch.nn.Module"):
+        PoserConv(4, 5, psi_edge=lambda z: z)
+    # a pose-only Psi_E of your own for a last-round layer (no hidden-state output)
+    last = PoserConv(4, 5, edge_dim=3, update_nodes=False, update_edge_state=False,
+                     psi_edge=torch.nn.Linear(PoserConv.message_size(4, 3), 7)).double()
+    assert last.edge_out_dim == 7 and last(g).edge_state is None
+
+
+def test_propagate_is_the_public_round_without_checks() -> None:
+    g = graph(6)
+    torch.manual_seed(5)
+    conv = PoserConv(4, 8, edge_dim=2).double()
+    assert not hasattr(conv, "_propagate")
+    inp = graph_inputs(g)
+    a = conv(**inp)
+    b = conv.propagate(**inp)  # edge_state defaults to zeros, as in forward
+    for u, v in zip(a, b, strict=True):
+        torch.testing.assert_close(u, v, atol=0, rtol=0)

@@ -10,6 +10,7 @@ import pytest
 import torch
 from torch.utils.data import DataLoader
 
+from posernet.cli import CONFIG_DIR
 from posernet.graph import GraphBatch
 from posernet.lit import (
     CheckpointError,
@@ -184,7 +185,7 @@ def test_optimizer_and_scheduler() -> None:
 
 # --------------------------------------------------------------------------- unused parameters
 
-MODEL_CONFIG_DIR = Path(__file__).resolve().parents[1] / "conf" / "model"
+MODEL_CONFIG_DIR = Path(CONFIG_DIR) / "model"
 MODEL_CONFIGS = sorted(p.stem for p in MODEL_CONFIG_DIR.glob("*.yaml"))
 SHIPPED = (Path(__file__).resolve().parents[1] / "src" / "posernet" / "checkpoints"
            / "posernet_synthetic_kp.ckpt")
@@ -200,7 +201,6 @@ def test_every_parameter_of_each_model_config_gets_a_gradient(name: str, data) -
     import hydra
     from hydra import compose, initialize_config_dir
 
-    from posernet.cli import CONFIG_DIR
     from posernet.nn import posernet_loss
 
     with initialize_config_dir(config_dir=CONFIG_DIR, version_base="1.3"):

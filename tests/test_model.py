@@ -204,6 +204,27 @@ def test_plain_tensors_equal_graph_input() -> None:
     torch.testing.assert_close(out, model(g))
 
 
+@pytest.mark.parametrize("cfg", CONFIGS)
+def test_rounds_are_the_layers_public_api(cfg: dict) -> None:
+    """PoserNet = its layers chained through PoserConv's public forward (the last round with
+    ``update_nodes=False, update_edge_state=False``) and the output's sign-canonical q."""
+    g = make_graph(13)
+    model = make_model(11, **cfg)
+    h, pose, state = model.encoder(g.node_attr), g.edge_pose, None
+    for k in range(model.depth):
+        conv = model.convs[0 if model.shared_weights else k]
+        last = k == model.depth - 1
+        h, pose, state = conv(h, g.edge_index, pose, g.pair_edge, g.det_box[g.pair_src],
+                              g.det_box[g.pair_dst], state, update_nodes=not last,
+                              update_edge_state=not last)
+    assert h is None and state is None
+    q, t = pose[:, :4], pose[:, 4:]
+    if model.unit_output:
+        q, t = q / q.norm(dim=-1, keepdim=True), t / t.norm(dim=-1, keepdim=True)
+    q = torch.where(q[:, :1] < 0, -q, q)
+    torch.testing.assert_close(model(g), torch.cat((q, t), dim=-1))
+
+
 def test_sizes_and_weight_sharing() -> None:
     separate = PoserNet(depth=3)
     shared = PoserNet(depth=3, shared_weights=True)

@@ -22,9 +22,6 @@ from posernet.frontend.proposals import (
     write_proposals_json,
 )
 
-REPO = Path(__file__).resolve().parents[1]
-
-
 # ---------------------------------------------------------------------------- synthetic scenes
 
 
@@ -267,14 +264,14 @@ def test_hydra_instantiate(tmp_path):
     fp = instantiate({"_target_": "posernet.frontend.proposals.FileProposals",
                       "path": str(path), "top_k": 5})
     assert isinstance(fp, FileProposals) and len(fp(np.zeros((40, 40), np.uint8), "x.png")) == 1
-    # the shipped configs (if present) build too
-    for name in ("selective_search", "edge_boxes"):
-        cfg = REPO / "conf" / "proposals" / f"{name}.yaml"
-        if cfg.is_file():
-            from omegaconf import OmegaConf
+    # the shipped configs build too
+    from omegaconf import OmegaConf
 
-            src = instantiate(OmegaConf.load(cfg))
-            assert src.name == name
+    from posernet.cli import CONFIG_DIR
+
+    for name in ("selective_search", "edge_boxes"):
+        src = instantiate(OmegaConf.load(Path(CONFIG_DIR) / "proposals" / f"{name}.yaml"))
+        assert src.name == name
 
 
 # ---------------------------------------------------------------------------- box files

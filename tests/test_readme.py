@@ -21,6 +21,19 @@ def test_poserconv_example_runs():
     assert ns["out"].edge_pose.shape == (2, 7)
 
 
+def test_pyg_example_runs():
+    import pytest
+
+    pytest.importorskip("torch_geometric")
+    text = README.read_text(encoding="utf-8")
+    section = text[text.index("## Using `PoserConv`"):text.index("## Scaling out")]
+    code = re.findall(r"```python\n(.*?)```", section, re.S)[1]
+    ns: dict = {}
+    exec(compile(code, "README.md", "exec"), ns)
+    assert ns["poses"].shape[1] == 7
+    assert len(ns["graphs_back"]) == 3
+
+
 def test_reconstruct_example_runs(tmp_path):
     code = _block_after("## From images to camera poses").replace(
         "/tmp/posernet-example", str(tmp_path))

@@ -7,6 +7,7 @@ from pathlib import Path
 import pytest
 from omegaconf import OmegaConf
 
+from posernet.cli import CONFIG_DIR
 from posernet.sync import (
     SCALE_POLICIES,
     EigSE3,
@@ -17,7 +18,7 @@ from posernet.sync import (
     register_backend,
 )
 
-CONF = Path(__file__).resolve().parents[1] / "conf" / "sync"
+CONF = Path(CONFIG_DIR) / "sync"
 
 
 def test_registry_lists_builtin_backends():

@@ -80,13 +80,6 @@ class PoserNetModule(L.LightningModule):
         """Refined relative poses ``[E, 7]`` of a ``GraphBatch`` (its ``edge_pose`` by default)."""
         return self.model(batch, edge_pose=edge_pose)
 
-    def transfer_batch_to_device(self, batch: Any, device: torch.device,
-                                 dataloader_idx: int) -> Any:
-        # GraphBatch is a dataclass with non-tensor fields; move it with its own method.
-        if isinstance(batch, GraphBatch):
-            return batch.to(device)
-        return super().transfer_batch_to_device(batch, device, dataloader_idx)
-
     # ------------------------------------------------------------------ steps
     def _step(self, batch: GraphBatch, split: str) -> Tensor:
         if batch.edge_pose_gt is None:

@@ -1,23 +1,14 @@
 """Hydra command-line entry points (``posernet-make-data``, ``-train``, ``-eval``, ``-refine``).
 
-The configs live in the repository's top-level ``conf/`` directory; ``POSERNET_CONFIG_DIR``
-overrides the location (e.g. for a non-editable install with a copied ``conf/``).
+The configs ship inside the package (``posernet/conf/``, see :mod:`posernet.conf`);
+``POSERNET_CONFIG_DIR`` replaces them with another folder of the same layout.
 """
 
 from __future__ import annotations
 
-import os
-from pathlib import Path
+from ..conf import config_dir
 
 __all__ = ["CONFIG_DIR"]
 
-
-def _config_dir() -> str:
-    env = os.environ.get("POSERNET_CONFIG_DIR")
-    if env:
-        return str(Path(env).resolve())
-    return str(Path(__file__).resolve().parents[3] / "conf")
-
-
 # Absolute path handed to ``hydra.main(config_path=...)``.
-CONFIG_DIR = _config_dir()
+CONFIG_DIR = config_dir()

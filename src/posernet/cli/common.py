@@ -219,7 +219,6 @@ def quiet_lightning() -> None:
         for h in list(lg.handlers):
             if type(h) is logging.StreamHandler:
                 lg.removeHandler(h)
-    warnings.filterwarnings("ignore", message=r".*overridden `transfer_batch_to_device`.*")
     warnings.filterwarnings("ignore", message=r".*treespec, LeafSpec.*")
 
 

@@ -1,5 +1,5 @@
-"""``posernet-make-data``: generate a graph dataset directory (Hydra app, ``conf/``), synthetic
-or from real images in the 7-Scenes layout.
+"""``posernet-make-data``: generate a graph dataset directory (Hydra app,
+``posernet/conf/make_data.yaml``), synthetic or from real images in the 7-Scenes layout.
 
 Examples::
 

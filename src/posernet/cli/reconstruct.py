@@ -3,7 +3,7 @@
     posernet-reconstruct images=photos/ intrinsics=585,585,320,240 out_dir=out
 
 Runs ROI proposals -> keypoint matching -> box matching -> 5-point (KP) -> PoserNet (shipped
-checkpoint, with ``refine=true``; off by default, see ``conf/reconstruct.yaml``) -> motion
+checkpoint, with ``refine=true``; off by default, see ``posernet/conf/reconstruct.yaml``) -> motion
 averaging (``sync=``), then writes into
 ``out_dir``: ``poses.json`` (format ``posernet-poses``), ``summary.json`` (counts and per-stage
 timings), ``matches_<k>.png`` (image pairs with their matched boxes) and ``cameras.png`` (the

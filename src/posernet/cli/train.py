@@ -1,4 +1,5 @@
-"""``posernet-train``: train PoserNet with Lightning, configured by Hydra (``conf/train.yaml``).
+"""``posernet-train``: train PoserNet with Lightning, configured by Hydra
+(``posernet/conf/train.yaml``).
 
 Config groups: ``data`` (dataset directory, KP/BB input, leave-one-scene-out), ``model``
 (depth, widths, alpha, lr, residual, ...), ``trainer`` (cpu, gpu, ddp), ``callbacks``

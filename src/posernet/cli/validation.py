@@ -156,7 +156,7 @@ DATA: Schema = {
     "val_size": choice("small", "large", null=True), "shuffle": boolean(), "seed": SEED,
 }
 
-#: the Lightning Trainer arguments of conf/trainer/*.yaml (others pass through unchecked)
+#: the Lightning Trainer arguments of posernet/conf/trainer/*.yaml (others pass through unchecked)
 TRAINER: Schema = {
     "accelerator": choice("auto", "cpu", "gpu", "cuda", "mps", "tpu"),
     "devices": one_of(integer(-1), choice("auto"),
@@ -174,8 +174,8 @@ TRAINER: Schema = {
     "default_root_dir": path(null=True),
 }
 
-#: options of every motion-averaging backend (conf/sync/*.yaml); cross-field rules (the scale
-#: policies a backend supports, p_min <= p_max) are the backend's own, checked by building it
+#: options of every motion-averaging backend (posernet/conf/sync/*.yaml); cross-field rules (the
+#: scale policies a backend supports, p_min <= p_max) are the backend's own, checked by building it
 SYNC: Schema = {
     "name": text(), "scale": choice("unit", "given", "oracle", "free"),
     "disconnected": choice("components", "error"), "robust": boolean(),

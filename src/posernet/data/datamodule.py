@@ -10,7 +10,6 @@ from __future__ import annotations
 import os
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
 
 import lightning as L
 import torch
@@ -174,11 +173,3 @@ class PoserDataModule(L.LightningDataModule):
 
     def predict_dataloader(self) -> DataLoader:
         return self._loader(self.test_graphs, False, "predict", self.eval_batch_size)
-
-    def transfer_batch_to_device(
-        self, batch: Any, device: torch.device, dataloader_idx: int
-    ) -> Any:
-        """Move a :class:`GraphBatch` (all tensors, estimates included) to ``device``."""
-        if isinstance(batch, ViewGraph):
-            return batch.to(device)
-        return super().transfer_batch_to_device(batch, device, dataloader_idx)

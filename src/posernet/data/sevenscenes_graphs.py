@@ -72,7 +72,8 @@ FORMAT = "posernet-sevenscenes-dataset"
 VERSION = 1
 # The paper's large graphs: one train and one test graph for the first five scenes.
 PAPER_LARGE_SCENES = ["chess", "fire", "heads", "office", "pumpkin"]
-# Front-end stages (Hydra ``_target_`` configs), as conf/{proposals,matcher,box_matching,relpose}.
+# Front-end stages (Hydra ``_target_`` configs), as in posernet/conf/
+# {proposals,matcher,box_matching,relpose}/.
 FRONTEND_DEFAULTS: dict[str, dict[str, Any]] = {
     "proposals": {"_target_": "posernet.frontend.proposals.SelectiveSearch", "top_k": 50,
                   "max_area": 0.25, "min_size": 8.0, "strategy": "single"},

@@ -4,7 +4,11 @@ The paper (Sec. 3.2) sends one message per matched detection pair ("layer" ``l``
 ``(i, j)``. This module implements that round with plain tensors so that any GNN can use it:
 ``edge_index [2, E]`` (row 0 source, row 1 target, as in PyG) and one row per matched pair
 (``pair_edge [M]`` plus the two boxes of the pair). It also accepts a
-:class:`posernet.graph.ViewGraph` / :class:`posernet.graph.GraphBatch` directly.
+:class:`posernet.graph.ViewGraph` / :class:`posernet.graph.GraphBatch` directly, and PyTorch
+Geometric users batch :class:`posernet.nn.pyg.PoserData` with PyG's own ``Batch`` /
+``DataLoader`` (a plain ``Data`` would not offset the matched-pair indices; see
+:mod:`posernet.nn.pyg`). Sizes use PyG's argument names (``in_channels``, ``out_channels``,
+``hidden_channels``, ``num_layers``), and ``Psi_E`` / ``Psi_N`` can be your own modules.
 
 Direction awareness
 -------------------
@@ -153,16 +157,23 @@ def symmetric_pose_mean(a: Tensor, b: Tensor, ref: Tensor) -> Tensor:
 
 
 def graph_inputs(graph: Any) -> dict[str, Tensor]:
-    """Plain-tensor inputs of :class:`PoserConv` / ``PoserNet`` from a ``ViewGraph``/``GraphBatch``.
+    """Plain-tensor inputs of :class:`PoserConv` / ``PoserNet`` from a graph object.
 
+    ``graph``: a ``ViewGraph``/``GraphBatch``, or a :class:`posernet.nn.pyg.PoserData` and the
+    PyTorch Geometric ``Batch`` of them (any object with the ``ViewGraph`` field names).
     Returns ``x = node_attr [N, 4]``, ``edge_index [2, E]``, ``edge_pose [E, 7]``,
     ``pair_edge [M]``, ``pair_box_src = det_box[pair_src] [M, 4]`` and
     ``pair_box_dst = det_box[pair_dst] [M, 4]``.
+
+    A PyG ``Batch`` whose ``pair_*`` fields were not offset (built from a plain
+    ``torch_geometric.data.Data``, which offsets only fields named ``*index*``) raises
+    ``ValueError`` instead of giving pairs that point into the wrong graph.
     """
     for name in ("node_attr", "edge_index", "edge_pose", "pair_edge", "pair_src", "pair_dst",
                  "det_box"):
         if getattr(graph, name, None) is None:
             raise ValueError(f"graph {getattr(graph, 'name', '?')!r} has no field {name!r}")
+    _check_pyg_offsets(graph)
     return {
         "x": graph.node_attr,
         "edge_index": graph.edge_index,
@@ -171,6 +182,30 @@ def graph_inputs(graph: Any) -> dict[str, Tensor]:
         "pair_box_src": graph.det_box[graph.pair_src],
         "pair_box_dst": graph.det_box[graph.pair_dst],
     }
+
+
+def _check_pyg_offsets(graph: Any) -> None:
+    """A PyG ``Batch`` records each field's per-graph increment (``_inc_dict``) and slices
+    (``_slice_dict``): ``pair_edge`` must have moved by the edges of the graphs before it,
+    ``pair_src`` / ``pair_dst`` by their detections. Read by duck typing: no PyG import."""
+    incs, slices = getattr(graph, "_inc_dict", None), getattr(graph, "_slice_dict", None)
+    if not isinstance(incs, dict) or not isinstance(slices, dict):
+        return
+    for name, ref, what in (("pair_edge", "edge_index", "edges"),
+                            ("pair_src", "det_box", "detections"),
+                            ("pair_dst", "det_box", "detections")):
+        inc, sl = incs.get(name), slices.get(ref)
+        if not isinstance(sl, Tensor) or sl.ndim != 1:
+            continue
+        expected = sl[:-1].cpu()
+        got = torch.zeros_like(expected) if inc is None else torch.as_tensor(inc).cpu()
+        if got.shape != expected.shape or not torch.equal(got.to(expected.dtype), expected):
+            raise ValueError(
+                f"{type(graph).__name__}: torch_geometric batched {name!r} without adding the "
+                f"number of {what} of the graphs before each graph (PyG offsets only fields "
+                f"named '*index*'), so matched pairs would point into the wrong graph; build "
+                f"the graphs with posernet.nn.pyg.PoserData.from_view_graph(g) (or a Data "
+                f"class whose __inc__ offsets {name!r})")
 
 
 def _is_graph(x: Any) -> bool:
@@ -258,12 +293,17 @@ def validate_inputs(
 class PoserConv(nn.Module):
     """One round of PoserNet message passing (see the module docstring for the update rule).
 
+    The size arguments follow PyTorch Geometric's names; the names this layer had before
+    (``node_in``, ``node_out``, ``hidden``) are accepted as keyword aliases.
+
     Args:
-        node_in: size of the incoming node state ``h`` (4 for the raw camera attributes).
-        node_out: size of the new node state (default 32).
+        in_channels: size of the incoming node state ``h`` (4 for the raw camera attributes;
+            alias ``node_in``).
+        out_channels: size of the new node state (default 32; alias ``node_out``).
         edge_dim: size of the hidden edge state kept per direction (default 0: the edge
             state is the 7-vector pose only, as in the paper).
-        hidden: units of the hidden layers of ``Psi_E`` and ``Psi_N`` (default 32).
+        hidden_channels: units of the hidden layers of ``Psi_E`` and ``Psi_N`` (default 32;
+            alias ``hidden``). Unused by a network passed as ``psi_edge`` / ``psi_node``.
         num_layers: linear layers per MLP (default 3).
         negative_slope: leaky ReLU slope (default 0.01).
         residual: predict a correction composed with the current pose instead of the pose
@@ -275,51 +315,116 @@ class PoserConv(nn.Module):
         update_edge_state: ``Psi_E`` also predicts the new hidden edge state (default True;
             only matters when ``edge_dim > 0``). False for the last round of a network: the
             input state is still read, the output ``edge_state`` is ``None``.
+        psi_edge: your own ``Psi_E`` (any module), used instead of the built-in MLP. It maps
+            ``[*, message_dim]`` to ``[*, 7 + edge_dim]`` (``[*, 7]`` when the layer does not
+            update the edge state); no activation on the pose outputs.
+        psi_node: your own ``Psi_N``, ``[*, message_dim] -> [*, out_channels]``.
+            ``message_dim = 2 * in_channels + 7 + edge_dim + 8``
+            (``PoserConv.message_size(in_channels, edge_dim)``): the two node states, the
+            pose, the hidden edge state and the two boxes of a pair, in that order.
 
     Shapes:
-        ``x [N, node_in]``, ``edge_index [2, E]`` (long), ``edge_pose [E, 7]``,
+        ``x [N, in_channels]``, ``edge_index [2, E]`` (long), ``edge_pose [E, 7]``,
         ``pair_edge [M]`` (long), ``pair_box_src, pair_box_dst [M, 4]``,
         ``edge_state [E, 2, edge_dim]`` (optional) ->
-        :class:`PoserConvOutput` ``(x [N, node_out], edge_pose [E, 7], edge_state)``.
+        :class:`PoserConvOutput` ``(x [N, out_channels], edge_pose [E, 7], edge_state)``.
     """
 
-    psi_node: MLP | None
+    psi_edge: nn.Module
+    psi_node: nn.Module | None
 
     def __init__(
         self,
-        node_in: int,
-        node_out: int = 32,
+        in_channels: int | None = None,
+        out_channels: int | None = None,
         edge_dim: int = 0,
-        hidden: int = 32,
+        hidden_channels: int | None = None,
         num_layers: int = 3,
         negative_slope: float = 0.01,
         residual: bool = False,
         nested_mean: bool = True,
         update_nodes: bool = True,
         update_edge_state: bool = True,
+        psi_edge: nn.Module | None = None,
+        psi_node: nn.Module | None = None,
+        *,
+        node_in: int | None = None,
+        node_out: int | None = None,
+        hidden: int | None = None,
     ) -> None:
         super().__init__()
-        if node_in < 1 or node_out < 1 or edge_dim < 0:
-            raise ValueError(f"PoserConv sizes must be positive: node_in={node_in}, "
-                             f"node_out={node_out}, edge_dim={edge_dim}")
-        self.node_in, self.node_out, self.edge_dim = node_in, node_out, edge_dim
+        in_channels = _alias("in_channels", in_channels, "node_in", node_in, None)
+        if in_channels is None:
+            raise TypeError("PoserConv needs in_channels (the size of the node input)")
+        out_channels = _alias("out_channels", out_channels, "node_out", node_out, 32)
+        hidden_channels = _alias("hidden_channels", hidden_channels, "hidden", hidden, 32)
+        if in_channels < 1 or out_channels < 1 or edge_dim < 0:
+            raise ValueError(f"PoserConv sizes must be positive: in_channels={in_channels}, "
+                             f"out_channels={out_channels}, edge_dim={edge_dim}")
+        if psi_node is not None and not update_nodes:
+            raise ValueError("PoserConv: psi_node was given but update_nodes=False "
+                             "(a layer without node update has no Psi_N)")
+        for name, net in (("psi_edge", psi_edge), ("psi_node", psi_node)):
+            if net is not None and not isinstance(net, nn.Module):
+                raise TypeError(f"PoserConv: {name} must be a torch.nn.Module, "
+                                f"got {type(net).__name__}")
+        self.in_channels, self.out_channels, self.edge_dim = in_channels, out_channels, edge_dim
+        self.hidden_channels, self.num_layers = hidden_channels, num_layers
         self.residual, self.nested_mean = residual, nested_mean
         self.update_nodes = bool(update_nodes)
         self.update_edge_state = bool(update_edge_state) and edge_dim > 0
-        in_dim = 2 * node_in + POSE_DIM + edge_dim + 2 * BOX_DIM
+        in_dim = self.message_dim
         # Psi_E regresses signed pose values: no activation after its last layer.
-        edge_out = POSE_DIM + (edge_dim if self.update_edge_state else 0)
-        self.psi_edge = MLP(in_dim, edge_out, hidden, num_layers, negative_slope,
-                            act_last=False)
+        self.psi_edge = psi_edge if psi_edge is not None else MLP(
+            in_dim, self.edge_out_dim, hidden_channels, num_layers, negative_slope,
+            act_last=False)
         # Psi_N: every layer followed by a leaky ReLU (paper, supplementary). Not built when
         # nothing reads the new node states (the last round of a network).
-        self.psi_node = (MLP(in_dim, node_out, hidden, num_layers, negative_slope,
-                             act_last=True) if self.update_nodes else None)
+        if not self.update_nodes:
+            self.psi_node = None
+        else:
+            self.psi_node = psi_node if psi_node is not None else MLP(
+                in_dim, out_channels, hidden_channels, num_layers, negative_slope,
+                act_last=True)
+
+    # old names of the sizes (kept: code and saved configs use them)
+    @property
+    def node_in(self) -> int:
+        """Alias of :attr:`in_channels`."""
+        return self.in_channels
+
+    @property
+    def node_out(self) -> int:
+        """Alias of :attr:`out_channels`."""
+        return self.out_channels
+
+    @property
+    def hidden(self) -> int:
+        """Alias of :attr:`hidden_channels`."""
+        return self.hidden_channels
+
+    @staticmethod
+    def message_size(in_channels: int, edge_dim: int = 0) -> int:
+        """Input size of ``Psi_E`` / ``Psi_N`` for these sizes (to build your own networks):
+        ``2 * in_channels + 7 + edge_dim + 8``."""
+        return 2 * in_channels + POSE_DIM + edge_dim + 2 * BOX_DIM
+
+    @property
+    def message_dim(self) -> int:
+        """Input size of this layer's ``Psi_E`` / ``Psi_N`` (:meth:`message_size`)."""
+        return self.message_size(self.in_channels, self.edge_dim)
+
+    @property
+    def edge_out_dim(self) -> int:
+        """Output size of ``Psi_E``: ``7 + edge_dim``, or 7 without an edge-state update."""
+        return POSE_DIM + (self.edge_dim if self.update_edge_state else 0)
 
     def reset_parameters(self) -> None:
-        self.psi_edge.reset_parameters()
+        """Re-initialise ``Psi_E`` and ``Psi_N`` (for networks passed in: every submodule
+        that has a ``reset_parameters``)."""
+        _reset(self.psi_edge)
         if self.psi_node is not None:
-            self.psi_node.reset_parameters()
+            _reset(self.psi_node)
 
     def _load_from_state_dict(self, state_dict: dict[str, Any], prefix: str,
                               *args: Any, **kwargs: Any) -> None:
@@ -329,7 +434,7 @@ class PoserConv(nn.Module):
         if self.psi_node is None:
             for key in [k for k in state_dict if k.startswith(prefix + "psi_node.")]:
                 del state_dict[key]
-        if self.edge_dim and not self.update_edge_state:
+        if self.edge_dim and not self.update_edge_state and isinstance(self.psi_edge, MLP):
             index = len(self.psi_edge.net) - 1  # the last module of Psi_E is its last Linear
             for name in ("weight", "bias"):
                 key = f"{prefix}psi_edge.net.{index}.{name}"
@@ -340,9 +445,14 @@ class PoserConv(nn.Module):
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     def __repr__(self) -> str:
-        return (f"{type(self).__name__}(node {self.node_in} -> {self.node_out}, "
-                f"edge_dim={self.edge_dim}, hidden={self.psi_edge.hidden}, "
-                f"layers={self.psi_edge.num_layers}, residual={self.residual}, "
+        if isinstance(self.psi_edge, MLP):
+            nets = f"hidden={self.psi_edge.hidden}, layers={self.psi_edge.num_layers}"
+        else:
+            nets = f"psi_edge={type(self.psi_edge).__name__}"
+        if self.psi_node is not None and not isinstance(self.psi_node, MLP):
+            nets += f", psi_node={type(self.psi_node).__name__}"
+        return (f"{type(self).__name__}(node {self.in_channels} -> {self.out_channels}, "
+                f"edge_dim={self.edge_dim}, {nets}, residual={self.residual}, "
                 f"nested_mean={self.nested_mean}"
                 + ("" if self.update_nodes else ", update_nodes=False")
                 + ("" if self.update_edge_state or not self.edge_dim
@@ -357,11 +467,16 @@ class PoserConv(nn.Module):
         pair_box_src: Tensor | None = None,
         pair_box_dst: Tensor | None = None,
         edge_state: Tensor | None = None,
+        *,
+        update_nodes: bool | None = None,
+        update_edge_state: bool | None = None,
     ) -> PoserConvOutput:
-        """Run one round.
+        """Check the inputs and run one round (:meth:`propagate`).
 
-        ``x`` may be a ``ViewGraph``/``GraphBatch`` instead of tensors; its fields are then used
+        ``x`` may be a graph instead of tensors (a ``ViewGraph``/``GraphBatch``, or a
+        :class:`posernet.nn.pyg.PoserData` / its PyG ``Batch``); its fields are then used
         (``edge_pose`` and ``edge_state`` may still be given to override / continue).
+        ``update_nodes`` / ``update_edge_state``: see :meth:`propagate`.
         """
         if _is_graph(x):
             inputs = graph_inputs(x)
@@ -371,33 +486,42 @@ class PoserConv(nn.Module):
                 inputs[k] for k in ("x", "edge_index", "edge_pose", "pair_edge", "pair_box_src",
                                     "pair_box_dst"))
         validate_inputs(type(self).__name__, x, edge_index, edge_pose, pair_edge,
-                        pair_box_src, pair_box_dst, node_dim=self.node_in)
+                        pair_box_src, pair_box_dst, node_dim=self.in_channels)
         check_module_inputs(self, x)
         E = edge_index.shape[1]
-        if self.edge_dim:
-            if edge_state is None:
-                edge_state = x.new_zeros(E, 2, self.edge_dim)
-            elif edge_state.shape != (E, 2, self.edge_dim):
-                raise ValueError(f"{type(self).__name__}: edge_state must have shape "
-                                 f"[E, 2, {self.edge_dim}], got {_shape(edge_state)}")
-        return self._propagate(x, edge_index, edge_pose, pair_edge, pair_box_src,
-                               pair_box_dst, edge_state)
+        if self.edge_dim and edge_state is not None and \
+                edge_state.shape != (E, 2, self.edge_dim):
+            raise ValueError(f"{type(self).__name__}: edge_state must have shape "
+                             f"[E, 2, {self.edge_dim}], got {_shape(edge_state)}")
+        return self.propagate(x, edge_index, edge_pose, pair_edge, pair_box_src, pair_box_dst,
+                              edge_state, update_nodes=update_nodes,
+                              update_edge_state=update_edge_state)
 
-    def _propagate(
+    def propagate(
         self,
         x: Tensor,
         edge_index: Tensor,
         edge_pose: Tensor,
         pair_edge: Tensor,
-        box_src: Tensor,
-        box_dst: Tensor,
-        edge_state: Tensor | None,
+        pair_box_src: Tensor,
+        pair_box_dst: Tensor,
+        edge_state: Tensor | None = None,
+        *,
         update_nodes: bool | None = None,
         update_edge_state: bool | None = None,
     ) -> PoserConvOutput:
-        """The round on validated tensors. ``update_nodes`` / ``update_edge_state`` (default:
-        the layer's own settings) may switch the node update / the hidden edge state output
-        off for one call, e.g. for the last round of a network that reuses one layer."""
+        """The round itself, on tensors, without :meth:`forward`'s input checks.
+
+        The checks cost a host synchronisation (index ranges); a caller that ran them once
+        (:func:`validate_inputs`), such as a network running several rounds on one graph, calls
+        this directly. Wrong inputs here give wrong results or errors from deep inside torch.
+
+        ``edge_state`` defaults to zeros. ``update_nodes`` / ``update_edge_state`` (default: the
+        layer's own settings) switch the node update / the hidden-edge-state output off for this
+        call, e.g. for the last round of a network that reuses one layer; ``update_nodes=True``
+        on a layer built without ``Psi_N`` raises ``ValueError``.
+        """
+        box_src, box_dst = pair_box_src, pair_box_dst
         if update_nodes is None:
             update_nodes = self.update_nodes
         elif update_nodes and self.psi_node is None:
@@ -405,6 +529,8 @@ class PoserConv(nn.Module):
         if update_edge_state is None:
             update_edge_state = self.update_edge_state
         update_edge_state = update_edge_state and self.update_edge_state
+        if self.edge_dim and edge_state is None:
+            edge_state = x.new_zeros(edge_index.shape[1], 2, self.edge_dim)
         N, E = x.shape[0], edge_index.shape[1]
         src, dst = edge_index
         # Directed views: rows [0, E) are i -> j as stored, rows [E, 2E) the reverse j -> i.
@@ -427,7 +553,7 @@ class PoserConv(nn.Module):
         # ---- edge update: mean over the edge's pairs, per direction, then fuse the directions.
         n_pairs = scatter_count(view_pair, 2 * E)  # [2E]
         has = (n_pairs > 0)[:, None]
-        m_edge = scatter_mean(self.psi_edge(z), view_pair, 0, 2 * E)  # [2E, 7 + edge_dim]
+        m_edge = scatter_mean(self._psi("psi_edge", z, self.edge_out_dim), view_pair, 0, 2 * E)
         out = m_edge[:, :POSE_DIM]
         if self.residual:
             one = torch.zeros_like(out)
@@ -448,7 +574,7 @@ class PoserConv(nn.Module):
 
         # ---- node update: each node hears every neighbour through the view starting at itself.
         assert self.psi_node is not None
-        m_node = self.psi_node(z)  # [2M, node_out]
+        m_node = self._psi("psi_node", z, self.out_channels)  # [2M, out_channels]
         if self.nested_mean:
             per_view = scatter_mean(m_node, view_pair, 0, 2 * E)  # mean over the pairs
             w = has.to(x.dtype)  # views without pairs are not neighbours
@@ -458,3 +584,31 @@ class PoserConv(nn.Module):
         else:
             h = scatter_mean(m_node, own[view_pair], 0, N)
         return PoserConvOutput(h, new_pose, new_state)
+
+    def _psi(self, name: str, z: Tensor, width: int) -> Tensor:
+        """Apply ``Psi_E`` / ``Psi_N``; a network passed in must give ``[2M, width]``."""
+        out = getattr(self, name)(z)
+        if not isinstance(out, Tensor) or out.shape != (z.shape[0], width):
+            raise ValueError(f"{type(self).__name__}: {name} maps [{z.shape[0]}, "
+                             f"{z.shape[1]}] messages to {_shape(out)}, expected "
+                             f"[{z.shape[0]}, {width}]")
+        return out
+
+
+def _alias(name: str, value: Any, old: str, old_value: Any, default: Any) -> Any:
+    """Resolve an argument that also has an older name (one of the two, not both)."""
+    if value is not None and old_value is not None:
+        raise TypeError(f"PoserConv: give {name} or its old name {old}, not both")
+    if value is not None:
+        return value
+    return default if old_value is None else old_value
+
+
+def _reset(module: nn.Module) -> None:
+    """``reset_parameters()`` of ``module``, or else of each child (recursively)."""
+    reset = getattr(module, "reset_parameters", None)
+    if callable(reset):
+        reset()
+        return
+    for child in module.children():
+        _reset(child)

@@ -88,7 +88,8 @@ class PoserNet(nn.Module):
         nested_mean: the paper's nested mean for the node update (default True).
 
     Shapes:
-        ``forward(graph)`` with a ``ViewGraph``/``GraphBatch``, or
+        ``forward(graph)`` with a ``ViewGraph``/``GraphBatch`` (or a PyG ``Batch`` of
+        :class:`posernet.nn.pyg.PoserData`), or
         ``forward(x [N, node_in], edge_index [2, E], edge_pose [E, 7], pair_edge [M],
         pair_box_src [M, 4], pair_box_dst [M, 4])`` -> refined ``edge_pose [E, 7]``
         (a list of ``depth`` of them, one per round, with ``return_all=True``).
@@ -116,9 +117,11 @@ class PoserNet(nn.Module):
 
         def conv(n_in: int, last: bool) -> PoserConv:
             # the last round's node states and hidden edge state are never read: not built
-            return PoserConv(n_in, node_hidden, edge_hidden, mlp_hidden, mlp_layers,
-                             negative_slope, residual=residual, nested_mean=nested_mean,
-                             update_nodes=not last, update_edge_state=not last)
+            return PoserConv(n_in, node_hidden, edge_dim=edge_hidden,
+                             hidden_channels=mlp_hidden, num_layers=mlp_layers,
+                             negative_slope=negative_slope, residual=residual,
+                             nested_mean=nested_mean, update_nodes=not last,
+                             update_edge_state=not last)
 
         if shared_weights:
             self.encoder: nn.Module = nn.Linear(node_in, node_hidden)
@@ -167,7 +170,11 @@ class PoserNet(nn.Module):
         pair_box_dst: Tensor | None = None,
         return_all: bool = False,
     ) -> Tensor | list[Tensor]:
-        """Refine every edge's relative pose; ``x`` may be a ``ViewGraph``/``GraphBatch``."""
+        """Refine every edge's relative pose.
+
+        ``x`` may be a graph: a ``ViewGraph``/``GraphBatch``, or a
+        :class:`posernet.nn.pyg.PoserData` / a PyTorch Geometric ``Batch`` of them.
+        """
         if _is_graph(x):
             inputs = graph_inputs(x)
             if edge_pose is not None:
@@ -185,19 +192,14 @@ class PoserNet(nn.Module):
         for k in range(self.depth):
             conv = self.convs[0 if self.shared_weights else k]
             last = k == self.depth - 1  # only its edge poses are read
-            h, pose, state = conv._propagate(
+            # inputs checked once above: each round runs without the checks' host sync
+            h, pose, state = conv.propagate(
                 h, inputs["edge_index"], pose, inputs["pair_edge"], inputs["pair_box_src"],
-                inputs["pair_box_dst"], self._initial_state(conv, pose) if state is None
-                else state, update_nodes=not last, update_edge_state=not last,
+                inputs["pair_box_dst"], state, update_nodes=not last,
+                update_edge_state=not last,
             )
             outputs.append(self._finalise(pose))
         return outputs if return_all else outputs[-1]
-
-    @staticmethod
-    def _initial_state(conv: PoserConv, pose: Tensor) -> Tensor | None:
-        if not conv.edge_dim:
-            return None
-        return pose.new_zeros(pose.shape[0], 2, conv.edge_dim)
 
     def _finalise(self, pose: Tensor) -> Tensor:
         q, t = pose[:, :4], pose[:, 4:]

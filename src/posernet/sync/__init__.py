@@ -14,7 +14,7 @@ Backends (``available_backends()``):
 * ``gtsam`` -- Shonan averaging + gtsam's TranslationRecovery (optional extra
   ``posernet[gtsam]``; listed only when gtsam imports) (:mod:`posernet.sync.gtsam_backend`).
 
-Hydra: ``conf/sync/<name>.yaml`` holds ``name`` plus the backend's options;
+Hydra: ``posernet/conf/sync/<name>.yaml`` holds ``name`` plus the backend's options;
 :func:`backend_from_config` turns such a mapping into a backend (``None`` for ``name: none``).
 """
 
@@ -90,7 +90,7 @@ def get_backend(name: str, **options: Any) -> SyncBackend:
 
 
 def backend_from_config(cfg: Any) -> SyncBackend | None:
-    """Backend from a ``conf/sync/*.yaml`` mapping (``name`` + options); ``None`` for
+    """Backend from a ``posernet/conf/sync/*.yaml`` mapping (``name`` + options); ``None`` for
     ``name: none`` (no motion averaging)."""
     d = dict(as_mapping(cfg))
     if "name" not in d:

@@ -1,6 +1,6 @@
 """Options of the synthetic 7-Scenes-like dataset: dataclasses, presets and validation.
 
-The presets live in ``conf/dataset/<name>.yaml`` (the Hydra config group of
+The presets live in ``posernet/conf/dataset/<name>.yaml`` (the Hydra config group of
 ``posernet-make-data``) and are read here too, so Hydra and plain Python see the same numbers.
 A preset file only lists what differs from the dataclass defaults below. Every check raises
 :class:`ConfigError` naming the offending field (``dataset.small.train`` ...).
@@ -12,10 +12,13 @@ import dataclasses
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
+from ...conf import config_root
 from ...frontend.relpose import PoseOptions
+
+if TYPE_CHECKING:
+    from ...conf import Traversable
 
 __all__ = [
     "ALL_SCENES",
@@ -347,29 +350,33 @@ def options_from_dict(data: Mapping[str, Any] | None) -> DatasetOptions:
     return _build(DatasetOptions, data, "dataset").validate()
 
 
-def _preset_dir() -> Path:
-    from posernet.cli import CONFIG_DIR
-
-    return Path(CONFIG_DIR) / "dataset"
+def _preset_dir() -> Traversable:
+    # a resource folder of the package (or $POSERNET_CONFIG_DIR), as Hydra's dataset group
+    return config_root() / "dataset"
 
 
 def available_presets() -> list[str]:
-    """Names of the preset files in ``conf/dataset/``."""
+    """Names of the preset files in ``posernet/conf/dataset/``."""
     d = _preset_dir()
-    return sorted(p.stem for p in d.glob("*.yaml")) if d.is_dir() else []
+    if not d.is_dir():
+        return []
+    return sorted(p.name[: -len(".yaml")] for p in d.iterdir()
+                  if p.name.endswith(".yaml") and p.is_file())
 
 
 def load_preset(name: str) -> DatasetOptions:
     """Options of preset ``name`` (``paper``, ``easy``, ``demo``, ``tiny``)."""
-    path = _preset_dir() / f"{name}.yaml"
-    if not isinstance(name, str) or "/" in name or not path.is_file():
+    bad = not isinstance(name, str) or not name or "/" in name or "\\" in name
+    resource = None if bad else _preset_dir() / f"{name}.yaml"
+    if resource is None or not resource.is_file():
         raise ConfigError(
             f"unknown dataset preset {name!r}; available: {available_presets()} "
             f"(looked in {_preset_dir()})"
         )
     from omegaconf import OmegaConf
 
-    data = OmegaConf.to_container(OmegaConf.load(path), resolve=True)
+    text = resource.read_text(encoding="utf-8")
+    data = OmegaConf.to_container(OmegaConf.create(text), resolve=True)
     opts = options_from_dict(data)  # type: ignore[arg-type]
     return opts
 
