@@ -12,9 +12,15 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from posernet.geometry import compose_pose_vec, invert_pose_vec, quaternion_angle
+from posernet.geometry import (
+    compose_pose_vec,
+    invert_pose_raw,
+    invert_pose_vec,
+    quaternion_angle,
+    symmetric_pose_mean,
+)
 from posernet.graph import GraphBatch
-from posernet.nn import PoserConv, graph_inputs, invert_pose_raw, symmetric_pose_mean
+from posernet.nn import PoserConv, graph_inputs
 from posernet.testing import random_view_graph
 
 

@@ -52,7 +52,7 @@ def test_relative_pose_maps_camera_i_points_to_camera_j():
     x_j = R[1] @ X + t[1]
     T_ij = G.relative_pose(T[0], T[1])
     assert torch.allclose(T_ij[:3, :3] @ x_i + T_ij[:3, 3], x_j)
-    # R_ij = R_j R_i^T and t_ij = t_j - R_ij t_i (DESIGN.md section 2)
+    # R_ij = R_j R_i^T and t_ij = t_j - R_ij t_i
     assert torch.allclose(T_ij[:3, :3], R[1] @ R[0].T)
     assert torch.allclose(T_ij[:3, 3], t[1] - T_ij[:3, :3] @ t[0])
     # A transposed relative rotation does not map the points (guards the convention).
@@ -245,3 +245,26 @@ def test_gradcheck():
     # Gradient w.r.t. a rotation matrix is only meaningful along the manifold, but the formula
     # must still be differentiable almost everywhere.
     assert torch.autograd.gradcheck(G.rotation_matrix_to_quaternion, (R,))
+
+
+def test_project_to_so3_matches_the_svd_projection():
+    gen = torch.Generator().manual_seed(0)
+    A = torch.randn(200, 3, 3, generator=gen, dtype=torch.float64)
+    A[:5] = -A[:5].abs()  # some with det <= 0 take the SVD fallback
+    R = G.project_to_so3(A)
+    U, _, Vh = torch.linalg.svd(A)
+    d = torch.sign(torch.linalg.det(U @ Vh))
+    U = torch.cat((U[..., :2], U[..., 2:] * d[:, None, None]), dim=-1)
+    torch.testing.assert_close(R, U @ Vh, atol=1e-9, rtol=0)
+    torch.testing.assert_close(R @ R.mT, torch.eye(3, dtype=R.dtype).expand_as(R), atol=1e-12,
+                               rtol=0)
+    torch.testing.assert_close(G.det3(R), torch.ones(200, dtype=R.dtype))
+    assert G.project_to_so3(A[:0].reshape(0, 3, 3)).shape == (0, 3, 3)
+
+
+def test_raw_pose_inverse_and_symmetric_mean_live_in_geometry():
+    gen = torch.Generator().manual_seed(1)
+    a, b = torch.randn(2, 6, 7, generator=gen, dtype=torch.float64)
+    torch.testing.assert_close(G.invert_pose_raw(G.invert_pose_raw(a)), a)
+    m = G.symmetric_pose_mean(a, b, a)
+    torch.testing.assert_close(G.symmetric_pose_mean(b, a, a), m)

@@ -242,3 +242,43 @@ def test_save_refuses_what_load_would_reject(tmp_path):
     with pytest.raises(GraphValidationError, match=r"graph 0 \('g0'\): index field 'det_node'"):
         save_graphs(tmp_path / "n.pt", [bad_index])
     assert list(tmp_path.iterdir()) == []
+
+
+# --------------------------------------------------------------------------- one edge-index check
+
+
+def test_one_edge_index_check_for_graphs_layers_and_backends():
+    """graph.validate, PoserConv and the sync backends report a bad edge_index alike."""
+    from posernet.graph import check_edge_index
+    from posernet.nn import PoserConv, graph_inputs
+    from posernet.sync import get_backend
+
+    g = graphs(1)[0]
+    loop = g.edge_index.clone()
+    loop[1, 1] = loop[0, 1]
+    out = g.edge_index.clone()
+    out[1, 0] = g.num_nodes
+    conv = PoserConv(4, 8).to(g.node_attr.dtype)
+    backend = get_backend("eig_se3")
+    cases = ((loop, r"edge_index has a self loop: edge 1 on node \d+ \(source == target\)"),
+             (out, rf"index field 'edge_index' out of range: edge_index values must lie in "
+                   rf"\[0, {g.num_nodes}\) \({g.num_nodes} nodes\), got \[0, {g.num_nodes}\]"),
+             (g.edge_index.float(), "edge_index must be torch.long, got torch.float32"))
+    for ei, match in cases:
+        with pytest.raises(ValueError, match=match):
+            check_edge_index(ei, g.num_nodes)
+        with pytest.raises(GraphValidationError, match="graph 'g0': " + match):
+            dataclasses.replace(g, edge_index=ei).validate()
+        with pytest.raises(ValueError, match="PoserConv: " + match):
+            conv(**{**graph_inputs(g), "edge_index": ei})
+        if ei.dtype == torch.long:  # the backends cast to long first
+            with pytest.raises(ValueError, match=match):
+                backend.solve(dataclasses.replace(g, edge_index=ei))
+    with pytest.raises(ValueError, match=r"edge_index must have shape \[2, E\], got \(3, 2\)"):
+        check_edge_index(torch.zeros(3, 2, dtype=torch.long), 4)
+    with pytest.raises(ValueError, match=r"batch.edge_index must have shape \[2, E\]"):
+        backend.solve(dataclasses.replace(g, edge_index=g.edge_index[0]), g.edge_pose)
+    check_edge_index(torch.zeros(2, 0, dtype=torch.long), 0)  # no edges: nothing to check
+    with pytest.raises(ValueError, match=r"index field 'pair_edge' out of range"):
+        check_edge_index(g.edge_index, g.num_nodes,
+                         others=(("pair_edge", g.pair_edge + g.num_edges, g.num_edges, "edges"),))

@@ -9,7 +9,9 @@ from test_sync_eig_se3 import errors, make_graph, rel_to_first
 
 from posernet.graph import GraphBatch
 from posernet.sync import get_backend
-from posernet.sync.base import build_padded, connected_components, edge_rotations, graph_structure
+from posernet.sync.backend import graph_structure
+from posernet.sync.components import connected_components
+from posernet.sync.padding import build_padded, edge_rotations
 from posernet.sync.rotation_translation import refine_rotations, translations_from_directions
 
 
@@ -74,7 +76,7 @@ def test_geodesic_refinement_lowers_the_geodesic_cost():
     """The refinement minimises sum_e |log(R_j^T R_e R_i)|^2 (robust=False): it must lower
     that cost from the spectral (chordal) solution and stop at a stationary point."""
     from posernet.geometry import rotation_matrix_to_axis_angle
-    from posernet.sync.eig_se3 import rotation_irls
+    from posernet.sync.spectral import rotation_irls
 
     g = make_graph(12, 30, seed=800, rot_noise_deg=15.0)
     st = graph_structure(g)

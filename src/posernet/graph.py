@@ -5,7 +5,7 @@ each unordered pair stored once as ``i -> j``), object detections, and matched d
 on edges (the paper's "layers"). A :class:`GraphBatch` concatenates graphs PyG-style into one
 disconnected graph, offsetting every index field, and can be split back exactly.
 
-Field table (``DESIGN.md`` section 6):
+Field table:
 
 ==============  ==========  ===============================================================
 field           shape       meaning
@@ -47,6 +47,7 @@ __all__ = [
     "GraphBatch",
     "GraphValidationError",
     "ViewGraph",
+    "check_edge_index",
     "denormalize_boxes",
     "load_graphs",
     "node_attributes",
@@ -79,6 +80,53 @@ FORMAT_VERSION = 1
 
 class GraphValidationError(ValueError):
     """A view graph (or a file of them) breaks the data contract; the message names the field."""
+
+
+# --------------------------------------------------------------------------- index checks
+
+
+def check_edge_index(
+    edge_index: Any,
+    num_nodes: int | None = None,
+    *,
+    name: str = "edge_index",
+    others: Sequence[tuple[str, Tensor, int, str]] = (),
+) -> None:
+    """The one check of an ``edge_index`` (the graph contract, ``PoserConv``'s inputs and the
+    motion-averaging backends all use it); raises ``ValueError`` naming the tensor, which
+    callers prefix with where it came from.
+
+    ``edge_index`` must be a ``[2, E]`` tensor; with ``num_nodes`` given also ``torch.long``
+    with values in ``[0, num_nodes)`` and no self loop (``source == target``). Every
+    ``(name, tensor, size, what)`` of ``others`` (e.g. ``("pair_edge", pair_edge, E,
+    "edges")``) must be ``torch.long`` with values in ``[0, size)``, checked together with it.
+
+    One host synchronisation for all range and self-loop tests (each ``int()`` / ``bool()`` of a
+    CUDA tensor waits for the device): the flags are reduced on the device and read once, and
+    the detailed message is worked out only when something is wrong.
+    """
+    if not isinstance(edge_index, Tensor) or edge_index.ndim != 2 or edge_index.shape[0] != 2:
+        shape = (tuple(edge_index.shape) if isinstance(edge_index, Tensor)
+                 else type(edge_index).__name__)
+        raise ValueError(f"{name} must have shape [2, E], got {shape}")
+    if num_nodes is None:
+        return
+    ranged = ((name, edge_index, num_nodes, "nodes"), *others)
+    for key, t, _, _ in ranged:
+        if t.dtype != torch.long:
+            raise ValueError(f"{key} must be torch.long, got {t.dtype}")
+    flags = [((t < 0) | (t >= size)).any() for _, t, size, _ in ranged if t.numel()]
+    if edge_index.shape[1]:
+        flags.append((edge_index[0] == edge_index[1]).any())
+    if not flags or not bool(torch.stack(flags).any()):
+        return
+    for key, t, size, what in ranged:
+        if t.numel() and (int(t.min()) < 0 or int(t.max()) >= size):
+            raise ValueError(f"index field '{key}' out of range: {key} values must lie in "
+                             f"[0, {size}) ({size} {what}), got [{int(t.min())}, {int(t.max())}]")
+    e = int((edge_index[0] == edge_index[1]).nonzero()[0, 0])
+    raise ValueError(f"{name} has a self loop: edge {e} on node {int(edge_index[0, e])} "
+                     "(source == target)")
 
 
 # --------------------------------------------------------------------------- normalisation
@@ -255,10 +303,13 @@ class ViewGraph:
             if not isinstance(v, Tensor) or tuple(v.shape) != (E, 7):
                 shape = tuple(v.shape) if isinstance(v, Tensor) else type(v).__name__
                 fail(f"estimate {k!r} has shape {shape}, expected {(E, 7)}")
-        for k in ("edge_index", "det_node", *PAIR_FIELDS):
-            v = getattr(self, k)
-            if v.dtype != torch.long:
-                fail(f"index field {k!r} must be torch.long, got {v.dtype}")
+        try:  # dtypes and ranges of every index field, no self loop
+            check_edge_index(self.edge_index, N, others=(
+                ("det_node", self.det_node, N, "nodes"), ("pair_edge", self.pair_edge, E, "edges"),
+                ("pair_src", self.pair_src, D, "detections"),
+                ("pair_dst", self.pair_dst, D, "detections")))
+        except ValueError as exc:
+            fail(str(exc))
         for k in ("node_attr", "K", "image_size", "pose_gt", "edge_pose", "edge_pose_gt",
                   "det_box"):
             v = getattr(self, k)
@@ -271,22 +322,7 @@ class ViewGraph:
             if not bool(torch.isfinite(v).all()):
                 fail(f"estimate {k!r} has a NaN/inf value")
 
-        def check_range(k: str, size: int, entity: str) -> None:
-            v = getattr(self, k)
-            if v.numel() and (int(v.min()) < 0 or int(v.max()) >= size):
-                fail(f"index field {k!r} out of range [0, {size}) of {entity} "
-                     f"(min {int(v.min())}, max {int(v.max())})")
-
-        check_range("edge_index", N, "nodes")
-        check_range("det_node", N, "nodes")
-        check_range("pair_edge", E, "edges")
-        check_range("pair_src", D, "detections")
-        check_range("pair_dst", D, "detections")
-
         src, dst = self.edge_index
-        if bool((src == dst).any()):
-            e = int((src == dst).nonzero()[0, 0])
-            fail(f"edge {e} is a self loop on node {int(src[e])}")
         if E > 1:
             key = torch.minimum(src, dst) * max(N, 1) + torch.maximum(src, dst)
             if torch.unique(key).numel() != E:

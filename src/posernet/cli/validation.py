@@ -177,7 +177,7 @@ TRAINER: Schema = {
 #: options of every motion-averaging backend (posernet/conf/sync/*.yaml); cross-field rules (the
 #: scale policies a backend supports, p_min <= p_max) are the backend's own, checked by building it
 SYNC: Schema = {
-    "name": text(), "scale": choice("unit", "given", "oracle", "free"),
+    "_target_": text(), "name": text(), "scale": choice("unit", "given", "oracle", "free"),
     "disconnected": choice("components", "error"), "robust": boolean(),
     "max_iters": integer(1), "tol": positive(), "theta": positive(),
     "solver": choice("auto", "dense", "krylov"), "dense_max_nodes": integer(1),
@@ -265,14 +265,16 @@ def _sevenscenes(cfg: Any) -> bool:
 def _check_sync(cfg: Any) -> None:
     """Build the backend: its own cross-field rules, before any work."""
     sync = _value(cfg, "sync")
-    if not isinstance(sync, dict) or sync.get("name") in (None, "none"):
+    if not isinstance(sync, dict) or sync.get("name") == "none" or \
+            (sync.get("name") is None and sync.get("_target_") is None):
         return
     from ..sync import backend_from_config
 
     try:
         backend_from_config(sync)
     except ValueError as exc:
-        raise ConfigValueError(f"sync={sync['name']}: {_first_line(exc)}") from None
+        label = sync.get("name") or sync.get("_target_")
+        raise ConfigValueError(f"sync={label}: {_first_line(exc)}") from None
 
 
 def _check_dataset(cfg: Any) -> None:

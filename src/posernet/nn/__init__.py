@@ -4,7 +4,7 @@ Nothing here imports Lightning or Hydra: another GNN can import :class:`PoserCon
 price of torch alone.
 """
 
-from .conv import PoserConv, PoserConvOutput, graph_inputs, invert_pose_raw, symmetric_pose_mean
+from .conv import PoserConv, PoserConvOutput, graph_inputs
 from .loss import PoserLoss, PoserNetLoss, posernet_loss
 from .mlp import MLP
 from .model import CHECKPOINT_TAG, CheckpointError, PoserNet, read_checkpoint
@@ -20,12 +20,10 @@ __all__ = [
     "PoserNet",
     "PoserNetLoss",
     "graph_inputs",
-    "invert_pose_raw",
     "posernet_loss",
     "read_checkpoint",
     "scatter_count",
     "scatter_max",
     "scatter_mean",
     "scatter_sum",
-    "symmetric_pose_mean",
 ]

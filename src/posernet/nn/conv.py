@@ -23,7 +23,7 @@ must not depend on which direction happens to be stored, so the round runs every
 where ``g`` is an optional hidden edge state kept per direction. The same ``Psi_E`` applied to
 the forward view predicts the new pose ``P_ij``; applied to the backward view it predicts
 ``P_ji``. The new pose of ``i -> j`` is the inverse-equivariant mean
-``mu(P_ij, P_ji^{-1})`` (:func:`symmetric_pose_mean`), which satisfies
+``mu(P_ij, P_ji^{-1})`` (:func:`posernet.geometry.symmetric_pose_mean`), which satisfies
 ``mu(a, b)^{-1} = mu(a^{-1}, b^{-1})`` and ``mu(a, b) = mu(b, a)`` exactly. Storing the edge the
 other way round swaps the two views, so the refined pose of the flipped edge is *exactly* the
 inverse of the refined pose of the original edge (up to float round-off), whatever the weights.
@@ -70,11 +70,11 @@ from torch import Tensor, nn
 
 from ..geometry import (
     compose_pose_vec,
+    invert_pose_raw,
     quaternion_canonical,
-    quaternion_conjugate,
-    quaternion_normalize,
-    quaternion_rotate,
+    symmetric_pose_mean,
 )
+from ..graph import check_edge_index
 from .mlp import MLP
 from .scatter import scatter_count, scatter_mean, scatter_sum
 
@@ -82,8 +82,6 @@ __all__ = [
     "PoserConv",
     "PoserConvOutput",
     "graph_inputs",
-    "invert_pose_raw",
-    "symmetric_pose_mean",
 ]
 
 BOX_DIM = 4
@@ -102,55 +100,6 @@ class PoserConvOutput(NamedTuple):
     x: Tensor | None
     edge_pose: Tensor
     edge_state: Tensor | None
-
-
-# --------------------------------------------------------------------------- pose helpers
-
-
-def invert_pose_raw(p: Tensor) -> Tensor:
-    """Inverse of a pose vector that may have a non-unit quaternion: ``[q^*, -R(q/|q|)^T t]``.
-
-    Unlike :func:`posernet.geometry.invert_pose_vec` the quaternion keeps its norm and sign, so
-    the map is an exact involution on raw network outputs. Shapes: ``(*, 7) -> (*, 7)``.
-    """
-    qc = quaternion_conjugate(p[..., :4])
-    t = -quaternion_rotate(quaternion_normalize(qc), p[..., 4:])
-    return torch.cat((qc, t), dim=-1)
-
-
-def _sign(x: Tensor) -> Tensor:
-    """+1 where ``x >= 0`` else -1 (never 0, unlike ``torch.sign``)."""
-    return torch.where(x >= 0, torch.ones_like(x), -torch.ones_like(x))
-
-
-def symmetric_pose_mean(a: Tensor, b: Tensor, ref: Tensor) -> Tensor:
-    """Mean ``mu(a, b)`` of two estimates of the same relative pose, equivariant to inversion.
-
-    Rotation: the quaternions are sign-aligned and averaged, ``q = (q_a + s q_b) / 2`` with
-    ``s = sign<q_a, q_b>``, then given the sign of ``ref``'s quaternion. Translation: the mean of
-    the target-frame average and the source-frame average mapped back by the mean rotation,
-
-    .. math::
-
-        t = \\tfrac12 \\Big[\\tfrac{t_a + t_b}{2}
-            + R \\, \\tfrac{R_a^\\top t_a + R_b^\\top t_b}{2}\\Big],
-
-    (rotations ``R`` of the normalised quaternions). Then ``mu(a, a) = a``, ``mu(a, b) =
-    mu(b, a)`` and ``mu(a, b)^{-1} = mu(a^{-1}, b^{-1})`` with ``ref -> ref^{-1}`` (inverses
-    as in :func:`invert_pose_raw`), exactly: the quaternion part is linear in conjugation and
-    the two translation averages swap into each other under inversion.
-
-    Shapes: ``a, b, ref (*, 7) -> (*, 7)``; quaternions may be non-unit (their norms average).
-    """
-    qa, qb = a[..., :4], b[..., :4]
-    s = _sign((qa * qb).sum(-1, keepdim=True))
-    q = 0.5 * (qa + s * qb)
-    q = q * _sign((q * ref[..., :4]).sum(-1, keepdim=True))
-    ta, tb = a[..., 4:], b[..., 4:]
-    back_a = quaternion_rotate(quaternion_conjugate(quaternion_normalize(qa)), ta)
-    back_b = quaternion_rotate(quaternion_conjugate(quaternion_normalize(qb)), tb)
-    t = 0.25 * (ta + tb + quaternion_rotate(quaternion_normalize(q), back_a + back_b))
-    return torch.cat((q, t), dim=-1)
 
 
 # --------------------------------------------------------------------------- inputs
@@ -255,8 +204,10 @@ def validate_inputs(
     if node_dim is not None and x.shape[1] != node_dim:
         fail(f"x has {x.shape[1]} features per node, the layer expects {node_dim}")
     N = x.shape[0]
-    if edge_index.ndim != 2 or edge_index.shape[0] != 2:
-        fail(f"edge_index must have shape [2, E], got {_shape(edge_index)}")
+    try:
+        check_edge_index(edge_index)
+    except ValueError as exc:
+        fail(str(exc))
     E = edge_index.shape[1]
     if edge_pose.shape != (E, POSE_DIM):
         fail(f"edge_pose must have shape [E, 7] = [{E}, 7], got {_shape(edge_pose)}")
@@ -270,21 +221,12 @@ def validate_inputs(
             fail(f"{name} must have shape [M, 4] = [{M}, 4], got {_shape(t)}")
         if t.dtype != x.dtype:
             fail(f"{name} dtype {t.dtype} differs from x dtype {x.dtype}")
-    ranged = (("edge_index", edge_index, N, "nodes"), ("pair_edge", pair_edge, E, "edges"))
-    for name, t, _, _ in ranged:
-        if t.dtype != torch.long:
-            fail(f"{name} must be torch.long, got {t.dtype}")
-    # One host sync for all index checks (each int()/bool() of a GPU tensor waits for it);
-    # the detailed message is worked out only when something is wrong.
-    flags = [((t < 0) | (t >= size)).any() for _, t, size, _ in ranged if t.numel()]
-    if E:
-        flags.append((edge_index[0] == edge_index[1]).any())
-    if flags and bool(torch.stack(flags).any()):
-        for name, t, size, what in ranged:
-            if t.numel() and (int(t.min()) < 0 or int(t.max()) >= size):
-                fail(f"{name} values must lie in [0, {size}) ({size} {what}), "
-                     f"got [{int(t.min())}, {int(t.max())}]")
-        fail("edge_index has a self loop (source == target)")
+    # dtypes, index ranges and self loops: one host sync for all of them (see
+    # posernet.graph.check_edge_index), none when the inputs are valid.
+    try:
+        check_edge_index(edge_index, N, others=(("pair_edge", pair_edge, E, "edges"),))
+    except ValueError as exc:
+        fail(str(exc))
 
 
 # --------------------------------------------------------------------------- the layer

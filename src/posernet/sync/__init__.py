@@ -14,8 +14,18 @@ Backends (``available_backends()``):
 * ``gtsam`` -- Shonan averaging + gtsam's TranslationRecovery (optional extra
   ``posernet[gtsam]``; listed only when gtsam imports) (:mod:`posernet.sync.gtsam_backend`).
 
-Hydra: ``posernet/conf/sync/<name>.yaml`` holds ``name`` plus the backend's options;
-:func:`backend_from_config` turns such a mapping into a backend (``None`` for ``name: none``).
+Hydra: ``posernet/conf/sync/<name>.yaml`` holds ``_target_`` (the backend class, or a factory
+returning a backend), a ``name`` label and the backend's options; :func:`backend_from_config`
+instantiates it through ``_target_``, so a backend written outside this package is chosen from a
+config like a built-in one (``_target_: mypkg.MyBackend`` plus its options; a
+:class:`SyncBackend` subclass). ``sync=none`` (``_target_: posernet.sync.no_backend``) means no
+motion averaging: the result is ``None``. Mappings without ``_target_`` (older configs) are
+still read by ``name`` through the registry of :func:`get_backend`.
+
+Modules: :mod:`~posernet.sync.backend` (interface, result, input checks, scale policy),
+:mod:`~posernet.sync.components` (connected components), :mod:`~posernet.sync.padding` (the
+padded per-component layout), :mod:`~posernet.sync.robust` (IRLS weights),
+:mod:`~posernet.sync.spectral` (spectral rotation synchronisation shared by the backends).
 """
 
 from __future__ import annotations
@@ -23,7 +33,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Any
 
-from .base import SCALE_POLICIES, SyncBackend, SyncResult, as_mapping
+from .backend import SCALE_POLICIES, SyncBackend, SyncResult, as_mapping
 from .eig_se3 import EigSE3
 from .rotation_translation import RotationTranslation
 
@@ -36,6 +46,7 @@ __all__ = [
     "available_backends",
     "backend_from_config",
     "get_backend",
+    "no_backend",
     "register_backend",
 ]
 
@@ -89,17 +100,54 @@ def get_backend(name: str, **options: Any) -> SyncBackend:
     return _REGISTRY[name](**options)
 
 
+def no_backend(**_: Any) -> None:
+    """The ``sync=none`` choice (``_target_`` of ``posernet/conf/sync/none.yaml``): no motion
+    averaging, so there is no backend."""
+    return None
+
+
 def backend_from_config(cfg: Any) -> SyncBackend | None:
-    """Backend from a ``posernet/conf/sync/*.yaml`` mapping (``name`` + options); ``None`` for
-    ``name: none`` (no motion averaging)."""
+    """Backend from a ``posernet/conf/sync/*.yaml`` mapping; ``None`` for ``sync=none`` (no
+    motion averaging).
+
+    With ``_target_`` the backend is built by Hydra's ``instantiate`` from that class or factory
+    and the other keys (its options; a ``name`` key is only a label and is not passed on), so
+    any importable :class:`SyncBackend` can be chosen; without it, ``name`` picks a registered
+    backend (:func:`get_backend`) and ``name: none`` means no motion averaging. Bad options
+    raise the backend's own ``ValueError``.
+    """
     d = dict(as_mapping(cfg))
+    if "_target_" in d:
+        return _instantiate(d)
     if "name" not in d:
-        raise ValueError(f"sync config needs a 'name' field (one of {available_backends()} or "
-                         f"'none'); got keys {sorted(d)}")
+        raise ValueError(f"sync config needs a '_target_' (a backend class) or a 'name' field "
+                         f"(one of {available_backends()} or 'none'); got keys {sorted(d)}")
     name = d.pop("name")
     if name in (None, "none"):
         return None
     return get_backend(str(name), **d)
+
+
+def _instantiate(d: dict[str, Any]) -> SyncBackend | None:
+    from hydra.errors import InstantiationException
+    from hydra.utils import instantiate
+
+    target = d.get("_target_")
+    if not isinstance(target, str) or not target:
+        raise ValueError(f"sync config: _target_ must be the dotted path of a backend class or "
+                         f"factory, got {target!r}")
+    d.pop("name", None)
+    try:
+        backend = instantiate(d, _convert_="all")
+    except InstantiationException as exc:
+        if isinstance(exc.__cause__, ValueError):  # the backend's own message (bad option)
+            raise exc.__cause__ from None
+        first = next((ln.strip() for ln in str(exc).splitlines() if ln.strip()), "")
+        raise ValueError(f"sync config: cannot build _target_ {target!r}: {first}") from exc
+    if backend is not None and not isinstance(backend, SyncBackend):
+        raise ValueError(f"sync config: _target_ {target!r} gave a {type(backend).__name__}, "
+                         "not a posernet.sync.SyncBackend")
+    return backend
 
 
 register_backend("eig_se3", EigSE3)

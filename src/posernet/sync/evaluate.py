@@ -3,9 +3,10 @@
 :func:`absolute_table` runs a backend, aligns every graph's estimate to its ground truth
 (per connected component; cameras that could not be placed are counted, take no part in the
 alignment and are left out of their graph's mean error; a graph with none placed is left out
-of the rows) and
-summarises per-graph mean errors as the percentage of graphs under 3/5/10/30/45 degrees and
-0.05/0.1/0.25/0.5/0.75 m plus the medians. The returned dict records the alignment and the
+of the rows) and summarises per-graph mean errors as the percentage of graphs under
+3/5/10/30/45 degrees and 0.05/0.1/0.25/0.5/0.75 m plus the medians. Errors and rows come from
+the shared table code (:func:`posernet.metrics.absolute_errors_per_graph`,
+:func:`posernet.metrics.absolute_rows`). The returned dict records the alignment and the
 translation-scale policy (``oracle`` is flagged) so every table can state them.
 """
 
@@ -17,15 +18,8 @@ import torch
 from torch import Tensor
 
 from ..graph import GraphBatch, ViewGraph
-from ..metrics import (
-    ALIGNMENTS,
-    ANGLE_THRESHOLDS_DEG,
-    METRE_THRESHOLDS,
-    ThresholdRow,
-    absolute_pose_errors,
-    threshold_row,
-)
-from .base import SyncBackend, SyncResult, graph_structure
+from ..metrics import ALIGNMENTS, ThresholdRow, absolute_errors_per_graph, absolute_rows
+from .backend import SyncBackend, SyncResult, graph_structure
 
 __all__ = ["absolute_table", "format_absolute_table"]
 
@@ -64,21 +58,20 @@ def absolute_table(batch: GraphBatch | ViewGraph, edge_pose: Tensor | None = Non
     struct = graph_structure(batch)
     B = struct["num_graphs"]
     gt = batch.pose_gt.to(res.poses.device)
-    rot, pos = absolute_pose_errors(res.poses, gt, struct["node_batch"], B,
-                                    alignment=alignment,
-                                    component=res.component if per_component else None,
-                                    valid=res.solved, rotation_gauge=rotation_gauge)
+    errs = absolute_errors_per_graph(res.poses, gt, struct["node_batch"], B,
+                                     alignment=alignment,
+                                     component=res.component if per_component else None,
+                                     solved=res.solved, rotation_gauge=rotation_gauge)
+    rows = absolute_rows(errs)
+    unplaced = errs["unplaced"]
     comps_per_graph = torch.zeros(B, dtype=torch.long, device=res.component.device)
     comps_per_graph.scatter_reduce_(0, struct["node_batch"], res.component, reduce="amax")
     first = torch.full((B,), res.component.numel(), dtype=torch.long,
                        device=res.component.device)
     first.scatter_reduce_(0, struct["node_batch"], res.component, reduce="amin")
-    unplaced = torch.zeros(B, dtype=torch.long, device=res.solved.device)
-    unplaced.index_add_(0, struct["node_batch"].to(res.solved.device),
-                        (~res.solved.bool()).long())
     return {
-        "rotation_deg": threshold_row(rot, ANGLE_THRESHOLDS_DEG),
-        "position_m": threshold_row(pos, METRE_THRESHOLDS),
+        "rotation_deg": rows["rot"],
+        "position_m": rows["trans"],
         "alignment": alignment,
         "rotation_gauge": rotation_gauge,
         "per_component": per_component,
@@ -92,7 +85,8 @@ def absolute_table(batch: GraphBatch | ViewGraph, edge_pose: Tensor | None = Non
         "graphs_with_unplaced": int((unplaced > 0).sum()),
         "disconnected_graphs": int((comps_per_graph > first).sum()),
         "unconverged_graphs": int((~res.converged).sum()),
-        "per_graph": {"rotation_deg": rot, "position_m": pos, "unplaced": unplaced},
+        "per_graph": {"rotation_deg": errs["rot"], "position_m": errs["trans"],
+                      "unplaced": unplaced},
         "result": res,
     }
 

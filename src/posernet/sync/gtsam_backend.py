@@ -25,16 +25,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .base import (
-    Components,
-    SyncBackend,
-    SyncOptions,
-    SyncResult,
-    build_padded,
-    check_positive,
-    edge_rotations,
-)
-from .eig_se3 import assemble
+from .backend import SyncBackend, SyncOptions, SyncResult, check_positive
+from .components import Components
+from .padding import assemble, build_padded, edge_rotations
 
 try:  # optional dependency: the registry only offers this backend when it imports
     import gtsam

@@ -2,7 +2,7 @@
 
 **Rotations.** (1) Robust spectral rotation synchronisation: the top-3 eigenvectors of
 ``N = D3^{-1/2} X_RR D3^{-1/2}`` re-weighted with EIG-SE3's IRLS (Cauchy weights, MAD
-threshold) -- exactly the rotation part of :mod:`posernet.sync.eig_se3`. (2) Geodesic
+threshold) -- exactly the rotation part of EIG-SE3 (:mod:`posernet.sync.spectral`). (2) Geodesic
 refinement (Lie-algebraic IRLS, Chatterjee & Govindu style): with ``E_e = R_j^T R_e R_i``
 (identity when edge ``e = i -> j`` agrees) and ``w_e = log(E_e)``, solve the weighted least
 squares ``min sum_e c_e |d_j - d_i - w_e|^2`` (``sum_i d_i = 0``) for the right perturbations
@@ -31,7 +31,7 @@ convention ``t_e = t_j - R_j R_i^T t_i = -R_j (c_j - c_i)``, edge ``e`` says
   same Cauchy IRLS on ``|c_j - c_i - u_e|``.
 
 Dense batched linear algebra on padded ``[G, n, n]`` / ``[G, 3n + 4, 3n + 4]`` systems; large
-components use the Krylov eigen-solver of :mod:`posernet.sync.eig_se3` for the rotations.
+components use the Krylov eigen-solver of :mod:`posernet.sync.spectral` for the rotations.
 """
 
 from __future__ import annotations
@@ -43,19 +43,11 @@ import torch
 from torch import Tensor
 
 from ..geometry import axis_angle_to_rotation_matrix, rotation_matrix_to_axis_angle
-from .base import (
-    Components,
-    PaddedProblem,
-    SyncBackend,
-    SyncResult,
-    apply_scale_policy,
-    build_padded,
-    check_positive,
-    edge_rotations,
-    mad_cauchy_weights,
-    mad_huber_weights,
-)
-from .eig_se3 import SpectralOptions, assemble, rotation_irls, split_by_size
+from .backend import SyncBackend, SyncResult, apply_scale_policy, check_positive
+from .components import Components
+from .padding import PaddedProblem, assemble, build_padded, edge_rotations
+from .robust import mad_cauchy_weights, mad_huber_weights
+from .spectral import SpectralOptions, rotation_irls, split_by_size
 
 __all__ = ["RotationTranslation", "RotationTranslationOptions", "refine_rotations",
            "translations_from_directions", "translations_metric"]
@@ -63,7 +55,7 @@ __all__ = ["RotationTranslation", "RotationTranslationOptions", "refine_rotation
 
 @dataclass(frozen=True)
 class RotationTranslationOptions(SpectralOptions):
-    """:class:`~posernet.sync.eig_se3.SpectralOptions` for the spectral rotation IRLS (as
+    """:class:`~posernet.sync.spectral.SpectralOptions` for the spectral rotation IRLS (as
     EIG-SE3), plus ``refine_iters``: geodesic refinement steps (0 = off) and
     ``translation_iters``: IRLS steps of the translation stage; default scale ``free``."""
 

@@ -1,7 +1,7 @@
 """Pinhole camera (Kinect-like) in numpy: intrinsics, look-at poses, projection, cuboid boxes.
 
 Camera frame: OpenCV (x right, y down, z forward). Poses are world-to-camera
-``x_cam = R X + t`` (``DESIGN.md`` section 2); the world has z up.
+``x_cam = R X + t``; the world has z up.
 """
 
 from __future__ import annotations

@@ -1,0 +1,445 @@
+"""Robust spectral rotation synchronisation, shared by EIG-SE3 and ``rotation_translation``.
+
+The top-3 eigenvectors of ``N = D3^{-1/2} X_RR D3^{-1/2}`` (``X_RR`` the symmetric 3n x 3n
+matrix of weighted relative rotations, identity-weighted diagonal; ``D3`` its weighted degrees)
+span the absolute rotations; IRLS re-weights the edges with EIG-SE3's Cauchy weights and MAD
+threshold until the weights settle (:func:`rotation_irls`). Small components use batched dense
+``eigh``; large ones a batched restarted block-Krylov (Lanczos with full reorthogonalisation)
+applying ``N`` as a sparse block-diagonal matrix (O(E) per product), warm-started across IRLS
+iterations. Also the operators themselves (:func:`dense_N`, :func:`sparse_N`), batched conjugate
+gradients and the dense/Krylov split by component size (:func:`split_by_size`).
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from ..geometry import det3, project_to_so3
+from .backend import SyncOptions, check_positive
+from .padding import PaddedProblem
+from .robust import mad_cauchy_weights
+
+__all__ = [
+    "SOLVERS",
+    "CSRPattern",
+    "RotationSolution",
+    "SpectralOptions",
+    "conjugate_gradient",
+    "degrees",
+    "dense_N",
+    "rotation_irls",
+    "rotation_residuals",
+    "rotations_from_eigvecs",
+    "sparse_N",
+    "sparse_apply",
+    "split_by_size",
+    "top3_dense",
+    "top3_krylov",
+]
+
+SOLVERS = ("auto", "dense", "krylov")
+_PAD_EIG = -2.0  # eigenvalue given to padded rows of N (N's spectrum lies in [-1, 1])
+
+
+@dataclass(frozen=True)
+class SpectralOptions(SyncOptions):
+    """Options of the robust spectral (rotation) solve shared by EIG-SE3 and
+    ``rotation_translation``: ``robust``: IRLS on (Cauchy weights, MAD threshold);
+    ``max_iters``: most eigen-solves; ``tol``: IRLS stop on the relative weight change;
+    ``theta``: MAD multiplier (2 as in the SIIMS paper); ``solver``: ``auto`` (dense up to
+    ``dense_max_nodes`` nodes per component, block Krylov above), ``dense`` or ``krylov``;
+    ``seed``: Krylov start vectors."""
+
+    robust: bool = True
+    max_iters: int = 50
+    tol: float = 1e-5
+    theta: float = 2.0
+    solver: str = "auto"
+    dense_max_nodes: int = 64
+    seed: int = 0
+
+    def check(self) -> None:
+        super().check()
+        if not isinstance(self.robust, bool):
+            raise ValueError(f"robust must be true/false, got {self.robust!r}")
+        check_positive("max_iters", self.max_iters, integer=True)
+        check_positive("tol", self.tol)
+        check_positive("theta", self.theta)
+        check_positive("dense_max_nodes", self.dense_max_nodes, integer=True)
+        if self.solver not in SOLVERS:
+            raise ValueError(f"solver={self.solver!r}; choose one of {list(SOLVERS)}")
+        if not isinstance(self.seed, int):
+            raise ValueError(f"seed must be an integer, got {self.seed!r}")
+
+
+# --------------------------------------------------------------------------- the operator
+
+
+def _gi(prob: PaddedProblem) -> Tensor:
+    return torch.arange(prob.G, device=prob.node.device)[:, None].expand(prob.G, prob.m)
+
+
+def degrees(prob: PaddedProblem, w_edge: Tensor, w_diag: Tensor) -> Tensor:
+    """Weighted degree (row sums of ``W`` incl. the diagonal) ``[G, n]``; 1 on padded nodes."""
+    G, n = prob.G, prob.n
+    deg = torch.zeros(G * n, dtype=w_edge.dtype, device=w_edge.device)
+    base = torch.arange(G, device=w_edge.device)[:, None] * n
+    deg.index_add_(0, (base + prob.src).flatten(), w_edge.flatten())
+    deg.index_add_(0, (base + prob.dst).flatten(), w_edge.flatten())
+    deg = deg.view(G, n) + w_diag[:, None]
+    return torch.where(prob.node_mask, deg, torch.ones_like(deg))
+
+
+def dense_N(prob: PaddedProblem, w_edge: Tensor, w_diag: Tensor, s: Tensor) -> Tensor:
+    """``N = D3^{-1/2} X_RR D3^{-1/2}`` as ``[G, 3n, 3n]`` (``s = deg^{-1/2} [G, n]``).
+
+    Block (j, i) of ``X_RR`` is ``w_e R_e`` for stored edge ``e = i -> j``, block (i, j) its
+    transpose, block (a, a) ``w_aa I``. Padded nodes get ``_PAD_EIG * I`` so that they never
+    enter the top-3 eigenvectors.
+    """
+    G, n = prob.G, prob.n
+    em = prob.edge_mask
+    g = torch.arange(G, device=em.device)[:, None].expand(G, prob.m)[em]
+    src, dst = prob.src[em], prob.dst[em]
+    blk = (s[g, src] * s[g, dst] * w_edge[em])[:, None, None] * prob.R[em]
+    X = torch.zeros(G, n, 3, n, 3, dtype=prob.R.dtype, device=prob.R.device)
+    X[g, dst, :, src, :] = blk  # each (component, ordered pair) occurs once
+    X[g, src, :, dst, :] = blk.mT
+    diag = torch.where(prob.node_mask, w_diag[:, None] * s * s, torch.full_like(s, _PAD_EIG))
+    X = X.view(G, 3 * n, 3 * n)
+    X.diagonal(dim1=-2, dim2=-1).add_(diag.repeat_interleave(3, dim=1))
+    return X
+
+
+def _raw_coords(prob: PaddedProblem) -> tuple[Tensor, Tensor]:
+    """Row/column of every stored entry of :func:`sparse_N`, in its raw (unsorted) order:
+    the 9 entries of each block ``(dst, src)``, then of each ``(src, dst)``, then 3 diagonal
+    entries per valid node. No position occurs twice."""
+    G, n, dev = prob.G, prob.n, prob.R.device
+    gidx = torch.arange(G, device=dev)[:, None].expand(G, prob.m)[prob.edge_mask]
+    src, dst = prob.src[prob.edge_mask], prob.dst[prob.edge_mask]
+    gn = torch.arange(G, device=dev)[:, None].expand(G, n)[prob.node_mask]
+    an = torch.arange(n, device=dev)[None, :].expand(G, n)[prob.node_mask]
+    r3 = torch.arange(3, device=dev)
+
+    def coords(g: Tensor, a: Tensor) -> Tensor:
+        return (g * (3 * n) + 3 * a)[:, None] + r3[None, :]  # [K, 3]
+
+    rows = torch.cat((coords(gidx, dst)[:, :, None].expand(-1, 3, 3).reshape(-1),
+                      coords(gidx, src)[:, :, None].expand(-1, 3, 3).reshape(-1),
+                      coords(gn, an).reshape(-1)))
+    cols = torch.cat((coords(gidx, src)[:, None, :].expand(-1, 3, 3).reshape(-1),
+                      coords(gidx, dst)[:, None, :].expand(-1, 3, 3).reshape(-1),
+                      coords(gn, an).reshape(-1)))
+    return rows, cols
+
+
+@dataclass
+class CSRPattern:
+    """Sparsity pattern of :func:`sparse_N` for one problem (fixed across IRLS iterations,
+    where only the weights change): CSR row pointers, column indices and the permutation
+    that sorts the raw entries into CSR order."""
+
+    crow: Tensor
+    col: Tensor
+    perm: Tensor
+    size: int
+
+    @classmethod
+    def of(cls, prob: PaddedProblem) -> CSRPattern:
+        rows, cols = _raw_coords(prob)
+        size = prob.G * 3 * prob.n
+        perm = torch.argsort(rows * size + cols)
+        counts = torch.bincount(rows, minlength=size)
+        crow = torch.cat((counts.new_zeros(1), torch.cumsum(counts, 0)))
+        return cls(crow=crow, col=cols[perm], perm=perm, size=size)
+
+
+def sparse_N(prob: PaddedProblem, w_edge: Tensor, w_diag: Tensor, s: Tensor,
+             pattern: CSRPattern | None = None) -> Tensor:
+    """``N`` of every component as one block-diagonal sparse CSR matrix ``[G 3n, G 3n]``.
+
+    Same entries as :func:`dense_N` (padded nodes are left empty, not given ``_PAD_EIG``:
+    Krylov vectors are kept zero there). Products cost O(E), on CPU and CUDA. Pass the
+    problem's :class:`CSRPattern` to skip re-sorting the pattern.
+    """
+    if pattern is None:
+        pattern = CSRPattern.of(prob)
+    G = prob.G
+    em, nm = prob.edge_mask, prob.node_mask
+    gidx = torch.arange(G, device=em.device)[:, None].expand(G, prob.m)[em]
+    src, dst = prob.src[em], prob.dst[em]
+    blk = (s[gidx, src] * s[gidx, dst] * w_edge[em])[:, None, None] * prob.R[em]
+    dval = (w_diag[:, None] * s * s)[nm]
+    vals = torch.cat((blk.reshape(-1), blk.mT.reshape(-1), dval[:, None].expand(-1, 3).reshape(-1)))
+    with warnings.catch_warnings():  # "sparse CSR support is in beta": we only use S @ dense
+        warnings.simplefilter("ignore", UserWarning)
+        return torch.sparse_csr_tensor(pattern.crow, pattern.col, vals[pattern.perm],
+                                       (pattern.size, pattern.size), check_invariants=False)
+
+
+def sparse_apply(S: Tensor, V: Tensor) -> Tensor:
+    """``S @ V`` for the block-diagonal ``S`` and ``V [G, M, k]``."""
+    G, M, k = V.shape
+    return (S @ V.reshape(G * M, k)).view(G, M, k)
+
+
+# --------------------------------------------------------------------------- eigen-solvers
+
+
+def _orthonormalize(W: Tensor, Q: Tensor | None, row_mask: Tensor,
+                    generator: torch.Generator) -> Tensor:
+    """Orthonormal columns spanning ``W [G, M, p]`` orthogonally to ``Q [G, M, q]``.
+
+    Block classical Gram-Schmidt twice against ``Q``, then a Householder QR of the block and
+    one more projection + QR pass (restores orthogonality lost to cancellation). A column that
+    lies (to 1e-13) in ``span Q`` already is replaced by a random one: Krylov breakdown, e.g.
+    on exact data whose operator has few distinct eigenvalues.
+    """
+    nrm0 = W.norm(dim=1).clamp_min(1e-300)
+
+    def proj(Y: Tensor) -> Tensor:
+        return Y if Q is None else Y - Q @ (Q.mT @ Y)
+
+    W = proj(proj(W))
+    bad = W.norm(dim=1) <= 1e-13 * nrm0
+    if bool(bad.any()):
+        r = torch.randn(W.shape, generator=generator, dtype=W.dtype,
+                        device=W.device) * row_mask[..., None]
+        W = torch.where(bad[:, None, :], proj(proj(r)), W)
+    W = torch.linalg.qr(W).Q
+    if Q is not None:
+        W = torch.linalg.qr(proj(W)).Q
+    return W
+
+
+def top3_dense(N: Tensor) -> Tensor:
+    """Top-3 eigenvectors ``[G, 3n, 3]`` of the symmetric ``N [G, 3n, 3n]`` (batched eigh)."""
+    _, vec = torch.linalg.eigh(N)
+    return vec[..., -3:]
+
+
+def top3_krylov(apply, V0: Tensor, row_mask: Tensor, generator: torch.Generator,
+                tol: float, max_cycles: int, guard: int = 3,
+                steps: int = 8) -> tuple[Tensor, Tensor, Tensor, int]:
+    """Top-3 eigenvectors of a symmetric operator by restarted block Lanczos.
+
+    Each cycle builds the block Krylov space ``[V, NV, ..., N^steps V]`` of the ``p = 3 +
+    guard`` warm vectors with full reorthogonalisation, takes the Rayleigh-Ritz pairs of
+    ``H = Q^T N Q`` (a small ``eigh``) and restarts from the top ``p`` Ritz vectors until the
+    top-3 residual ``|N u - theta u|`` is below ``tol`` for every graph.
+    Returns ``(U [G, M, 3], V_next [G, M, p], converged [G], cycles)``.
+    """
+    V = _orthonormalize(V0, None, row_mask, generator)
+    G = V.shape[0]
+    U_out = torch.zeros(G, V.shape[1], 3, dtype=V.dtype, device=V.device)
+    done = torch.zeros(G, dtype=torch.bool, device=V.device)
+    p = V.shape[-1]
+    for cycle in range(1, max_cycles + 1):
+        blocks, images = [V], [apply(V)]
+        for _ in range(steps):
+            Q = torch.cat(blocks, dim=-1)
+            W = _orthonormalize(images[-1], Q, row_mask, generator)
+            blocks.append(W)
+            images.append(apply(W))
+        Q, AQ = torch.cat(blocks, dim=-1), torch.cat(images, dim=-1)
+        H = Q.mT @ AQ
+        theta, Y = torch.linalg.eigh(0.5 * (H + H.mT))
+        Y3 = Y[..., -3:]
+        U, AU = Q @ Y3, AQ @ Y3
+        res = (AU - U * theta[:, None, -3:]).norm(dim=1).amax(dim=1)
+        newly = (res <= tol) & ~done
+        U_out[newly] = U[newly]
+        done |= newly
+        V = Q @ Y[..., -p:]
+        if bool(done.all()):
+            return U_out, V, done, cycle
+    U_out[~done] = U[~done]
+    return U_out, V, done, max_cycles
+
+
+def conjugate_gradient(apply, b: Tensor, tol: float = 1e-13,
+                       max_iter: int = 20000) -> tuple[Tensor, Tensor]:
+    """Batched CG for SPD operators: ``b [G, M] -> (x, converged [G])``; per-graph steps."""
+    x = torch.zeros_like(b)
+    r = b.clone()
+    p = r.clone()
+    rs = (r * r).sum(1)
+    bn = b.norm(dim=1).clamp_min(1e-300)
+    done = rs.sqrt() <= tol * bn
+    for _ in range(max_iter):
+        if bool(done.all()):
+            break
+        Ap = apply(p)
+        pAp = (p * Ap).sum(1)
+        alpha = torch.where(done, torch.zeros_like(rs), rs / pAp.clamp_min(1e-300))
+        x = x + alpha[:, None] * p
+        r = r - alpha[:, None] * Ap
+        rs_new = (r * r).sum(1)
+        beta = torch.where(done, torch.zeros_like(rs), rs_new / rs.clamp_min(1e-300))
+        p = r + beta[:, None] * p
+        rs = rs_new
+        done = done | (rs.sqrt() <= tol * bn)
+    return x, done
+
+
+# --------------------------------------------------------------------------- rotations
+
+
+def _orthonormal_columns(Y: Tensor) -> Tensor:
+    """Euclidean-orthonormal basis of the columns of ``Y [G, M, k]`` (Gram-Schmidt, twice)."""
+    cols: list[Tensor] = []
+    for w in Y.mT.contiguous().unbind(1):
+        for _ in range(2):
+            for q in cols:
+                w = w - q * (q * w).sum(1, keepdim=True)
+        cols.append(w / (w * w).sum(1, keepdim=True).sqrt().clamp_min(1e-300))
+    return torch.stack(cols, dim=-1)
+
+
+def rotations_from_eigvecs(V3: Tensor, s: Tensor, node_mask: Tensor) -> tuple[Tensor, Tensor]:
+    """Absolute rotations ``[G, n, 3, 3]`` and the basis ``Rh [G, 3n, 3]`` from the top-3
+    eigenvectors ``V3`` of ``N``: ``r_k = D3^{-1/2} v_k``, orthonormalised (the published
+    ``U alpha`` is an orthonormal basis of the same span), handedness fixed, blocks projected
+    onto SO(3). Padded nodes get the identity."""
+    G, M, _ = V3.shape
+    n = M // 3
+    rmask = node_mask.repeat_interleave(3, dim=1)[..., None]
+    R3 = V3 * s.repeat_interleave(3, dim=1)[..., None] * rmask
+    Rh = _orthonormal_columns(R3)
+    blocks = Rh.view(G, n, 3, 3)
+    flip = (det3(blocks) * node_mask).sum(1) < 0
+    sign = torch.ones(G, 3, dtype=Rh.dtype, device=Rh.device)
+    sign[:, 0] = torch.where(flip, -1.0, 1.0)
+    Rh = Rh * sign[:, None, :]
+    blocks = Rh.view(G, n, 3, 3)
+    R = project_to_so3(blocks)
+    eye = torch.eye(3, dtype=R.dtype, device=R.device)
+    return torch.where(node_mask[..., None, None], R, eye), Rh
+
+
+def rotation_residuals(prob: PaddedProblem, R: Tensor) -> Tensor:
+    """``|R_j R_i^T - R_e|_F`` per edge ``e = i -> j`` ``[G, m]`` (0 on pads)."""
+    gi = _gi(prob)
+    est = R[gi, prob.dst] @ R[gi, prob.src].mT
+    diff = (est - prob.R).flatten(-2)
+    res = (diff * diff).sum(-1).sqrt()
+    return torch.where(prob.edge_mask, res, torch.zeros_like(res))
+
+
+@dataclass
+class RotationSolution:
+    """Result of :func:`rotation_irls` for the components of a :class:`PaddedProblem`."""
+
+    R: Tensor  # [G, n, 3, 3] absolute rotations (world-to-camera)
+    V3: Tensor  # [G, 3n, 3] top eigenvectors of N for the weights below
+    Rh: Tensor  # [G, 3n, 3] orthonormal basis of span D3^{-1/2} V3 (after the handedness fix)
+    w_edge: Tensor  # [G, m] weights used by the last solve
+    w_diag: Tensor  # [G]
+    iterations: Tensor  # [G] eigen-solves
+    converged: Tensor  # [G] IRLS converged (True when not robust)
+    eig_converged: Tensor  # [G] Krylov converged (True for dense)
+    pattern: CSRPattern | None = None  # sparse pattern of the whole problem, if one was built
+
+
+def rotation_irls(prob: PaddedProblem, robust: bool, max_iters: int, tol: float, theta: float,
+                  krylov: bool, krylov_tol: float = 1e-12, krylov_max_cycles: int = 500,
+                  seed: int = 0) -> RotationSolution:
+    """Spectral rotation synchronisation with EIG-SE3's IRLS, batched over components.
+
+    Only components whose weights are still changing are re-solved (masking). With
+    ``robust=False`` this is a single solve with unit weights.
+    """
+    G, n, dev, dt = prob.G, prob.n, prob.R.device, prob.R.dtype
+    w_edge = prob.edge_mask.to(dt)
+    w_diag = torch.ones(G, dtype=dt, device=dev)
+    R = torch.eye(3, dtype=dt, device=dev).expand(G, n, 3, 3).clone()
+    V3 = torch.zeros(G, 3 * n, 3, dtype=dt, device=dev)
+    Rh = torch.zeros_like(V3)
+    used_edge, used_diag = w_edge.clone(), w_diag.clone()
+    iters = torch.zeros(G, dtype=torch.long, device=dev)
+    converged = torch.zeros(G, dtype=torch.bool, device=dev)
+    eig_ok = torch.ones(G, dtype=torch.bool, device=dev)
+    active = torch.ones(G, dtype=torch.bool, device=dev)
+    gen = torch.Generator(device=dev).manual_seed(seed)
+    warm = None
+    pattern: CSRPattern | None = None
+    pattern_idx: Tensor | None = None
+    if krylov:
+        rows = prob.node_mask.repeat_interleave(3, dim=1)[..., None].to(dt)
+        warm = torch.randn(G, 3 * n, 6, generator=gen, dtype=dt, device=dev) * rows
+    for k in range(1, (max_iters if robust else 1) + 1):
+        idx = active.nonzero().squeeze(1)
+        sub = prob.select(idx) if idx.numel() < G else prob
+        ns, ms = sub.n, sub.m
+        we, wd = w_edge[idx, :ms], w_diag[idx]
+        s = degrees(sub, we, wd).rsqrt()
+        if krylov:
+            rows = sub.node_mask.repeat_interleave(3, dim=1).to(dt)
+
+            if pattern_idx is None or not torch.equal(pattern_idx, idx):
+                pattern, pattern_idx = CSRPattern.of(sub), idx  # rebuilt only when it shrinks
+            S = sparse_N(sub, we, wd, s, pattern)
+
+            def op(V: Tensor, S=S) -> Tensor:
+                return sparse_apply(S, V)
+
+            V3s, warm_s, ok, _ = top3_krylov(op, warm[idx, :3 * ns], rows, gen, krylov_tol,
+                                             krylov_max_cycles)
+            warm[idx, :3 * ns] = warm_s
+            eig_ok[idx] = ok
+        else:
+            V3s = top3_dense(dense_N(sub, we, wd, s))
+        Rs, Rhs = rotations_from_eigvecs(V3s, s, sub.node_mask)
+        R[idx, :ns], V3[idx, :3 * ns], Rh[idx, :3 * ns] = Rs, V3s, Rhs
+        used_edge[idx, :ms], used_diag[idx] = we, wd
+        iters[idx] = k
+        if not robust:
+            converged[:] = True
+            break
+        res = rotation_residuals(sub, Rs)
+        w_new = mad_cauchy_weights(res, sub.edge_mask, theta)
+        wd_new = w_new.amax(dim=1)
+        cnt = sub.count.to(dt)
+        # |W_old - W|_F / (|W|_F n) over the full symmetric n x n weight matrix.
+        num = (2 * ((we - w_new) ** 2).sum(1) + cnt * (wd - wd_new) ** 2).sqrt()
+        den = (2 * (w_new ** 2).sum(1) + cnt * wd_new ** 2).sqrt() * cnt
+        delta = num / den.clamp_min(1e-300)
+        w_edge[idx, :ms], w_diag[idx] = w_new, wd_new
+        stop = delta <= tol
+        converged[idx[stop]] = True
+        active[idx[stop]] = False
+        if not bool(active.any()):
+            break
+    full = pattern if pattern_idx is not None and pattern_idx.numel() == G else None
+    return RotationSolution(R=R, V3=V3, Rh=Rh, w_edge=used_edge, w_diag=used_diag,
+                            iterations=iters, converged=converged, eig_converged=eig_ok,
+                            pattern=full)
+
+
+# --------------------------------------------------------------------------- dense / Krylov split
+
+
+def split_by_size(prob: PaddedProblem, solver: str, dense_max_nodes: int,
+                  min_krylov_nodes: int = 40) -> list[tuple[Tensor, bool]]:
+    """Component groups ``(indices, use_krylov)``: small ones dense, large ones Krylov.
+
+    Components below ``min_krylov_nodes`` always go dense (a Krylov space of 54 vectors needs
+    enough rows).
+    """
+    if solver == "dense":
+        krylov = torch.zeros_like(prob.count, dtype=torch.bool)
+    elif solver == "krylov":
+        krylov = prob.count >= min_krylov_nodes
+    else:
+        krylov = (prob.count > dense_max_nodes) & (prob.count >= min_krylov_nodes)
+    out = []
+    for flag in (False, True):
+        idx = (krylov == flag).nonzero().squeeze(1)
+        if idx.numel():
+            out.append((idx, flag))
+    return out
