@@ -20,6 +20,7 @@ from posernet.lit import (
 )
 from posernet.nn import PoserNet
 from posernet.testing import random_view_graph
+from posernet.training import build_trainer
 
 pytestmark = pytest.mark.filterwarnings(
     "ignore::UserWarning", "ignore::DeprecationWarning", "ignore::FutureWarning")
@@ -47,10 +48,10 @@ def loader(gs: list, batch_size: int = 8, shuffle: bool = False) -> DataLoader:
 
 def trainer(tmp: Path | None = None, epochs: int = 1, **kw) -> L.Trainer:
     callbacks = kw.pop("callbacks", [])
-    return L.Trainer(accelerator="cpu", devices=1, max_epochs=epochs, logger=False,
-                     enable_progress_bar=False, enable_model_summary=False,
-                     enable_checkpointing=bool(callbacks), callbacks=callbacks,
-                     deterministic=True, num_sanity_val_steps=0, default_root_dir=tmp, **kw)
+    return build_trainer(accelerator="cpu", devices=1, max_epochs=epochs, logger=False,
+                         enable_progress_bar=False, enable_model_summary=False,
+                         enable_checkpointing=bool(callbacks), callbacks=callbacks,
+                         num_sanity_val_steps=0, default_root_dir=tmp, **kw)
 
 
 @pytest.fixture(scope="module")
@@ -154,6 +155,22 @@ def test_bad_checkpoints_give_clear_errors(tmp_path: Path) -> None:
         PoserNet.from_checkpoint(wrong)
     with pytest.raises(CheckpointError, match="not a PoserNet checkpoint"):
         PoserNet.from_checkpoint(other)
+    # one reader for both loaders: extra (non-network) weights are refused by both alike
+    extra = tmp_path / "extra.ckpt"
+    module = PoserNetModule(depth=1)
+    torch.save({"state_dict": {**module.state_dict(), "head.w": torch.zeros(1)},
+                "hyper_parameters": dict(module.hparams),
+                "posernet": {"tag": "posernet.PoserNetModule"}}, extra)
+    for load in (load_posernet_checkpoint, PoserNet.from_checkpoint):
+        with pytest.raises(CheckpointError, match="does not fit.*head.w"):
+            load(extra)
+    good = tmp_path / "good.ckpt"
+    torch.save({"state_dict": module.state_dict(), "hyper_parameters": dict(module.hparams),
+                "posernet": {"tag": "posernet.PoserNetModule"}}, good)
+    loaded = load_posernet_checkpoint(good)
+    assert not loaded.training and loaded.hparams.depth == 1
+    for name, value in module.state_dict().items():
+        assert torch.equal(loaded.state_dict()[name], value)
 
 
 def test_seeded_runs_are_reproducible(data, tmp_path: Path) -> None:

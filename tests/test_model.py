@@ -14,9 +14,9 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from posernet.geometry import invert_pose_vec, quaternion_angle
+from posernet.geometry import invert_pose_raw, invert_pose_vec, quaternion_angle
 from posernet.graph import GraphBatch, ViewGraph
-from posernet.nn import PoserConv, PoserNet, invert_pose_raw
+from posernet.nn import PoserConv, PoserNet
 from posernet.testing import random_view_graph
 
 

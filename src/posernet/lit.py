@@ -22,10 +22,11 @@ from torch import Tensor
 
 from . import __version__
 from .graph import GraphBatch
-from .metrics import per_graph_mean, relative_pose_errors
+from .metrics import relative_errors_per_graph
 from .nn import PoserNet, posernet_loss
 from .nn.model import CHECKPOINT_TAG, CheckpointError
 from .nn.model import read_checkpoint as read_posernet_checkpoint
+from .training import checkpoint_callbacks
 
 __all__ = ["CHECKPOINT_TAG", "CheckpointError", "PoserNetModule", "checkpoint_callbacks",
            "load_posernet_checkpoint", "read_posernet_checkpoint", "upgrade_optimizer_states"]
@@ -114,10 +115,9 @@ class PoserNetModule(L.LightningModule):
         """Store each graph's mean edge errors (refined and initial) for the epoch's median."""
         n = batch.num_graphs
         rows = []
-        for pose in (pred, batch.edge_pose):
-            rot, tdir = relative_pose_errors(pose, batch.edge_pose_gt)
-            rows += [per_graph_mean(rot, batch.edge_batch, n),
-                     per_graph_mean(tdir, batch.edge_batch, n)]
+        for pose in (pred, batch.edge_pose):  # the tables' per-graph errors (posernet.metrics)
+            per_graph = relative_errors_per_graph(pose, batch.edge_pose_gt, batch.edge_batch, n)
+            rows += [per_graph["rot"], per_graph["tdir"]]
         self._errors.setdefault(split, []).append(torch.stack(rows, dim=-1))  # [B, 4]
 
     def _log_medians(self, split: str) -> None:
@@ -182,22 +182,7 @@ class PoserNetModule(L.LightningModule):
 # --------------------------------------------------------------------------- checkpoints
 
 
-def checkpoint_callbacks(dirpath: str | os.PathLike[str], monitor: str = "val/loss",
-                         mode: str = "min") -> list[Any]:
-    """``[best, last]`` checkpoint callbacks: ``best.ckpt`` (best ``monitor``) and ``last.ckpt``
-    (the latest epoch, rewritten every epoch; resume from it).
-
-    One callback with ``save_last=True`` is not enough: Lightning then writes ``last.ckpt`` only
-    in epochs that also wrote a best checkpoint, so a resumed run would repeat the epochs since.
-    """
-    from lightning.pytorch.callbacks import ModelCheckpoint
-
-    best = ModelCheckpoint(dirpath=dirpath, filename="best", monitor=monitor, mode=mode,
-                           save_top_k=1, auto_insert_metric_name=False)
-    # no monitor + save_top_k=1: keep only the newest epoch, always under the same name
-    last = ModelCheckpoint(dirpath=dirpath, filename="last", save_top_k=1,
-                           enable_version_counter=False, auto_insert_metric_name=False)
-    return [best, last]
+# checkpoint_callbacks lives with the Trainer builder (posernet.training); imported above.
 
 
 # --------------------------------------------------------------------------- old checkpoints
@@ -256,12 +241,15 @@ def load_posernet_checkpoint(path: str | os.PathLike[str],
     """:class:`PoserNetModule` from a checkpoint, in eval mode, with clear errors.
 
     Equivalent to ``PoserNetModule.load_from_checkpoint(path)`` for good files; a missing file,
-    another model's checkpoint or mismatching weights raise :class:`CheckpointError`.
+    another model's checkpoint or mismatching weights raise :class:`CheckpointError`. The file
+    is read by :func:`posernet.nn.model.read_checkpoint` and its weights by
+    :meth:`PoserNet.from_checkpoint_dict`, the same code as :meth:`PoserNet.from_checkpoint`.
     """
     ckpt = read_posernet_checkpoint(path)
+    network = PoserNet.from_checkpoint_dict(ckpt, path)  # the one reader of the weights
     try:
-        module = PoserNetModule(**dict(ckpt.get("hyper_parameters", {})))
-        module.load_state_dict(ckpt["state_dict"])
-    except (TypeError, RuntimeError, KeyError, ValueError) as exc:
+        module = PoserNetModule(**dict(ckpt.get("hyper_parameters") or {}))
+    except (TypeError, ValueError) as exc:
         raise CheckpointError(f"{path}: checkpoint does not fit this PoserNet ({exc})") from exc
+    module.model = network
     return module.to(map_location).eval()

@@ -44,13 +44,14 @@ def _model(cfg: DictConfig, data_dir: Path, out_dir: Path, device: str) -> tuple
 
     from ..data.datamodule import PoserDataModule
     from ..lit import PoserNetModule
+    from ..training import build_trainer
 
     L.seed_everything(0, workers=True)
     dm = PoserDataModule(str(data_dir), estimate=str(cfg.estimate), batch_size=16)
     module = PoserNetModule()
-    trainer = L.Trainer(max_epochs=int(cfg.train_epochs), accelerator="cpu", logger=False,
-                        enable_checkpointing=False, enable_model_summary=False,
-                        default_root_dir=str(out_dir))
+    trainer = build_trainer(max_epochs=int(cfg.train_epochs), accelerator="cpu", logger=False,
+                            enable_checkpointing=False, enable_model_summary=False,
+                            default_root_dir=str(out_dir))
     trainer.fit(module, dm)
     ckpt = out_dir / "demo_model.ckpt"
     trainer.save_checkpoint(ckpt)

@@ -171,6 +171,7 @@ def train(cfg: DictConfig) -> float:
 
     from ..io import atomic_write_json
     from ..lit import PoserNetModule, read_posernet_checkpoint
+    from ..training import trainer_from_config
 
     check_config(cfg, "train")  # every value, CUDA, a writable out_dir: before any output
     quiet_lightning()
@@ -192,7 +193,7 @@ def train(cfg: DictConfig) -> float:
     if in_place:
         callbacks.append(_relocation_callback(str(ckpt_path)))
     logger = hydra.utils.instantiate(cfg.logger) if cfg.get("logger") else False
-    trainer: L.Trainer = hydra.utils.instantiate(cfg.trainer, callbacks=callbacks, logger=logger)
+    trainer: L.Trainer = trainer_from_config(cfg.trainer, callbacks=callbacks, logger=logger)
     history: Path | None = None
     if trainer.is_global_zero:
         print(f"PoserNet: {model.num_parameters} parameters; output folder {out_dir}")

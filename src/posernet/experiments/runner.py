@@ -266,7 +266,8 @@ class Context:
         import lightning as L
 
         from ..data.datamodule import PoserDataModule
-        from ..lit import PoserNetModule, checkpoint_callbacks
+        from ..lit import PoserNetModule
+        from ..training import build_trainer, checkpoint_callbacks
 
         done = run_dir / "done.json"
         s = self.scale
@@ -281,14 +282,13 @@ class Context:
         module = PoserNetModule(depth=spec.depth, alpha=spec.alpha,
                                 lr=s.lr_large if large else s.lr_small)
         ckpt_cb, last_cb = checkpoint_callbacks(run_dir / "checkpoints")
-        trainer = L.Trainer(max_epochs=s.epochs_large if large else s.epochs_small,
-                            accelerator="gpu" if self.device == "cuda" else "cpu", devices=1,
-                            # "warn" on a GPU: a CUDA op without a deterministic kernel
-                            # must not stop a long run (tests/test_cuda.py checks ours have one)
-                            deterministic=True if self.device == "cpu" else "warn",
-                            logger=False, callbacks=[ckpt_cb, last_cb],
-                            enable_model_summary=False, enable_progress_bar=s.progress_bar,
-                            num_sanity_val_steps=0, default_root_dir=str(run_dir))
+        # determinism: build_trainer's policy (CPU True; CUDA "warn", so a CUDA op without a
+        # deterministic kernel does not stop a long run; tests/test_cuda.py checks ours have one)
+        trainer = build_trainer(max_epochs=s.epochs_large if large else s.epochs_small,
+                                accelerator="gpu" if self.device == "cuda" else "cpu", devices=1,
+                                logger=False, callbacks=[ckpt_cb, last_cb],
+                                enable_model_summary=False, enable_progress_bar=s.progress_bar,
+                                num_sanity_val_steps=0, default_root_dir=str(run_dir))
         # an interrupted run resumes from its last epoch (weights, optimiser, best-so-far)
         last = run_dir / "checkpoints" / "last.ckpt"
         t0 = time.perf_counter()
@@ -411,16 +411,14 @@ def prior_pose(train: Sequence[Any]) -> torch.Tensor:
 def prior_row(ctx: Context, labels: tuple[str, ...]) -> TableRow:
     """Errors of the constant :func:`prior_pose` predictor on the small test graphs."""
     from ..data.store import open_split
-    from ..metrics import ANGLE_THRESHOLDS_DEG, per_graph_mean, relative_pose_errors, threshold_row
+    from ..metrics import relative_errors_per_graph, relative_rows
 
     pose = prior_pose(open_split(ctx.data_root, "small", "train", None))
     test = ctx.graphs("small", "kp")
     gt = torch.cat([g.edge_pose_gt for g in test]).double()
     batch = torch.cat([torch.full((g.num_edges,), k) for k, g in enumerate(test)])
-    rot, tdir = relative_pose_errors(pose.expand_as(gt), gt)
-    return TableRow(labels, {
-        "rot": threshold_row(per_graph_mean(rot, batch, len(test)), ANGLE_THRESHOLDS_DEG),
-        "tdir": threshold_row(per_graph_mean(tdir, batch, len(test)), ANGLE_THRESHOLDS_DEG)})
+    return TableRow(labels, relative_rows(
+        relative_errors_per_graph(pose.expand_as(gt), gt, batch, len(test))))
 
 
 def table2(ctx: Context, out: Path) -> list[Path]:

@@ -141,18 +141,33 @@ class PoserNet(nn.Module):
         Checkpoints that still hold the last round's node-update weights load too (the unused
         weights are dropped; the outputs are the same).
         """
-        ckpt = read_checkpoint(path)
+        return cls.from_checkpoint_dict(read_checkpoint(path), path).to(map_location).eval()
+
+    @classmethod
+    def from_checkpoint_dict(cls, ckpt: dict[str, Any],
+                             path: str | os.PathLike[str] = "checkpoint") -> PoserNet:
+        """The network (on the CPU, train mode) of a checkpoint dict from :func:`read_checkpoint`.
+
+        The one place that turns a checkpoint into weights: :meth:`from_checkpoint` and
+        ``posernet.lit.load_posernet_checkpoint`` both use it. The network's arguments are read
+        from ``hyper_parameters`` (others, e.g. the loss' ``alpha``, are ignored); every entry of
+        ``state_dict`` must be a ``model.`` weight that fits, else :class:`CheckpointError`
+        (naming ``path``) is raised.
+        """
         hp = dict(ckpt.get("hyper_parameters") or {})
         names = set(inspect.signature(cls).parameters)
         prefix = "model."
-        state = {k[len(prefix):]: v for k, v in ckpt["state_dict"].items()
-                 if k.startswith(prefix)}
+        state_dict = ckpt["state_dict"]
+        foreign = [k for k in state_dict if not k.startswith(prefix)]
+        state = {k[len(prefix):]: v for k, v in state_dict.items() if k.startswith(prefix)}
         try:
+            if foreign:
+                raise RuntimeError(f"unexpected weights {foreign[:3]}")
             model = cls(**{k: v for k, v in hp.items() if k in names})
             model.load_state_dict(state)
         except (TypeError, RuntimeError, ValueError) as exc:
             raise CheckpointError(f"{path}: checkpoint does not fit this PoserNet ({exc})") from exc
-        return model.to(map_location).eval()
+        return model
 
     def reset_parameters(self) -> None:
         if isinstance(self.encoder, nn.Linear):

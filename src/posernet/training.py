@@ -1,0 +1,93 @@
+"""The one place that builds Lightning Trainers for PoserNet.
+
+``posernet-train`` (``conf/trainer/*.yaml``, via :func:`trainer_from_config`), the demo's
+fallback training and the paper experiments (:mod:`posernet.experiments.runner`) all call
+:func:`build_trainer`, so they share one determinism policy:
+
+* **CPU**: ``deterministic=True`` (``torch.use_deterministic_algorithms(True)``). Seeded CPU
+  runs are bit-for-bit reproducible; the committed ``results/`` tables rely on it.
+* **CUDA** (any non-CPU accelerator): ``deterministic="warn"``. Deterministic kernels are used
+  where they exist, and an op without one warns instead of stopping a long run
+  (``tests/test_cuda.py`` checks that PoserNet's own ops have one).
+
+``deterministic=None`` (the default, and the trainer configs' value) applies this policy; an
+explicit ``True``/``False``/``"warn"`` overrides it. ``accelerator="auto"`` counts as CUDA when
+CUDA is available. Lightning sets the flag for the whole process (it is not reset after
+``fit``).
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Iterable, Mapping
+from typing import Any, Literal
+
+__all__ = ["build_trainer", "checkpoint_callbacks", "determinism_policy", "trainer_from_config"]
+
+Determinism = bool | Literal["warn"]
+
+
+def determinism_policy(accelerator: str = "cpu") -> Determinism:
+    """``True`` on the CPU, ``"warn"`` on CUDA (see the module docstring)."""
+    acc = str(accelerator).lower()
+    if acc == "auto":
+        import torch
+
+        acc = "gpu" if torch.cuda.is_available() else "cpu"
+    return True if acc == "cpu" else "warn"
+
+
+def checkpoint_callbacks(dirpath: str | os.PathLike[str], monitor: str = "val/loss",
+                         mode: str = "min") -> list[Any]:
+    """``[best, last]`` checkpoint callbacks: ``best.ckpt`` (best ``monitor``) and ``last.ckpt``
+    (the latest epoch, rewritten every epoch; resume from it).
+
+    One callback with ``save_last=True`` is not enough: Lightning then writes ``last.ckpt`` only
+    in epochs that also wrote a best checkpoint, so a resumed run would repeat the epochs since.
+    ``conf/callbacks/default.yaml`` configures the same two callbacks for ``posernet-train``.
+    """
+    from lightning.pytorch.callbacks import ModelCheckpoint
+
+    best = ModelCheckpoint(dirpath=dirpath, filename="best", monitor=monitor, mode=mode,
+                           save_top_k=1, auto_insert_metric_name=False)
+    # no monitor + save_top_k=1: keep only the newest epoch, always under the same name
+    last = ModelCheckpoint(dirpath=dirpath, filename="last", save_top_k=1,
+                           enable_version_counter=False, auto_insert_metric_name=False)
+    return [best, last]
+
+
+def build_trainer(*, accelerator: str = "cpu", devices: int | str = 1,
+                  deterministic: Determinism | None = None,
+                  callbacks: Iterable[Any] | None = None, logger: Any = False,
+                  **kwargs: Any) -> Any:
+    """A ``lightning.Trainer`` with the project's determinism policy.
+
+    Args:
+        accelerator, devices: as for ``lightning.Trainer`` (default: one CPU).
+        deterministic: ``None`` applies :func:`determinism_policy` for ``accelerator``.
+        callbacks: Lightning callbacks (e.g. :func:`checkpoint_callbacks`); with none, Lightning's
+            default checkpointing applies unless ``enable_checkpointing=False`` is passed.
+        logger: a Lightning logger, or ``False`` (default) for none.
+        **kwargs: any other ``lightning.Trainer`` argument (``max_epochs``, ``gradient_clip_val``,
+            ``enable_progress_bar``, ``default_root_dir``, ``strategy``, ...), passed unchanged.
+    """
+    import lightning as L
+
+    if deterministic is None:
+        deterministic = determinism_policy(accelerator)
+    return L.Trainer(accelerator=accelerator, devices=devices, deterministic=deterministic,
+                     callbacks=list(callbacks) if callbacks is not None else None,
+                     logger=logger, **kwargs)
+
+
+def trainer_from_config(cfg: Mapping[str, Any], callbacks: Iterable[Any] | None = None,
+                        logger: Any = False) -> Any:
+    """:func:`build_trainer` from a ``conf/trainer`` config (its ``_target_`` is ignored)."""
+    from omegaconf import DictConfig, OmegaConf
+
+    values = OmegaConf.to_container(cfg, resolve=True) if isinstance(cfg, DictConfig) \
+        else dict(cfg)
+    assert isinstance(values, dict)
+    values.pop("_target_", None)
+    return build_trainer(callbacks=callbacks, logger=logger, **{str(k): v for k, v in
+                                                                 values.items()})
