@@ -1,5 +1,9 @@
 """Error metrics in the paper's format (Sec. 4): per-edge errors, per-graph means, threshold tables.
 
+This module holds the one implementation of the paper's tables: :func:`relative_errors_per_graph`
+/ :func:`absolute_errors_per_graph` (per-graph errors from estimated poses, ground truth and the
+batch structure) and :func:`relative_rows` / :func:`absolute_rows` (their threshold rows).
+
 The paper's tables are per graph: each graph's error is the mean over its edges (relative poses)
 or cameras (absolute poses); a table row gives the percentage of graphs whose error is below each
 threshold, and the median over graphs (``eta``).
@@ -17,20 +21,27 @@ from .geometry import rotation_angle, rotation_error_deg, translation_direction_
 from .nn.scatter import scatter_count
 
 __all__ = [
+    "ABSOLUTE_KEYS",
     "ALIGNMENTS",
     "ANGLE_THRESHOLDS_DEG",
     "METRE_THRESHOLDS",
+    "RELATIVE_KEYS",
     "ROTATION_GAUGES",
     "ThresholdRow",
+    "absolute_errors_per_graph",
     "absolute_pose_errors",
     "absolute_pose_errors_per_camera",
+    "absolute_rows",
     "align_to_ground_truth",
     "per_graph_mean",
+    "relative_errors_per_graph",
     "relative_pose_errors",
+    "relative_rows",
     "skipped_per_graph",
     "threshold_row",
     "translation_direction_error_deg",
     "umeyama_alignment",
+    "unplaced_per_graph",
 ]
 
 ANGLE_THRESHOLDS_DEG: tuple[float, ...] = (3.0, 5.0, 10.0, 30.0, 45.0)
@@ -125,14 +136,14 @@ def threshold_row(per_graph: Tensor | Sequence[float],
 # --------------------------------------------------------------------------- absolute poses
 #
 # Absolute poses have a gauge freedom (a global rigid or similarity transform), so the estimate
-# is aligned to the ground truth before measuring (DESIGN.md sections 3 and 8): Umeyama on the
+# is aligned to the ground truth before measuring: Umeyama on the
 # camera centres (similarity when the scale is unknown, rigid when it is metric), then
 #   rotation error of camera i = angle(R_gt_i^T Q R_est_i) on camera-to-world rotations,
 #   position error of camera i = | s Q c_est_i + t - c_gt_i |.
 
 ALIGNMENTS: tuple[str, ...] = ("similarity", "rigid")
 # Which rotation aligns estimated to true rotations for the rotation error: the one of the
-# similarity on camera centres (DESIGN.md section 8), or the chordal mean of R_gt R_est^T.
+# similarity on camera centres, or the chordal mean of R_gt R_est^T.
 ROTATION_GAUGES: tuple[str, ...] = ("centres", "rotations")
 
 
@@ -343,3 +354,77 @@ def absolute_pose_errors(
     keep = ~torch.isnan(rot)
     return (per_graph_mean(rot[keep], node_batch[keep], num_graphs),
             per_graph_mean(pos[keep], node_batch[keep], num_graphs))
+
+
+# --------------------------------------------------------------------------- the paper's tables
+#
+# The one path from (estimated poses, ground truth, batch structure) to per-graph errors and
+# threshold rows. ``posernet-eval`` (cli/evaluate.py), ``sync.evaluate.absolute_table``,
+# ``pipeline.evaluate_result`` (refine, demo, reconstruct, the experiment runner) and the
+# Lightning module's per-graph errors all call these; nothing else builds a table row from
+# errors.
+
+RELATIVE_KEYS: tuple[str, ...] = ("rot", "tdir")
+ABSOLUTE_KEYS: tuple[str, ...] = ("rot", "trans")
+
+
+def relative_errors_per_graph(edge_pose: Tensor, edge_pose_gt: Tensor, edge_batch: Tensor,
+                              num_graphs: int) -> dict[str, Tensor]:
+    """Per-graph mean relative errors (degrees) and what each mean left out.
+
+    ``edge_pose, edge_pose_gt [E, 7]``, ``edge_batch [E]`` -> ``{"rot", "tdir"}`` ``[B]``
+    per-graph means (NaN for a graph with no measurable edge) and ``{"rot_skipped",
+    "tdir_skipped"}`` ``[B]`` the edges per graph without a measurable error.
+    """
+    rot, tdir = relative_pose_errors(edge_pose, edge_pose_gt)
+    return {"rot": per_graph_mean(rot, edge_batch, num_graphs),
+            "tdir": per_graph_mean(tdir, edge_batch, num_graphs),
+            "rot_skipped": skipped_per_graph(rot, edge_batch, num_graphs),
+            "tdir_skipped": skipped_per_graph(tdir, edge_batch, num_graphs)}
+
+
+def relative_rows(per_graph: dict[str, Tensor | Sequence[float]],
+                  thresholds: Sequence[float] = ANGLE_THRESHOLDS_DEG) -> dict[str, ThresholdRow]:
+    """``{"rot", "tdir"}`` threshold rows of per-graph relative errors.
+
+    ``per_graph`` as from :func:`relative_errors_per_graph` (optionally concatenated over
+    batches); the ``*_skipped`` counts, when present, are recorded in the rows.
+    """
+    out = {}
+    for key in RELATIVE_KEYS:
+        skipped = per_graph.get(f"{key}_skipped")
+        out[key] = threshold_row(per_graph[key], thresholds,
+                                 skipped=0 if skipped is None else int(torch.as_tensor(
+                                     skipped).sum()))
+    return out
+
+
+def unplaced_per_graph(solved: Tensor, node_batch: Tensor, num_graphs: int) -> Tensor:
+    """Cameras per graph that motion averaging could not place (``solved`` False), ``[B]``."""
+    out = torch.zeros(num_graphs, dtype=torch.long, device=solved.device)
+    out.index_add_(0, node_batch.to(solved.device), (~solved.bool()).long())
+    return out
+
+
+def absolute_errors_per_graph(pose_est: Tensor, pose_gt: Tensor, node_batch: Tensor,
+                              num_graphs: int, alignment: str = "similarity",
+                              component: Tensor | None = None, solved: Tensor | None = None,
+                              rotation_gauge: str = "rotations") -> dict[str, Tensor]:
+    """Per-graph mean absolute errors after alignment (:func:`absolute_pose_errors`).
+
+    Returns ``{"rot": [B] degrees, "trans": [B] metres}`` (means over the ``solved`` cameras;
+    NaN for a graph with none) and ``"unplaced"`` ``[B]`` (:func:`unplaced_per_graph`).
+    """
+    rot, pos = absolute_pose_errors(pose_est, pose_gt, node_batch, num_graphs,
+                                    alignment=alignment, component=component, valid=solved,
+                                    rotation_gauge=rotation_gauge)
+    if solved is None:
+        solved = torch.ones(node_batch.shape, dtype=torch.bool, device=node_batch.device)
+    return {"rot": rot, "trans": pos,
+            "unplaced": unplaced_per_graph(solved, node_batch, num_graphs)}
+
+
+def absolute_rows(per_graph: dict[str, Tensor | Sequence[float]]) -> dict[str, ThresholdRow]:
+    """``{"rot", "trans"}`` threshold rows (degrees, metres) of per-graph absolute errors."""
+    return {"rot": threshold_row(per_graph["rot"], ANGLE_THRESHOLDS_DEG),
+            "trans": threshold_row(per_graph["trans"], METRE_THRESHOLDS)}

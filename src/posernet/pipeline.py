@@ -22,13 +22,11 @@ from tqdm.auto import tqdm
 
 from .graph import GraphBatch, GraphValidationError, ViewGraph, load_graphs
 from .metrics import (
-    ANGLE_THRESHOLDS_DEG,
-    METRE_THRESHOLDS,
-    absolute_pose_errors,
-    per_graph_mean,
-    relative_pose_errors,
-    skipped_per_graph,
-    threshold_row,
+    absolute_errors_per_graph,
+    absolute_rows,
+    relative_errors_per_graph,
+    relative_rows,
+    unplaced_per_graph,
 )
 
 __all__ = [
@@ -272,15 +270,10 @@ def evaluate_result(result: RefineResult, rotation_gauge: str = "rotations") -> 
         eb = sel.repeat_interleave(torch.tensor([graphs[k].num_edges for k in rel_idx]))
         for s, poses in result.edge_pose.items():
             est = torch.cat([poses[k] for k in rel_idx]).to(gt.dtype)
-            rot, tdir = relative_pose_errors(est, gt)
-            r, t = per_graph_mean(rot, eb, B), per_graph_mean(tdir, eb, B)
-            skip_r, skip_t = skipped_per_graph(rot, eb, B), skipped_per_graph(tdir, eb, B)
-            out["per_graph"][f"rel_rot_{s}"], out["per_graph"][f"rel_tdir_{s}"] = r, t
-            out["per_graph"][f"rel_rot_skipped_{s}"] = skip_r
-            out["per_graph"][f"rel_tdir_skipped_{s}"] = skip_t
-            out["relative"][s] = {
-                "rot": threshold_row(r, ANGLE_THRESHOLDS_DEG, skipped=int(skip_r.sum())),
-                "tdir": threshold_row(t, ANGLE_THRESHOLDS_DEG, skipped=int(skip_t.sum()))}
+            rel = relative_errors_per_graph(est, gt, eb, B)
+            for key, v in rel.items():  # rel_rot_*, rel_tdir_*, rel_rot_skipped_*, ...
+                out["per_graph"][f"rel_{key}_{s}"] = v
+            out["relative"][s] = relative_rows(rel)
     if result.absolute and abs_idx:
         metric = bool(result.backend and result.backend.get("scale") in ("given", "oracle"))
         out["alignment"] = "rigid" if metric else "similarity"
@@ -290,23 +283,24 @@ def evaluate_result(result: RefineResult, rotation_gauge: str = "rotations") -> 
         n_nodes = torch.tensor([graphs[k].num_nodes for k in abs_idx])
         nb = sel.repeat_interleave(n_nodes)
         gt = torch.cat([graphs[k].pose_gt.cpu() for k in abs_idx]).double()
+        all_nb = torch.arange(B).repeat_interleave(torch.tensor([g.num_nodes for g in graphs]))
         for s, poses in result.absolute.items():
             solved = [result.solved[s][k].bool() for k in range(B)]
             comp = _global_components([result.component[s][k] for k in abs_idx])
-            valid = torch.cat([solved[k] for k in abs_idx])
-            rot, pos = absolute_pose_errors(
+            abs_err = absolute_errors_per_graph(
                 torch.cat([poses[k] for k in abs_idx]).double(), gt, nb, B,
-                alignment=out["alignment"], component=comp, valid=valid,
-                rotation_gauge=rotation_gauge)
-            unplaced = torch.tensor([int((~solved[k]).sum()) for k in range(B)])
-            out["per_graph"][f"abs_rot_{s}"], out["per_graph"][f"abs_pos_{s}"] = rot, pos
+                alignment=out["alignment"], component=comp,
+                solved=torch.cat([solved[k] for k in abs_idx]), rotation_gauge=rotation_gauge)
+            # Unplaced cameras are counted in every graph, with ground truth or not.
+            unplaced = unplaced_per_graph(torch.cat(solved), all_nb, B)
+            out["per_graph"][f"abs_rot_{s}"] = abs_err["rot"]
+            out["per_graph"][f"abs_pos_{s}"] = abs_err["trans"]
             out["per_graph"][f"abs_unplaced_{s}"] = unplaced
             placed_k = n_nodes - unplaced[sel]
             out["placed"][s] = {"cameras": int(n_nodes.sum()), "placed": int(placed_k.sum()),
                                 "graphs_with_unplaced": int((placed_k < n_nodes).sum()),
                                 "graphs_with_none_placed": int((placed_k == 0).sum())}
-            out["absolute"][s] = {"rot": threshold_row(rot, ANGLE_THRESHOLDS_DEG),
-                                  "trans": threshold_row(pos, METRE_THRESHOLDS)}
+            out["absolute"][s] = absolute_rows(abs_err)
     for s in result.edge_pose:  # keep the per-graph keys present, NaN where not measured
         for key in ("rel_rot", "rel_tdir"):
             out["per_graph"].setdefault(f"{key}_{s}", nan.clone())

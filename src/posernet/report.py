@@ -26,7 +26,7 @@ import torch
 from torch import Tensor
 
 from .io import atomic_write_text
-from .metrics import ANGLE_THRESHOLDS_DEG, METRE_THRESHOLDS, ThresholdRow, threshold_row
+from .metrics import ANGLE_THRESHOLDS_DEG, METRE_THRESHOLDS, ThresholdRow, relative_rows
 
 __all__ = [
     "ABSOLUTE_GROUPS",
@@ -78,9 +78,12 @@ class TableRow:
 def relative_row(labels: Sequence[str], rot_per_graph: Tensor | Sequence[float],
                  tdir_per_graph: Tensor | Sequence[float],
                  thresholds: Sequence[float] = ANGLE_THRESHOLDS_DEG) -> TableRow:
-    """Row of a relative-pose table from per-graph mean errors (degrees)."""
-    return TableRow(tuple(labels), {"rot": threshold_row(rot_per_graph, thresholds),
-                                    "tdir": threshold_row(tdir_per_graph, thresholds)})
+    """Row of a relative-pose table from per-graph mean errors (degrees).
+
+    The rows are :func:`posernet.metrics.relative_rows` (the one implementation of the tables).
+    """
+    return TableRow(tuple(labels), relative_rows({"rot": rot_per_graph, "tdir": tdir_per_graph},
+                                                 thresholds))
 
 
 def mean_std_row(rows: Sequence[TableRow], labels: Sequence[str] | None = None) -> TableRow:

@@ -3,7 +3,10 @@
 The table (paper Table 1 layout) gives, per graph, the % of test graphs whose mean edge error is
 below 3/5/10/30/45 degrees and the median over graphs, for the orientation and the translation
 direction, for the initial poses and the PoserNet-refined ones. It is printed and written
-atomically as ``table.md`` and ``table.csv`` in the output folder. Examples::
+atomically as ``table.md`` and ``table.csv`` in the output folder. Per-graph errors and rows come
+from :mod:`posernet.metrics` (``relative_errors_per_graph``/``relative_rows``, and through
+:func:`posernet.sync.evaluate.absolute_table` ``absolute_errors_per_graph``/``absolute_rows``),
+the code behind every other table. Examples::
 
     posernet-eval ckpt_path=outputs/train/.../checkpoints/best.ckpt data.root=outputs/data/tiny
     posernet-eval ckpt_path=... graphs=some/graphs.pt estimate=bb
@@ -53,9 +56,9 @@ def _test_batches(cfg: DictConfig) -> tuple[Iterable[Any], str]:
 def evaluate(cfg: DictConfig) -> dict[str, Any]:
     """Evaluate ``cfg.ckpt_path`` on the configured test set; return the tables and paths."""
     from ..graph import GraphValidationError
-    from ..metrics import per_graph_mean, relative_pose_errors
+    from ..metrics import relative_errors_per_graph, relative_rows
     from ..nn import PoserNet
-    from ..report import ResultTable, relative_row
+    from ..report import ResultTable, TableRow
 
     check_config(cfg, "eval")
     quiet_lightning()
@@ -67,7 +70,8 @@ def evaluate(cfg: DictConfig) -> dict[str, Any]:
     sync_name = str(cfg.sync.get("name", "none")) if cfg.get("sync") else "none"
     sync = _sync_backend(cfg) if sync_name != "none" else None
 
-    errs: dict[str, list[torch.Tensor]] = {k: [] for k in ("rot0", "tdir0", "rot", "tdir")}
+    # Per-graph errors per stage (``initial``/``refined``), from the shared table code.
+    errs: dict[str, dict[str, list[torch.Tensor]]] = {"initial": {}, "refined": {}}
     abs_errs: dict[str, Any] = {}
     n_graphs = 0
     with torch.inference_mode():
@@ -80,20 +84,22 @@ def evaluate(cfg: DictConfig) -> dict[str, Any]:
             refined = module(batch)
             n = batch.num_graphs
             n_graphs += n
-            for tag, pose in (("0", batch.edge_pose), ("", refined)):
-                rot, tdir = relative_pose_errors(pose, batch.edge_pose_gt)
-                errs["rot" + tag].append(per_graph_mean(rot, batch.edge_batch, n).cpu())
-                errs["tdir" + tag].append(per_graph_mean(tdir, batch.edge_batch, n).cpu())
+            for stage, pose in (("initial", batch.edge_pose), ("refined", refined)):
+                per_graph = relative_errors_per_graph(pose, batch.edge_pose_gt,
+                                                      batch.edge_batch, n)
+                for key, v in per_graph.items():
+                    errs[stage].setdefault(key, []).append(v.cpu())
             if sync is not None:
                 _collect_absolute(sync, batch, refined, abs_errs)
     if n_graphs == 0:
         raise FileNotFoundError(f"no test graphs found in {source}")
-    cat = {k: torch.cat(v) for k, v in errs.items()}
     est = cfg.get("estimate")
     label = str(est).upper() if est else "input"
+    names = {"initial": "Initial", "refined": "PoserNet"}
     table = ResultTable(
-        rows=[relative_row((label, "Initial"), cat["rot0"], cat["tdir0"]),
-              relative_row((label, "PoserNet"), cat["rot"], cat["tdir"])],
+        rows=[TableRow((label, names[stage]),
+                       relative_rows({k: torch.cat(v) for k, v in errs[stage].items()}))
+              for stage in ("initial", "refined")],
         title=f"Relative poses: {n_graphs} test graphs from {source}",
         note=f"Checkpoint: {cfg.ckpt_path}",
     )
@@ -126,10 +132,11 @@ def _collect_absolute(sync: Any, batch: Any, refined: torch.Tensor,
 
     if batch.pose_gt is None:
         return
-    for tag, pose in (("0", batch.edge_pose), ("", refined)):
+    for stage, pose in (("initial", batch.edge_pose), ("refined", refined)):
         t = absolute_table(batch, pose, sync)
-        out.setdefault("rot" + tag, []).append(t["per_graph"]["rotation_deg"].cpu())
-        out.setdefault("trans" + tag, []).append(t["per_graph"]["position_m"].cpu())
+        per_stage = out.setdefault(stage, {"rot": [], "trans": []})
+        per_stage["rot"].append(t["per_graph"]["rotation_deg"].cpu())
+        per_stage["trans"].append(t["per_graph"]["position_m"].cpu())
         out["note"] = (f"Scale: {t['backend'].get('scale_label', t['scale'])}; alignment: "
                        f"{t['alignment']} per connected component; rotations aligned by the "
                        f"{t['rotation_gauge']}"
@@ -138,15 +145,13 @@ def _collect_absolute(sync: Any, batch: Any, refined: torch.Tensor,
 
 def _absolute_table(abs_errs: dict[str, Any], label: str, sync_name: str,
                     out_dir: Path, digits: int) -> dict[str, Any]:
-    from ..metrics import ANGLE_THRESHOLDS_DEG, METRE_THRESHOLDS, threshold_row
+    from ..metrics import absolute_rows
     from ..report import ABSOLUTE_GROUPS, ResultTable, TableRow
 
-    cat = {k: torch.cat(v) for k, v in abs_errs.items() if k != "note"}
     rows = [
-        TableRow((label, stage), {
-            "rot": threshold_row(cat["rot" + tag], ANGLE_THRESHOLDS_DEG),
-            "trans": threshold_row(cat["trans" + tag], METRE_THRESHOLDS)})
-        for tag, stage in (("0", sync_name), ("", f"{sync_name} + PoserNet"))
+        TableRow((label, name), absolute_rows(
+            {k: torch.cat(v) for k, v in abs_errs[stage].items()}))
+        for stage, name in (("initial", sync_name), ("refined", f"{sync_name} + PoserNet"))
     ]
     table = ResultTable(rows=rows, groups=ABSOLUTE_GROUPS, note=abs_errs.get("note"),
                         title=f"Absolute poses after motion averaging ({sync_name})")
