@@ -2,10 +2,14 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import pytest
 from hydra import compose, initialize_config_dir
 
 from posernet.cli import CONFIG_DIR
+
+EXPERIMENTS = sorted(p.stem for p in (Path(CONFIG_DIR) / "experiment").glob("*.yaml"))
 
 
 def cfg(*overrides: str):
@@ -28,6 +32,41 @@ def test_experiment_overrides(name, estimate, size, lr, epochs):
 def test_sweep_experiments_declare_their_sweeps():
     c = cfg("+experiment=depth_sweep")
     assert c.hydra.sweeper.params["model.depth"] == "2,3,4,5"
+    c = cfg("+experiment=alpha_sweep")
+    assert c.hydra.sweeper.params["model.alpha"] == "0.1,0.5,1"
     c = cfg("+experiment=leave_one_out")
     assert "redkitchen" in c.hydra.sweeper.params["data.leave_out_scene"]
     assert c.test_after_training is True
+
+
+@pytest.fixture(scope="module")
+def tiny_data(tmp_path_factory):
+    from posernet.data.synthetic import generate_dataset
+
+    root = tmp_path_factory.mktemp("tiny")
+    generate_dataset("tiny", root, workers=1, progress=False, echo=None)
+    return root
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", EXPERIMENTS)
+def test_every_experiment_file_trains_with_fast_dev_run(name, tiny_data, tmp_path):
+    """Every ``experiment/*.yaml`` (found by glob) runs through ``posernet-train``'s own
+    ``train(cfg)`` for one fast_dev_run step (a sweep file: its base values)."""
+    import math
+
+    from hydra.core.hydra_config import HydraConfig
+
+    from posernet.cli.train import train
+
+    assert len(EXPERIMENTS) >= 6
+    overrides = [f"+experiment={name}", f"data.root={tiny_data}", "trainer.fast_dev_run=true",
+                 f"out_dir={tmp_path}", "data.num_workers=0", "hydra.mode=RUN"]
+    if name == "leave_one_out":
+        overrides.append("data.leave_out_scene=fire")
+    if name == "large_graphs":
+        overrides.append("data.val_size=small")
+    c = cfg(*overrides)
+    HydraConfig.instance().set_config(c)
+    result = train(c)
+    assert isinstance(result, float) and (math.isnan(result) or result >= 0)
