@@ -19,8 +19,7 @@ from hydra import compose, initialize_config_dir
 
 from posernet.cli import CONFIG_DIR
 from posernet.cli.train import train
-from posernet.graph import save_graphs
-from posernet.testing import random_view_graph
+from posernet.testing import write_random_dataset
 
 pytestmark = [pytest.mark.slow,
               pytest.mark.filterwarnings("ignore::UserWarning", "ignore::DeprecationWarning")]
@@ -31,25 +30,8 @@ QUIET = ["trainer.enable_progress_bar=false", "trainer.enable_model_summary=fals
 
 
 def write_dataset(root: Path, per_scene: dict[str, int], seed: int = 0) -> Path:
-    """A tiny dataset in the on-disk layout of ``posernet-make-data``:
-    ``ROOT/manifest.json`` + ``ROOT/small/<split>/<scene>.pt`` with ``kp``/``bb`` estimates."""
-    gen = torch.Generator().manual_seed(seed)
-    counts: dict[str, dict[str, int]] = {}
-    for split, n in per_scene.items():
-        for scene in SCENES:
-            gs = []
-            for i in range(n):
-                g = random_view_graph(extra_edges=5, pairs_per_edge=(2, 5), generator=gen,
-                                      name=f"{scene}/{split}/{i}")
-                g.estimates = {"kp": g.edge_pose, "bb": g.edge_pose.clone()}
-                g.meta.update(scene=scene, split=split)
-                gs.append(g)
-            save_graphs(root / "small" / split / f"{scene}.pt", gs)
-            counts.setdefault(split, {})[scene] = n
-    manifest = {"name": "test", "splits": {"small": {split: list(SCENES) for split in counts}},
-                "counts": {"small": counts}}
-    (root / "manifest.json").write_text(json.dumps(manifest))
-    return root
+    """A small dataset in ``posernet-make-data``'s layout (manifest + small/<split>/<scene>.pt)."""
+    return write_random_dataset(root, per_scene, SCENES, seed)
 
 
 @pytest.fixture(scope="module")

@@ -89,26 +89,9 @@ def test_moved_run_folder_keeps_its_best_score(tmp_path: Path) -> None:
 
 def write_dataset(root: Path, per_scene: dict[str, int], seed: int = 0) -> Path:
     """A small dataset in ``posernet-make-data``'s layout (manifest + small/<split>/<scene>.pt)."""
-    from posernet.graph import save_graphs
-    from posernet.testing import random_view_graph
+    from posernet.testing import write_random_dataset
 
-    gen = torch.Generator().manual_seed(seed)
-    counts: dict[str, dict[str, int]] = {}
-    for split, n in per_scene.items():
-        for scene in SCENES:
-            gs = []
-            for i in range(n):
-                g = random_view_graph(extra_edges=5, pairs_per_edge=(2, 5), rot_noise_deg=20.0,
-                                      generator=gen, name=f"{scene}/{split}/{i}")
-                g.estimates = {"kp": g.edge_pose, "bb": g.edge_pose.clone()}
-                g.meta.update(scene=scene, split=split)
-                gs.append(g)
-            save_graphs(root / "small" / split / f"{scene}.pt", gs)
-            counts.setdefault(split, {})[scene] = n
-    manifest = {"name": "test", "splits": {"small": {s: list(SCENES) for s in counts}},
-                "counts": {"small": counts}}
-    (root / "manifest.json").write_text(json.dumps(manifest))
-    return root
+    return write_random_dataset(root, per_scene, SCENES, seed, rot_noise_deg=20.0)
 
 
 def train_cli(args: list[str], cwd: Path) -> subprocess.CompletedProcess:

@@ -8,6 +8,10 @@ use :mod:`posernet.data.synthetic` for realistic data.
 from __future__ import annotations
 
 import itertools
+import json
+import os
+from pathlib import Path
+from typing import Any
 
 import torch
 from torch import Tensor
@@ -21,7 +25,7 @@ from .geometry import (
 )
 from .graph import ViewGraph, node_attributes
 
-__all__ = ["random_absolute_poses", "random_edges", "random_view_graph"]
+__all__ = ["random_absolute_poses", "random_edges", "random_view_graph", "write_random_dataset"]
 
 
 def random_absolute_poses(n: int, generator: torch.Generator | None = None,
@@ -115,3 +119,31 @@ def random_view_graph(
         meta={"name": name},
     )
     return graph.apply(lambda x: x.to(dtype) if x.is_floating_point() else x)
+
+
+def write_random_dataset(root: str | os.PathLike[str], per_scene: dict[str, int],
+                         scenes: tuple[str, ...] = ("chess", "fire"), seed: int = 0,
+                         **graph_kwargs: Any) -> Path:
+    """A small dataset of :func:`random_view_graph` graphs in ``posernet-make-data``'s layout:
+    ``ROOT/manifest.json`` + ``ROOT/small/<split>/<scene>.pt`` with ``kp``/``bb`` estimates;
+    ``per_scene`` maps a split to its number of graphs per scene."""
+    from .graph import save_graphs
+
+    root = Path(root)
+    gen = torch.Generator().manual_seed(seed)
+    counts: dict[str, dict[str, int]] = {}
+    for split, n in per_scene.items():
+        for scene in scenes:
+            gs = []
+            for i in range(n):
+                g = random_view_graph(extra_edges=5, pairs_per_edge=(2, 5), generator=gen,
+                                      name=f"{scene}/{split}/{i}", **graph_kwargs)
+                g.estimates = {"kp": g.edge_pose, "bb": g.edge_pose.clone()}
+                g.meta.update(scene=scene, split=split)
+                gs.append(g)
+            save_graphs(root / "small" / split / f"{scene}.pt", gs)
+            counts.setdefault(split, {})[scene] = n
+    manifest = {"name": "test", "splits": {"small": {s: list(scenes) for s in counts}},
+                "counts": {"small": counts}}
+    (root / "manifest.json").write_text(json.dumps(manifest))
+    return root
