@@ -25,14 +25,6 @@ from posernet.testing import random_view_graph
 PAIR_FIELDS = ("pair_edge", "pair_src", "pair_dst")
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _single_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
-
 def three_graphs(dtype: torch.dtype = torch.float64) -> list[ViewGraph]:
     """Three small graphs of different sizes, with estimates and metadata."""
     graphs = []
