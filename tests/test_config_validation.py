@@ -69,12 +69,13 @@ def test_every_shipped_group_option_passes(command, group, option, tmp_path):
 
 BAD = [
     # the three the issue starts from: a clear line instead of a late traceback
-    ("train", "model.depth=abc", "model.depth: 'abc' is not an integer >= 1"),
-    ("train", "model.depth=2.5", "model.depth: 2.5 is not an integer >= 1"),
-    ("train", "model.alpha=abc", "model.alpha: 'abc' is not a number >= 0"),
-    ("train", "model.lr=0", "model.lr: 0 is not a number > 0"),
-    ("train", "model.lr_factor=1.5", r"model.lr_factor: 1.5 is not a number in \(0, 1\)"),
-    ("train", "model.residual=maybe", "model.residual: 'maybe' is not true or false"),
+    ("train", "model.net.depth=abc", "model.net.depth: 'abc' is not an integer >= 1"),
+    ("train", "model.net.depth=2.5", "model.net.depth: 2.5 is not an integer >= 1"),
+    ("train", "model.loss.alpha=abc", "model.loss.alpha: 'abc' is not a number >= 0"),
+    ("train", "model.optimizer.lr=0", "model.optimizer.lr: 0 is not a number > 0"),
+    ("train", "model.scheduler.factor=1.5",
+     r"model.scheduler.factor: 1.5 is not a number in \(0, 1\)"),
+    ("train", "model.net.residual=maybe", "model.net.residual: 'maybe' is not true or false"),
     ("train", "data.batch_size=0", "data.batch_size: 0 is not an integer >= 1"),
     ("train", "data.estimate=xx", "data.estimate: 'xx' is not one of kp, bb"),
     ("train", "data.size=huge", "data.size: 'huge' is not one of small, large"),
@@ -184,7 +185,7 @@ def test_task_functions_check_before_writing(tmp_path):
     from posernet.cli.train import train
 
     out = tmp_path / "out"
-    for fn, command, bad in ((train, "train", "model.depth=abc"), (evaluate, "eval", "seed=x"),
+    for fn, command, bad in ((train, "train", "model.net.depth=abc"), (evaluate, "eval", "seed=x"),
                              (refine, "refine", "batch_size=0"), (demo, "demo", "workers=0"),
                              (reconstruct, "reconstruct", "pictures=-1"),
                              (make_data, "make_data", "seed=x")):
@@ -206,7 +207,12 @@ def test_make_data_execute_exits_1(tmp_path, capsys):
 
 
 @pytest.mark.parametrize(("argv", "message"), [
-    (["model.depth=abc"], "model.depth: 'abc' is not an integer >= 1"),
+    (["model.net.depth=abc"], "model.net.depth: 'abc' is not an integer >= 1"),
+    # the flat names of the model config before it had sections: say where they went
+    (["model.depth=3"], "model.depth: no such key in this command's config (the model config "
+                        "has sections: model.net.depth)"),
+    (["model.lr_patience=5"], "model.lr_patience: no such key in this command's config (the "
+                              "model config has sections: model.scheduler.patience)"),
     (["sync=nope"], "sync: 'nope' is not one of eig_se3, gtsam, none, rotation_translation"),
     (["model.dept=3"], "model.dept: no such key in this command's config"),
     (["device=cuda"], "device: no such key in this command's config (the trainer picks it"),
@@ -226,7 +232,7 @@ def test_preflight_reports_before_hydra_makes_a_run_folder(argv, message, tmp_pa
     assert list(tmp_path.iterdir()) == []
 
 
-@pytest.mark.parametrize("argv", [["--help"], ["--cfg", "job"], ["-m", "model.depth=2,3"]])
+@pytest.mark.parametrize("argv", [["--help"], ["--cfg", "job"], ["-m", "model.net.depth=2,3"]])
 def test_preflight_leaves_hydras_own_modes_alone(argv):
     preflight("posernet-train", "train", argv)  # no exit: Hydra handles these
 

@@ -43,3 +43,24 @@ def test_demo_runs_the_whole_pipeline(tmp_path):
     assert r.returncode == 0, r.stderr[-2000:]
     assert (out / "table.md").read_text() == first
     assert "rendering" not in r.stdout  # the rendered scene is reused too
+
+
+def test_demo_without_a_shipped_checkpoint_trains_with_posernet_train(tmp_path, monkeypatch):
+    """The demo's fallback model comes from posernet-train's own train(cfg), into OUT/train."""
+    from omegaconf import OmegaConf
+
+    import posernet.checkpoints as shipped
+    from posernet.cli.demo import _model
+    from posernet.testing import write_random_dataset
+
+    def missing(name: str = "x.ckpt"):
+        raise FileNotFoundError(f"shipped checkpoint {name!r} not found")
+
+    monkeypatch.setattr(shipped, "default_checkpoint", missing)
+    data = write_random_dataset(tmp_path / "data", {"train": 4, "val": 2, "test": 1})
+    cfg = OmegaConf.create({"train_epochs": 1, "estimate": "kp", "num_threads": 1})
+    model, source = _model(cfg, data, tmp_path / "out", "cpu")
+    assert source.startswith("trained here: ") and source.endswith("best.ckpt")
+    assert (tmp_path / "out" / "train" / "metrics.json").is_file()
+    assert (tmp_path / "out" / "train" / "logs" / "metrics.csv").is_file()
+    assert model.depth == 2 and not model.training

@@ -25,15 +25,15 @@ def cfg(*overrides: str):
 def test_experiment_overrides(name, estimate, size, lr, epochs):
     c = cfg(f"+experiment={name}", "data.root=/tmp/x")
     assert c.data.estimate == estimate and c.data.size == size
-    assert c.model.lr == lr and c.trainer.max_epochs == epochs
+    assert c.model.optimizer.lr == lr and c.trainer.max_epochs == epochs
     assert c.data.root == "/tmp/x"  # command-line overrides still win
 
 
 def test_sweep_experiments_declare_their_sweeps():
     c = cfg("+experiment=depth_sweep")
-    assert c.hydra.sweeper.params["model.depth"] == "2,3,4,5"
+    assert c.hydra.sweeper.params["model.net.depth"] == "2,3,4,5"
     c = cfg("+experiment=alpha_sweep")
-    assert c.hydra.sweeper.params["model.alpha"] == "0.1,0.5,1"
+    assert c.hydra.sweeper.params["model.loss.alpha"] == "0.1,0.5,1"
     c = cfg("+experiment=leave_one_out")
     assert "redkitchen" in c.hydra.sweeper.params["data.leave_out_scene"]
     assert c.test_after_training is True
@@ -67,6 +67,11 @@ def test_every_experiment_file_trains_with_fast_dev_run(name, tiny_data, tmp_pat
     if name == "large_graphs":
         overrides.append("data.val_size=small")
     c = cfg(*overrides)
-    HydraConfig.instance().set_config(c)
-    result = train(c)
+    hydra_config = HydraConfig.instance()
+    before = hydra_config.cfg
+    hydra_config.set_config(c)
+    try:
+        result = train(c)
+    finally:
+        hydra_config.cfg = before  # later tests compose without this run's Hydra config
     assert isinstance(result, float) and (math.isnan(result) or result >= 0)

@@ -156,14 +156,15 @@ def test_summary_merges_runs_into_one_table(tmp_path: Path) -> None:
     done = tmp_path / "models" / "kp-small-d2-a0.1" / "seed0" / "done.json"
     done.parent.mkdir(parents=True)
     done.write_text('{"checkpoint": "x.ckpt", "train_seconds": 12.4}')
-    write_summary(tmp_path, scale, {"table1": ok}, 2.0, "cpu")
+    write_summary(tmp_path, scale, {"table1": ok}, 2.0, "cpu", (2, 1))
     bad = {"ok": False, "seconds": 3.0, "files": [], "error": "ValueError: boom", "trained": []}
-    text = write_summary(tmp_path, scale, {"loo": bad}, 3.0, "cpu").read_text()
+    text = write_summary(tmp_path, scale, {"loo": bad}, 3.0, "cpu", (2, 1)).read_text()
     assert "| table1 | ok | 1.5 | 1 | 2 (12) | table1/table.md |" in text
     assert "| loo | FAILED (ValueError: boom) | 3.0 | 0 | 0 (0) |" in text
     assert "logical cores" in text and "torch" in text
     # a different scale starts a fresh record
-    other = write_summary(tmp_path, SCALES["medium"](), {"loo": bad}, 3.0, "cpu").read_text()
+    other = write_summary(tmp_path, SCALES["medium"](), {"loo": bad}, 3.0, "cpu",
+                          (50, 150)).read_text()
     assert "table1" not in other
 
 
@@ -204,11 +205,12 @@ def test_interrupted_model_resumes_from_last_epoch(quick_run: tuple[Path, dict],
     src, _ = quick_run
     (tmp_path / "data").symlink_to(src / "data", target_is_directory=True)
     spec, run_dir = ModelSpec(), tmp_path / "models" / ModelSpec().key / "seed0"
-    one = Context(scale_with(SCALES["quick"](), epochs_small=1), tmp_path)
+    quick = SCALES["quick"]()
+    one = Context(scale_with(quick, train={**quick.train, "trainer.max_epochs": 1}), tmp_path)
     one.checkpoint(spec, 0)
     assert json.loads((run_dir / "done.json").read_text())["epochs"] == 1
     (run_dir / "done.json").unlink()  # as if killed after its first epoch
-    two = Context(scale_with(SCALES["quick"](), epochs_small=3), tmp_path)
+    two = Context(scale_with(quick, train={**quick.train, "trainer.max_epochs": 3}), tmp_path)
     path = two.checkpoint(spec, 0)
     assert path is not None and path.is_file()
     record = json.loads((run_dir / "done.json").read_text())
@@ -297,3 +299,47 @@ def test_bad_data_or_jobs_are_clear_errors(tmp_path: Path) -> None:
     with pytest.raises(ValueError, match="jobs must be an integer >= 1"):
         run_experiments("quick", tmp_path, jobs=0, echo=None)
     assert main(["--out", str(tmp_path), "--data", str(tmp_path / "nope")]) == 1
+
+
+def test_runner_models_are_posernet_train_experiment_configs(tmp_path: Path) -> None:
+    """Every model the runner trains is posernet-train's config composed with one
+    experiment file: the same values as ``posernet-train +experiment=<file>``."""
+    from posernet.conf import compose
+    from posernet.experiments.runner import SCALES, Context, ModelSpec, sweep_values
+
+    ctx = Context(SCALES["paper"](), tmp_path)
+    for spec, name in ((ModelSpec(), "table1_kp"), (ModelSpec(estimate="bb"), "table1_bb"),
+                       (ModelSpec(size="large"), "large_graphs"),
+                       (ModelSpec(depth=4), "depth_sweep"), (ModelSpec(alpha=0.5), "alpha_sweep"),
+                       (ModelSpec(leave_out="fire"), "leave_one_out")):
+        assert spec.experiment()[0] == name
+        ours = ctx.train_config(spec, seed=1)
+        theirs = compose("train", [f"+experiment={name}", f"model.net.depth={spec.depth}",
+                                   f"model.loss.alpha={spec.alpha}"]
+                         + ([f"data.leave_out_scene={spec.leave_out}"] if spec.leave_out else []))
+        for key in ("model", "trainer.max_epochs", "data.estimate", "data.size",
+                    "data.batch_size", "data.eval_batch_size", "data.val_size",
+                    "data.leave_out_scene"):
+            node_a, node_b = ours, theirs
+            for part in key.split("."):
+                node_a, node_b = node_a[part], node_b[part]
+            assert node_a == node_b, (name, key)
+        assert ours.seed == 1 and ours.data.root == str(tmp_path / "data")
+        assert ours.out_dir == str(tmp_path / "models" / spec.key / "seed1")
+        assert ours.test_after_training is False
+    assert ctx.epochs() == (50, 150)  # the paper scale: the experiment files' own epochs
+    large = ctx.train_config(ModelSpec(size="large"))
+    assert (large.model.optimizer.lr, large.data.batch_size) == (0.01, 1)
+    # the quick scale overrides sizes only
+    quick = Context(SCALES["quick"](), tmp_path)
+    assert quick.epochs() == (2, 1)
+    assert quick.train_config(ModelSpec(size="large")).data.batch_size == 1
+    assert sweep_values("depth_sweep", "model.net.depth") == [2, 3, 4, 5]
+    assert sweep_values("alpha_sweep", "model.loss.alpha") == [0.1, 0.5, 1]
+
+
+def test_quote_value_round_trips_awkward_paths() -> None:
+    from posernet.conf import compose, quote_value
+
+    for path in ("/tmp/a b=c", "/tmp/it's", "x\\", "/data/${oops}", "/t/[1,2]"):
+        assert compose("train", [f"data.root={quote_value(path)}"]).data.root == path

@@ -10,14 +10,10 @@ import pytest
 import torch
 from torch.utils.data import DataLoader
 
+from posernet.checkpoints import CheckpointError, read_checkpoint
 from posernet.cli import CONFIG_DIR
 from posernet.graph import GraphBatch
-from posernet.lit import (
-    CheckpointError,
-    PoserNetModule,
-    load_posernet_checkpoint,
-    read_posernet_checkpoint,
-)
+from posernet.lit import PoserNetModule, load_posernet_checkpoint
 from posernet.nn import PoserNet
 from posernet.testing import random_view_graph
 from posernet.training import build_trainer
@@ -71,7 +67,7 @@ def val_rot(module: PoserNetModule, val: list) -> float:
 def test_training_lowers_validation_rotation_error(data, tmp_path: Path) -> None:
     train, val = data
     L.seed_everything(0, workers=True)
-    module = PoserNetModule(lr=5e-3)
+    module = PoserNetModule(optimizer={"lr": 5e-3})
     before = val_rot(module, val)
     t = trainer(tmp_path, epochs=6)
     t.fit(module, loader(train, shuffle=True), loader(val))
@@ -98,7 +94,8 @@ def test_per_graph_medians(data) -> None:
 def test_checkpoint_round_trip(data, tmp_path: Path) -> None:
     train, val = data
     L.seed_everything(1, workers=True)
-    module = PoserNetModule(depth=3, node_hidden=16, edge_hidden=4, residual=True, alpha=0.3)
+    module = PoserNetModule(net={"depth": 3, "node_hidden": 16, "edge_hidden": 4,
+                                 "residual": True}, loss={"alpha": 0.3})
     ckpt = L.pytorch.callbacks.ModelCheckpoint(dirpath=tmp_path, filename="best",
                                                monitor="val/loss", save_last=True)
     trainer(tmp_path, epochs=1, callbacks=[ckpt], limit_train_batches=2).fit(
@@ -109,30 +106,36 @@ def test_checkpoint_round_trip(data, tmp_path: Path) -> None:
     module.eval()
     expected = module(batch)
     loaded = PoserNetModule.load_from_checkpoint(path, map_location="cpu")  # no Hydra needed
-    assert loaded.hparams.depth == 3 and loaded.hparams.residual
-    assert loaded.hparams.alpha == 0.3
+    assert loaded.hparams.net["depth"] == 3 and loaded.hparams.net["residual"]
+    assert loaded.hparams.loss == {"alpha": 0.3}
     loaded.eval()
     torch.testing.assert_close(loaded(batch), expected)
     ours = load_posernet_checkpoint(path)
     torch.testing.assert_close(ours(batch), expected)
     bare = PoserNet.from_checkpoint(path)  # the network alone, without Lightning
     torch.testing.assert_close(bare(batch), expected)
-    assert read_posernet_checkpoint(path)["posernet"]["tag"] == "posernet.PoserNetModule"
+    stored = read_checkpoint(path)
+    assert stored["posernet"]["tag"] == "posernet.PoserNetModule"
+    # plain nested values: readable with weights_only=True, and every section filled in
+    assert sorted(stored["hyper_parameters"]) == ["loss", "net", "optimizer", "scheduler"]
+    assert stored["hyper_parameters"]["optimizer"] == {"lr": 1e-3, "weight_decay": 0.0}
 
 
 def test_last_checkpoint_is_the_latest_epoch_even_without_improvement(data,
                                                                        tmp_path: Path) -> None:
-    from posernet.lit import checkpoint_callbacks
+    from conftest import posernet_train_callbacks
 
     train, val = data
     L.seed_everything(1, workers=True)
-    module = PoserNetModule(lr=0.0)  # weights never change: val/loss never improves after epoch 0
-    trainer(tmp_path, epochs=3, callbacks=checkpoint_callbacks(tmp_path),
+    # weights never change: val/loss never improves after epoch 0
+    module = PoserNetModule(optimizer={"lr": 0.0})
+    trainer(tmp_path, epochs=3, callbacks=posernet_train_callbacks(tmp_path),
             limit_train_batches=2).fit(module, loader(train[:16]), loader(val[:8]))
-    epoch = {name: torch.load(tmp_path / f"{name}.ckpt", weights_only=False)["epoch"]
+    folder = tmp_path / "checkpoints"
+    epoch = {name: torch.load(folder / f"{name}.ckpt", weights_only=False)["epoch"]
              for name in ("best", "last")}
     assert epoch == {"best": 0, "last": 2}  # resuming from last.ckpt repeats no epoch
-    assert sorted(p.name for p in tmp_path.glob("*.ckpt")) == ["best.ckpt", "last.ckpt"]
+    assert sorted(p.name for p in folder.glob("*.ckpt")) == ["best.ckpt", "last.ckpt"]
 
 
 def test_bad_checkpoints_give_clear_errors(tmp_path: Path) -> None:
@@ -157,7 +160,7 @@ def test_bad_checkpoints_give_clear_errors(tmp_path: Path) -> None:
         PoserNet.from_checkpoint(other)
     # one reader for both loaders: extra (non-network) weights are refused by both alike
     extra = tmp_path / "extra.ckpt"
-    module = PoserNetModule(depth=1)
+    module = PoserNetModule(net={"depth": 1})
     torch.save({"state_dict": {**module.state_dict(), "head.w": torch.zeros(1)},
                 "hyper_parameters": dict(module.hparams),
                 "posernet": {"tag": "posernet.PoserNetModule"}}, extra)
@@ -168,7 +171,7 @@ def test_bad_checkpoints_give_clear_errors(tmp_path: Path) -> None:
     torch.save({"state_dict": module.state_dict(), "hyper_parameters": dict(module.hparams),
                 "posernet": {"tag": "posernet.PoserNetModule"}}, good)
     loaded = load_posernet_checkpoint(good)
-    assert not loaded.training and loaded.hparams.depth == 1
+    assert not loaded.training and loaded.hparams.net["depth"] == 1
     for name, value in module.state_dict().items():
         assert torch.equal(loaded.state_dict()[name], value)
 
@@ -191,7 +194,7 @@ def test_seeded_runs_are_reproducible(data, tmp_path: Path) -> None:
 
 
 def test_optimizer_and_scheduler() -> None:
-    module = PoserNetModule(lr=0.02, lr_patience=3)
+    module = PoserNetModule(optimizer={"lr": 0.02}, scheduler={"patience": 3})
     conf = module.configure_optimizers()
     opt, sched = conf["optimizer"], conf["lr_scheduler"]
     assert isinstance(opt, torch.optim.Adam) and opt.param_groups[0]["lr"] == 0.02
@@ -226,7 +229,7 @@ def test_every_parameter_of_each_model_config_gets_a_gradient(name: str, data) -
     module = hydra.utils.instantiate(cfg.model)
     assert isinstance(module, PoserNetModule)
     batch = GraphBatch.from_graphs(data[0][:4])
-    posernet_loss(module(batch), batch.edge_pose_gt, module.hparams.alpha).loss.backward()
+    posernet_loss(module(batch), batch.edge_pose_gt, module.hparams.loss["alpha"]).loss.backward()
     for pname, p in module.named_parameters():
         assert p.grad is not None, f"model={name}: {pname} is not used by the loss"
         assert p.grad.abs().sum() > 0, f"model={name}: {pname} gets a zero gradient"
@@ -242,21 +245,45 @@ def test_training_resumes_from_a_checkpoint_of_the_older_layout(data, tmp_path: 
     ckpt = torch.load(old, weights_only=True)
     assert any(k.startswith("model.convs.1.psi_node.") for k in ckpt["state_dict"])
     L.seed_everything(0, workers=True)
+    assert ckpt["hyper_parameters"]["lr_patience"] == 3  # the flat layout of older configs
     module = PoserNetModule(**ckpt["hyper_parameters"])
+    assert module.hparams.scheduler["patience"] == 3
+    assert module.hparams.net["depth"] == ckpt["hyper_parameters"]["depth"]
     t = trainer(tmp_path, epochs=ckpt["epoch"] + 2, limit_train_batches=2, limit_val_batches=1)
     t.fit(module, loader(train[:16]), loader(val[:8]), ckpt_path=old)
     assert t.current_epoch == ckpt["epoch"] + 2
     assert t.global_step == ckpt["global_step"] + 2
 
 
+def test_flat_hyper_parameters_of_older_checkpoints_map_to_sections(tmp_path: Path) -> None:
+    from posernet.lit import module_hparams
+
+    flat = {"depth": 3, "alpha": 0.5, "lr": 0.01, "weight_decay": 1e-4, "lr_patience": 7,
+            "lr_factor": 0.5, "min_lr": 1e-5, "residual": True}
+    hp = module_hparams(**flat)
+    assert hp["net"]["depth"] == 3 and hp["net"]["residual"] is True
+    assert hp["loss"] == {"alpha": 0.5}
+    assert hp["optimizer"] == {"lr": 0.01, "weight_decay": 1e-4}
+    assert hp["scheduler"] == {"patience": 7, "factor": 0.5, "min_lr": 1e-5}
+    assert module_hparams(net={"depth": 4}, depth=3)["net"]["depth"] == 4  # sections win
+    with pytest.raises(TypeError, match="'dept'"):
+        module_hparams(dept=3)
+    with pytest.raises(TypeError, match=r"unknown net hyper-parameter\(s\) \['lr'\]"):
+        PoserNetModule(net={"lr": 0.1})
+    # Lightning's own loader on a checkpoint with flat hyper-parameters (the shipped one)
+    loaded = PoserNetModule.load_from_checkpoint(SHIPPED, map_location="cpu")
+    assert loaded.hparams.optimizer["lr"] == torch.load(
+        SHIPPED, weights_only=True)["hyper_parameters"]["lr"]
+
+
 def test_upgrade_optimizer_states_drops_and_cuts_the_old_entries() -> None:
     from posernet.lit import upgrade_optimizer_states
     from posernet.nn import PoserConv
 
-    module = PoserNetModule(depth=2, edge_hidden=3)
+    module = PoserNetModule(net={"depth": 2, "edge_hidden": 3})
     last = module.model.convs[1]
     # the same module as built before: a full last layer (node MLP, hidden-state rows)
-    old = PoserNetModule(depth=2, edge_hidden=3)
+    old = PoserNetModule(net={"depth": 2, "edge_hidden": 3})
     old.model.convs[1] = PoserConv(last.node_in, last.node_out, 3)
     opt = torch.optim.Adam(old.parameters(), lr=1e-3)
     batch = GraphBatch.from_graphs(graphs(2, 5))

@@ -61,8 +61,8 @@ def trained(dataset: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 def test_fast_dev_run(dataset: Path, tmp_path: Path) -> None:
     cfg = compose_train([f"data.root={dataset}", f"out_dir={tmp_path}",
-                         "trainer.fast_dev_run=true", "model.depth=1", *QUIET])
-    assert cfg.model.alpha == 0.1 and cfg.trainer.accelerator == "cpu"
+                         "trainer.fast_dev_run=true", "model.net.depth=1", *QUIET])
+    assert cfg.model.loss.alpha == 0.1 and cfg.trainer.accelerator == "cpu"
     value = train(cfg)
     assert isinstance(value, float)
 
@@ -86,8 +86,8 @@ def test_checkpoints_and_resume(trained: Path, dataset: Path, tmp_path: Path) ->
 
 def test_multirun_sweep(dataset: Path, tmp_path: Path) -> None:
     sweep = tmp_path / "sweep"
-    cmd = [sys.executable, "-m", "posernet.cli.train", "-m", "model.depth=1,2",
-           "model.alpha=0.1,0.5", f"data.root={dataset}", "trainer.max_epochs=1",
+    cmd = [sys.executable, "-m", "posernet.cli.train", "-m", "model.net.depth=1,2",
+           "model.loss.alpha=0.1,0.5", f"data.root={dataset}", "trainer.max_epochs=1",
            f"hydra.sweep.dir={sweep}", *QUIET]
     res = subprocess.run(cmd, capture_output=True, text=True, timeout=300, env=env())
     assert res.returncode == 0, res.stderr[-3000:]
@@ -96,8 +96,8 @@ def test_multirun_sweep(dataset: Path, tmp_path: Path) -> None:
     # One folder per job: "<job number>_<overrides>" (noisy keys such as num_threads excluded).
     assert {p.name.split("_", 1)[0] for p in jobs} == {"0", "1", "2", "3"}
     names = {p.name.split("_", 1)[1] for p in jobs}
-    assert names == {f"data.batch_size=4,model.alpha={a},model.depth={d},trainer.max_epochs=1"
-                     for a in ("0.1", "0.5") for d in (1, 2)}
+    assert names == {f"data.batch_size=4,model.loss.alpha={a},model.net.depth={d},"
+                     "trainer.max_epochs=1" for a in ("0.1", "0.5") for d in (1, 2)}
     for job in jobs:
         assert (job / "checkpoints" / "last.ckpt").is_file()
         assert json.loads((job / "metrics.json").read_text())["best"] is not None

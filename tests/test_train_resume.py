@@ -47,7 +47,7 @@ def test_resume_overrides(tmp_path: Path) -> None:
     other.write_bytes(b"")
     for argv in ([f"ckpt_path={last}", "hydra.run.dir=somewhere"],
                  [f"ckpt_path={last}", "out_dir=somewhere"],
-                 ["-m", f"ckpt_path={last}", "model.depth=1,2"],
+                 ["-m", f"ckpt_path={last}", "model.net.depth=1,2"],
                  base, ["ckpt_path=null"], ["ckpt_path=last"],
                  [f"ckpt_path={run / 'checkpoints' / 'missing.ckpt'}"],
                  [f"ckpt_path={other}"]):

@@ -7,13 +7,13 @@ from pathlib import Path
 
 import pytest
 import torch
+from conftest import posernet_train_callbacks
 from hydra import compose, initialize_config_dir
 from lightning.pytorch.callbacks import ModelCheckpoint
 
 from posernet.cli import CONFIG_DIR
 from posernet.training import (
     build_trainer,
-    checkpoint_callbacks,
     determinism_policy,
     trainer_from_config,
 )
@@ -44,11 +44,10 @@ def test_build_trainer_applies_the_policy_and_overrides(tmp_path: Path) -> None:
 
 
 def test_checkpoint_callbacks_best_and_last(tmp_path: Path) -> None:
-    best, last = checkpoint_callbacks(tmp_path)
+    best, last = posernet_train_callbacks(tmp_path)
     assert isinstance(best, ModelCheckpoint) and best.monitor == "val/loss"
     assert last.monitor is None and last.filename == "last"
-    from posernet.lit import checkpoint_callbacks as from_lit
-    assert from_lit is checkpoint_callbacks  # still importable from posernet.lit
+    assert best.dirpath == last.dirpath == str(tmp_path / "checkpoints")
 
 
 @pytest.mark.parametrize("group", ["cpu", "gpu", "ddp"])
@@ -64,7 +63,7 @@ def test_trainer_from_config(tmp_path: Path) -> None:
         cfg = compose(config_name="train", overrides=[
             f"out_dir={tmp_path}", "trainer.max_epochs=3", "trainer.gradient_clip_val=10",
             "trainer.gradient_clip_algorithm=value", "trainer.enable_progress_bar=false"])
-    cbs = checkpoint_callbacks(tmp_path)
+    cbs = posernet_train_callbacks(tmp_path)
     trainer = trainer_from_config(cfg.trainer, callbacks=cbs, logger=False)
     assert trainer.max_epochs == 3 and trainer.gradient_clip_val == 10
     assert trainer.gradient_clip_algorithm == "value"
@@ -79,3 +78,8 @@ def test_callers_build_their_trainers_with_the_builder() -> None:
     for mod in (demo, train, runner):
         src = inspect.getsource(mod)
         assert "L.Trainer(" not in src and "instantiate(cfg.trainer" not in src, mod.__name__
+    # the demo's fallback model and the experiments train through posernet-train's train(cfg)
+    for mod in (demo, runner):
+        src = inspect.getsource(mod)
+        assert "build_trainer" not in src, mod.__name__
+        assert "from .train import train" in src or "from ..cli.train import train" in src

@@ -5,6 +5,7 @@ The public API is re-exported here; see the README for a tour.
 """
 
 from . import geometry, sync
+from .checkpoints import CheckpointError, read_checkpoint
 from .graph import (
     GraphBatch,
     GraphValidationError,
@@ -39,6 +40,7 @@ def __getattr__(name: str) -> object:
     raise AttributeError(f"module 'posernet' has no attribute {name!r}")
 
 __all__ = [
+    "CheckpointError",
     "GraphBatch",
     "GraphValidationError",
     "PoserConv",
@@ -54,6 +56,7 @@ __all__ = [
     "normalize_boxes",
     "per_graph_mean",
     "posernet_loss",
+    "read_checkpoint",
     "reconstruct",
     "relative_pose_errors",
     "save_graphs",

@@ -13,7 +13,9 @@ Optimiser: Adam with reduce-on-plateau on ``val/loss`` (paper: patience 3 epochs
 
 from __future__ import annotations
 
+import inspect
 import os
+from collections.abc import Mapping
 from typing import Any
 
 import lightning as L
@@ -21,59 +23,99 @@ import torch
 from torch import Tensor
 
 from . import __version__
+from .checkpoints import CHECKPOINT_TAG, CheckpointError, read_checkpoint
 from .graph import GraphBatch
 from .metrics import relative_errors_per_graph
 from .nn import PoserNet, posernet_loss
-from .nn.model import CHECKPOINT_TAG, CheckpointError
-from .nn.model import read_checkpoint as read_posernet_checkpoint
-from .training import checkpoint_callbacks
 
-__all__ = ["CHECKPOINT_TAG", "CheckpointError", "PoserNetModule", "checkpoint_callbacks",
-           "load_posernet_checkpoint", "read_posernet_checkpoint", "upgrade_optimizer_states"]
+__all__ = ["SECTIONS", "PoserNetModule", "flat_name_section", "load_posernet_checkpoint",
+           "module_hparams", "upgrade_optimizer_states"]
 
+
+#: the sections of a model config and of ``PoserNetModule``'s hyper-parameters, with defaults
+#: (``net``: the arguments of :class:`posernet.nn.PoserNet`, defaults from its signature)
+SECTIONS: dict[str, dict[str, Any]] = {
+    "net": {k: p.default for k, p in inspect.signature(PoserNet).parameters.items()},
+    "loss": {"alpha": 0.1},
+    "optimizer": {"lr": 1e-3, "weight_decay": 0.0},
+    "scheduler": {"patience": 3, "factor": 0.316, "min_lr": 1e-6},
+}
+
+#: where each flat name of checkpoints written before the config had sections now lives
+_FLAT_NAMES: dict[str, tuple[str, str]] = {
+    **{k: ("net", k) for k in SECTIONS["net"]},
+    "alpha": ("loss", "alpha"), "lr": ("optimizer", "lr"),
+    "weight_decay": ("optimizer", "weight_decay"), "lr_patience": ("scheduler", "patience"),
+    "lr_factor": ("scheduler", "factor"), "min_lr": ("scheduler", "min_lr"),
+}
+
+
+def flat_name_section(name: str) -> str | None:
+    """``"section.name"`` of an older flat hyper-parameter name (``lr`` -> ``optimizer.lr``)."""
+    where = _FLAT_NAMES.get(name)
+    return f"{where[0]}.{where[1]}" if where else None
+
+
+def module_hparams(net: Mapping[str, Any] | None = None, loss: Mapping[str, Any] | None = None,
+                   optimizer: Mapping[str, Any] | None = None,
+                   scheduler: Mapping[str, Any] | None = None,
+                   **flat: Any) -> dict[str, dict[str, Any]]:
+    """``PoserNetModule``'s hyper-parameters as plain nested dicts, every value filled in.
+
+    ``flat`` takes the single-level names of older checkpoints (``depth``, ``alpha``, ``lr``,
+    ``lr_patience``, ...); a given section value wins over a flat one. Unknown names raise
+    ``TypeError`` naming them.
+    """
+    given = {"net": net, "loss": loss, "optimizer": optimizer, "scheduler": scheduler}
+    unknown = [k for k in flat if k not in _FLAT_NAMES]
+    if unknown:
+        raise TypeError(f"unknown PoserNetModule hyper-parameter(s) {unknown}; sections: "
+                        f"{list(SECTIONS)}")
+    out = {name: dict(defaults) for name, defaults in SECTIONS.items()}
+    for key, value in flat.items():
+        section, name = _FLAT_NAMES[key]
+        out[section][name] = value
+    for section, values in given.items():
+        if values is None:
+            continue
+        if not isinstance(values, Mapping):
+            raise TypeError(f"PoserNetModule {section}= must be a mapping, got "
+                            f"{type(values).__name__}")
+        bad = [k for k in values if k not in SECTIONS[section]]
+        if bad:
+            raise TypeError(f"unknown {section} hyper-parameter(s) {bad}; known: "
+                            f"{list(SECTIONS[section])}")
+        out[section].update({str(k): v for k, v in values.items()})
+    return out
 
 
 class PoserNetModule(L.LightningModule):
     """PoserNet + its loss + optimiser, for Lightning.
 
+    The arguments mirror ``conf/model/posernet.yaml``, one plain mapping per section, so a
+    checkpoint's hyper-parameters load with ``weights_only=True`` and without Hydra:
+
     Args:
-        depth, node_hidden, edge_hidden, mlp_hidden, mlp_layers, negative_slope,
-        shared_weights, residual, unit_output, nested_mean: see :class:`posernet.nn.PoserNet`.
-        alpha: weight of the normalisation terms of the loss (default 0.1).
-        lr: Adam learning rate (default 1e-3; the paper uses 1e-2 for large graphs).
-        weight_decay: Adam weight decay (default 0).
-        lr_patience: epochs without ``val/loss`` improvement before the lr is reduced (3).
-        lr_factor: multiplicative lr reduction (default 0.316).
-        min_lr: lower bound of the learning rate (default 1e-6).
+        net: arguments of :class:`posernet.nn.PoserNet` (``depth``, ``node_hidden``,
+            ``edge_hidden``, ``mlp_hidden``, ``mlp_layers``, ``negative_slope``,
+            ``shared_weights``, ``residual``, ``unit_output``, ``nested_mean``).
+        loss: ``alpha``, the weight of the normalisation terms of the loss (default 0.1).
+        optimizer: Adam's ``lr`` (default 1e-3; the paper uses 1e-2 for large graphs) and
+            ``weight_decay`` (0).
+        scheduler: reduce-on-plateau on ``val/loss``: ``patience`` epochs without improvement
+            (3), multiplicative ``factor`` (0.316), lower bound ``min_lr`` (1e-6).
+        **flat: the single-level names of checkpoints written before the sections existed
+            (``depth=2, alpha=0.1, lr=1e-3, lr_patience=3, ...``), so they still load.
     """
 
-    def __init__(
-        self,
-        depth: int = 2,
-        node_hidden: int = 32,
-        edge_hidden: int = 0,
-        mlp_hidden: int = 32,
-        mlp_layers: int = 3,
-        negative_slope: float = 0.01,
-        shared_weights: bool = False,
-        residual: bool = False,
-        unit_output: bool = False,
-        nested_mean: bool = True,
-        alpha: float = 0.1,
-        lr: float = 1e-3,
-        weight_decay: float = 0.0,
-        lr_patience: int = 3,
-        lr_factor: float = 0.316,
-        min_lr: float = 1e-6,
-    ) -> None:
+    def __init__(self, net: Mapping[str, Any] | None = None,
+                 loss: Mapping[str, Any] | None = None,
+                 optimizer: Mapping[str, Any] | None = None,
+                 scheduler: Mapping[str, Any] | None = None, **flat: Any) -> None:
         super().__init__()
-        self.save_hyperparameters()
-        self.model = PoserNet(
-            depth=depth, node_hidden=node_hidden, edge_hidden=edge_hidden,
-            mlp_hidden=mlp_hidden, mlp_layers=mlp_layers, negative_slope=negative_slope,
-            shared_weights=shared_weights, residual=residual, unit_output=unit_output,
-            nested_mean=nested_mean,
-        )
+        hp = module_hparams(net, loss, optimizer, scheduler, **flat)
+        self.save_hyperparameters(hp)
+        self.model = PoserNet(**hp["net"])
         self._errors: dict[str, list[Tensor]] = {}
 
     # ------------------------------------------------------------------ inference
@@ -86,7 +128,7 @@ class PoserNetModule(L.LightningModule):
         if batch.edge_pose_gt is None:
             raise ValueError(f"{split} batch has no 'edge_pose_gt': cannot compute the loss")
         pred = self(batch)
-        out = posernet_loss(pred, batch.edge_pose_gt, self.hparams.alpha)
+        out = posernet_loss(pred, batch.edge_pose_gt, self.hparams.loss["alpha"])
         n = batch.num_graphs
         on_step = split == "train"
         self.log(f"{split}/loss", out.loss, batch_size=n, on_step=on_step, on_epoch=True,
@@ -154,10 +196,12 @@ class PoserNetModule(L.LightningModule):
 
     # ------------------------------------------------------------------ optimiser
     def configure_optimizers(self) -> dict[str, Any]:
-        hp = self.hparams
-        opt = torch.optim.Adam(self.parameters(), lr=hp.lr, weight_decay=hp.weight_decay)
+        opt_hp, sched_hp = self.hparams.optimizer, self.hparams.scheduler
+        opt = torch.optim.Adam(self.parameters(), lr=opt_hp["lr"],
+                               weight_decay=opt_hp["weight_decay"])
         sched = torch.optim.lr_scheduler.ReduceLROnPlateau(
-            opt, mode="min", factor=hp.lr_factor, patience=hp.lr_patience, min_lr=hp.min_lr)
+            opt, mode="min", factor=sched_hp["factor"], patience=sched_hp["patience"],
+            min_lr=sched_hp["min_lr"])
         # strict=False: runs without validation (e.g. limit_val_batches=0) only warn.
         return {"optimizer": opt,
                 "lr_scheduler": {"scheduler": sched, "monitor": "val/loss", "interval": "epoch",
@@ -177,12 +221,6 @@ class PoserNetModule(L.LightningModule):
     def num_parameters(self) -> int:
         """Number of trainable parameters of the network."""
         return sum(p.numel() for p in self.model.parameters() if p.requires_grad)
-
-
-# --------------------------------------------------------------------------- checkpoints
-
-
-# checkpoint_callbacks lives with the Trainer builder (posernet.training); imported above.
 
 
 # --------------------------------------------------------------------------- old checkpoints
@@ -242,10 +280,10 @@ def load_posernet_checkpoint(path: str | os.PathLike[str],
 
     Equivalent to ``PoserNetModule.load_from_checkpoint(path)`` for good files; a missing file,
     another model's checkpoint or mismatching weights raise :class:`CheckpointError`. The file
-    is read by :func:`posernet.nn.model.read_checkpoint` and its weights by
+    is read by :func:`posernet.checkpoints.read_checkpoint` and its weights by
     :meth:`PoserNet.from_checkpoint_dict`, the same code as :meth:`PoserNet.from_checkpoint`.
     """
-    ckpt = read_posernet_checkpoint(path)
+    ckpt = read_checkpoint(path)
     network = PoserNet.from_checkpoint_dict(ckpt, path)  # the one reader of the weights
     try:
         module = PoserNetModule(**dict(ckpt.get("hyper_parameters") or {}))

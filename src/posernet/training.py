@@ -1,8 +1,9 @@
 """The one place that builds Lightning Trainers for PoserNet.
 
-``posernet-train`` (``conf/trainer/*.yaml``, via :func:`trainer_from_config`), the demo's
-fallback training and the paper experiments (:mod:`posernet.experiments.runner`) all call
-:func:`build_trainer`, so they share one determinism policy:
+``posernet-train`` (``conf/trainer/*.yaml``, via :func:`trainer_from_config`) builds every
+Trainer of the project -- the demo's fallback training and the paper experiments
+(:mod:`posernet.experiments.runner`) run ``posernet-train``'s ``train(cfg)`` -- so they share
+one determinism policy:
 
 * **CPU**: ``deterministic=True`` (``torch.use_deterministic_algorithms(True)``). Seeded CPU
   runs are bit-for-bit reproducible; the committed ``results/`` tables rely on it.
@@ -18,11 +19,10 @@ CUDA is available. Lightning sets the flag for the whole process (it is not rese
 
 from __future__ import annotations
 
-import os
 from collections.abc import Iterable, Mapping
 from typing import Any, Literal
 
-__all__ = ["build_trainer", "checkpoint_callbacks", "determinism_policy", "trainer_from_config"]
+__all__ = ["build_trainer", "determinism_policy", "trainer_from_config"]
 
 Determinism = bool | Literal["warn"]
 
@@ -37,25 +37,6 @@ def determinism_policy(accelerator: str = "cpu") -> Determinism:
     return True if acc == "cpu" else "warn"
 
 
-def checkpoint_callbacks(dirpath: str | os.PathLike[str], monitor: str = "val/loss",
-                         mode: str = "min") -> list[Any]:
-    """``[best, last]`` checkpoint callbacks: ``best.ckpt`` (best ``monitor``) and ``last.ckpt``
-    (the latest epoch, rewritten every epoch; resume from it).
-
-    One callback with ``save_last=True`` is not enough: Lightning then writes ``last.ckpt`` only
-    in epochs that also wrote a best checkpoint, so a resumed run would repeat the epochs since.
-    ``conf/callbacks/default.yaml`` configures the same two callbacks for ``posernet-train``.
-    """
-    from lightning.pytorch.callbacks import ModelCheckpoint
-
-    best = ModelCheckpoint(dirpath=dirpath, filename="best", monitor=monitor, mode=mode,
-                           save_top_k=1, auto_insert_metric_name=False)
-    # no monitor + save_top_k=1: keep only the newest epoch, always under the same name
-    last = ModelCheckpoint(dirpath=dirpath, filename="last", save_top_k=1,
-                           enable_version_counter=False, auto_insert_metric_name=False)
-    return [best, last]
-
-
 def build_trainer(*, accelerator: str = "cpu", devices: int | str = 1,
                   deterministic: Determinism | None = None,
                   callbacks: Iterable[Any] | None = None, logger: Any = False,
@@ -65,8 +46,9 @@ def build_trainer(*, accelerator: str = "cpu", devices: int | str = 1,
     Args:
         accelerator, devices: as for ``lightning.Trainer`` (default: one CPU).
         deterministic: ``None`` applies :func:`determinism_policy` for ``accelerator``.
-        callbacks: Lightning callbacks (e.g. :func:`checkpoint_callbacks`); with none, Lightning's
-            default checkpointing applies unless ``enable_checkpointing=False`` is passed.
+        callbacks: Lightning callbacks (``posernet-train`` builds them from
+            ``conf/callbacks/*.yaml``); with none, Lightning's default checkpointing applies
+            unless ``enable_checkpointing=False`` is passed.
         logger: a Lightning logger, or ``False`` (default) for none.
         **kwargs: any other ``lightning.Trainer`` argument (``max_epochs``, ``gradient_clip_val``,
             ``enable_progress_bar``, ``default_root_dir``, ``strategy``, ...), passed unchanged.

@@ -1,4 +1,10 @@
-"""Checkpoints shipped inside the package.
+"""PoserNet checkpoint files: reading them, and the ones shipped inside the package.
+
+Checkpoints are Lightning checkpoints written by :class:`posernet.lit.PoserNetModule`, tagged
+with :data:`CHECKPOINT_TAG`. :func:`read_checkpoint` reads one with torch alone
+(``weights_only=True``: no pickled code runs); :meth:`posernet.nn.PoserNet.from_checkpoint`
+turns it into the network and :func:`posernet.lit.load_posernet_checkpoint` into the Lightning
+module.
 
 ``posernet_synthetic_kp.ckpt`` is a small PoserNet (default architecture) trained on the
 *synthetic* ``paper`` preset with KP initial poses -- not on 7-Scenes. It exists so that
@@ -8,11 +14,21 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
+from typing import Any
 
-__all__ = ["DEFAULT_CHECKPOINT", "default_checkpoint"]
+__all__ = ["CHECKPOINT_TAG", "DEFAULT_CHECKPOINT", "CheckpointError", "default_checkpoint",
+           "network_hparams", "read_checkpoint"]
 
 DEFAULT_CHECKPOINT = "posernet_synthetic_kp.ckpt"
+
+#: written into every checkpoint by ``PoserNetModule`` so loaders can tell ours from others
+CHECKPOINT_TAG = "posernet.PoserNetModule"
+
+
+class CheckpointError(ValueError):
+    """A checkpoint file is missing, unreadable or not a PoserNet checkpoint."""
 
 
 def default_checkpoint(name: str = DEFAULT_CHECKPOINT) -> Path:
@@ -23,3 +39,42 @@ def default_checkpoint(name: str = DEFAULT_CHECKPOINT) -> Path:
         raise FileNotFoundError(f"shipped checkpoint {name!r} not found in {path.parent} "
                                 f"(shipped: {shipped or 'none'}); pass ckpt_path=... instead")
     return path
+
+
+def read_checkpoint(path: str | os.PathLike[str]) -> dict[str, Any]:
+    """Load a checkpoint dict on the CPU and check that ``PoserNetModule`` wrote it.
+
+    Uses ``torch.load(weights_only=True)``. Raises :class:`CheckpointError` naming the file for
+    a missing, unreadable or foreign checkpoint.
+    """
+    import torch
+
+    p = Path(path)
+    if not p.is_file():
+        raise CheckpointError(f"checkpoint not found: {p}")
+    try:
+        ckpt = torch.load(p, map_location="cpu", weights_only=True)
+    except Exception as exc:  # torch raises many types for corrupt or foreign files
+        first = (str(exc).strip().splitlines() or [""])[0]
+        raise CheckpointError(f"{p}: not a readable checkpoint ({type(exc).__name__}: "
+                              f"{first})") from exc
+    if not isinstance(ckpt, dict) or "state_dict" not in ckpt:
+        raise CheckpointError(f"{p}: not a Lightning checkpoint (no 'state_dict')")
+    tag = ckpt.get("posernet", {}).get("tag") if isinstance(ckpt.get("posernet"), dict) else None
+    if tag != CHECKPOINT_TAG:
+        writer = ckpt.get("hparams_name") or "another model"
+        raise CheckpointError(f"{p}: not a PoserNet checkpoint (written by {writer}, "
+                              f"no {CHECKPOINT_TAG!r} tag)")
+    return ckpt
+
+
+def network_hparams(ckpt: dict[str, Any]) -> dict[str, Any]:
+    """The network's arguments stored in a checkpoint: its ``hyper_parameters["net"]``.
+
+    Checkpoints written before the model config had sections hold one flat mapping (network,
+    loss and optimiser values side by side); it is returned whole and the caller keeps the
+    names it knows.
+    """
+    hp = dict(ckpt.get("hyper_parameters") or {})
+    net = hp.get("net")
+    return dict(net) if isinstance(net, dict) else hp

@@ -40,29 +40,27 @@ def _model(cfg: DictConfig, data_dir: Path, out_dir: Path, device: str) -> tuple
         return PoserNet.from_checkpoint(path, map_location=device), f"shipped: {path.name}"
     except FileNotFoundError as exc:
         print(f"{exc}\n-> training a model for {cfg.train_epochs} epochs on the demo data")
-    import lightning as L
+    import json
 
-    from ..data.datamodule import PoserDataModule
-    from ..lit import PoserNetModule
-    from ..training import build_trainer
+    from ..conf import compose, quote_value
+    from .train import train
 
-    L.seed_everything(0, workers=True)
-    dm = PoserDataModule(str(data_dir), estimate=str(cfg.estimate), batch_size=16)
-    module = PoserNetModule()
-    trainer = build_trainer(max_epochs=int(cfg.train_epochs), accelerator="cpu", logger=False,
-                            enable_checkpointing=False, enable_model_summary=False,
-                            default_root_dir=str(out_dir))
-    trainer.fit(module, dm)
-    ckpt = out_dir / "demo_model.ckpt"
-    trainer.save_checkpoint(ckpt)
+    run_dir = out_dir / "train"
+    with_cfg = compose("train", [
+        f"data.root={quote_value(data_dir)}", f"data.estimate={cfg.estimate}",
+        "data.batch_size=16", f"trainer.max_epochs={int(cfg.train_epochs)}", "seed=0",
+        f"out_dir={quote_value(run_dir)}", "trainer.enable_model_summary=false",
+        f"num_threads={cfg.num_threads or 'null'}"])
+    train(with_cfg)  # posernet-train's own training, into OUT/train
+    summary = json.loads((run_dir / "metrics.json").read_text())
+    ckpt = Path(summary["best_checkpoint"] or summary["last_checkpoint"])
     return PoserNet.from_checkpoint(ckpt, map_location=device), f"trained here: {ckpt}"
 
 
 def _image_demo(cfg: DictConfig, out: Path) -> dict[str, Any]:
     """Render the demo scene (unless already rendered with the same settings) and run
     ``posernet-reconstruct`` on its test sequence; returns that command's outputs."""
-    from hydra import compose
-
+    from ..conf import compose, quote_value
     from ..data.render import read_render_info, render_intrinsics, render_sevenscenes
     from .reconstruct import run as reconstruct
 
@@ -84,9 +82,10 @@ def _image_demo(cfg: DictConfig, out: Path) -> dict[str, Any]:
                            width=int(im.width), height=int(im.height), focal=float(im.focal),
                            overwrite=True)
     intr = ",".join(f"{v:g}" for v in render_intrinsics(folder))
-    rcfg = compose("reconstruct", overrides=[
-        f"images={folder / 'seq-01'}", f"intrinsics='{intr}'", "pattern=*.color.png",
-        f"out_dir={out / 'reconstruct'}", f"matcher={im.matcher}", f"refine={im.refine}",
+    rcfg = compose("reconstruct", [
+        f"images={quote_value(folder / 'seq-01')}", f"intrinsics='{intr}'",
+        "pattern=*.color.png", f"out_dir={quote_value(out / 'reconstruct')}",
+        f"matcher={im.matcher}", f"refine={im.refine}",
         f"device={cfg.device}", f"num_threads={cfg.num_threads}", f"digits={cfg.digits}"])
     print("[images] posernet-reconstruct on the rendered images")
     return reconstruct(rcfg)

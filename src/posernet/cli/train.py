@@ -7,7 +7,7 @@ Config groups: ``data`` (dataset directory, KP/BB input, leave-one-scene-out), `
 
     posernet-train data.root=outputs/data/tiny
     posernet-train data.root=... ckpt_path=outputs/train/.../checkpoints/last.ckpt   # resume
-    posernet-train -m data.root=... model.depth=2,3,4,5 model.alpha=0.1,0.5          # sweep
+    posernet-train -m data.root=... model.net.depth=2,3,4,5 model.loss.alpha=0.1,0.5  # sweep
 
 Each run writes ``checkpoints/best.ckpt``, ``checkpoints/last.ckpt``, ``logs/metrics.csv`` and
 ``metrics.json`` into its Hydra output folder (one subfolder per job in a sweep). The task
@@ -169,8 +169,9 @@ def train(cfg: DictConfig) -> float:
     from lightning.pytorch.callbacks import ModelCheckpoint
     from lightning.pytorch.loggers import CSVLogger
 
+    from ..checkpoints import read_checkpoint
     from ..io import atomic_write_json
-    from ..lit import PoserNetModule, read_posernet_checkpoint
+    from ..lit import PoserNetModule
     from ..training import trainer_from_config
 
     check_config(cfg, "train")  # every value, CUDA, a writable out_dir: before any output
@@ -182,7 +183,7 @@ def train(cfg: DictConfig) -> float:
     ckpt_path = cfg.get("ckpt_path")
     resumed: dict[str, Any] = {}
     if ckpt_path not in (None, "last"):
-        resumed = read_posernet_checkpoint(ckpt_path)  # clear error before Lightning's deep one
+        resumed = read_checkpoint(ckpt_path)  # clear error before Lightning's deep one
     in_place = _continues_run(ckpt_path, out_dir)
 
     datamodule = hydra.utils.instantiate(cfg.data)

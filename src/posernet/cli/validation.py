@@ -13,7 +13,7 @@
    created: a probe file in the nearest existing folder is removed at once).
 
 Any failure is one :class:`ConfigValueError` whose message names the key, the value and what
-is expected: ``model.depth: 'abc' is not an integer >= 1``. Keys absent from a config (a
+is expected: ``model.net.depth: 'abc' is not an integer >= 1``. Keys absent from a config (a
 group without that option) are skipped; the input files themselves are read, and reported, by
 the loaders.
 """
@@ -141,12 +141,12 @@ INTRINSICS = "FX,FY,CX,CY, [FX,FY,CX,CY] or a JSON / 3x3 text file"
 Schema = Mapping[str, Rule]
 
 MODEL: Schema = {
-    "depth": integer(1), "node_hidden": integer(1), "edge_hidden": integer(0),
-    "mlp_hidden": integer(1), "mlp_layers": integer(1), "negative_slope": number(),
-    "shared_weights": boolean(), "residual": boolean(), "unit_output": boolean(),
-    "nested_mean": boolean(), "alpha": number(0), "lr": positive(), "weight_decay": number(0),
-    "lr_patience": integer(0), "lr_factor": number(0, 1, lo_open=True, hi_open=True),
-    "min_lr": number(0),
+    "net.depth": integer(1), "net.node_hidden": integer(1), "net.edge_hidden": integer(0),
+    "net.mlp_hidden": integer(1), "net.mlp_layers": integer(1), "net.negative_slope": number(),
+    "net.shared_weights": boolean(), "net.residual": boolean(), "net.unit_output": boolean(),
+    "net.nested_mean": boolean(), "loss.alpha": number(0), "optimizer.lr": positive(),
+    "optimizer.weight_decay": number(0), "scheduler.patience": integer(0),
+    "scheduler.factor": number(0, 1, lo_open=True, hi_open=True), "scheduler.min_lr": number(0),
 }
 
 DATA: Schema = {

@@ -12,10 +12,12 @@ itself (the synthetic dataset presets) goes through :func:`config_root`, an
 from __future__ import annotations
 
 import os
+import re
 import sys
+from collections.abc import Sequence
 from importlib.resources import files
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
     if sys.version_info >= (3, 11):
@@ -23,7 +25,7 @@ if TYPE_CHECKING:
     else:
         from importlib.abc import Traversable
 
-__all__ = ["ENV_VAR", "config_dir", "config_root"]
+__all__ = ["ENV_VAR", "compose", "config_dir", "config_root", "quote_value"]
 
 #: environment variable naming a config folder to use instead of the shipped one
 ENV_VAR = "POSERNET_CONFIG_DIR"
@@ -44,3 +46,38 @@ def config_dir() -> str:
         raise RuntimeError(f"posernet's configs are not a folder on disk ({root}); "
                            f"install posernet unzipped or set {ENV_VAR}=/path/to/conf")
     return str(root.resolve())
+
+
+def compose(config_name: str, overrides: Sequence[str] = (),
+            return_hydra_config: bool = False) -> Any:
+    """A command's config (``"train"``, ``"eval"``, ...) composed with Hydra ``overrides``, as
+    the command would see it, from Python: what ``python -m posernet.experiments`` uses to run
+    ``posernet-train``'s own ``train(cfg)``.
+
+    Works inside a running Hydra app too (its global state is set aside and restored).
+    """
+    from hydra import compose as hydra_compose
+    from hydra import initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+
+    global_hydra = GlobalHydra.instance()
+    outer = global_hydra.hydra if global_hydra.is_initialized() else None
+    global_hydra.clear()
+    try:
+        with initialize_config_dir(config_dir=config_dir(), version_base="1.3",
+                                   job_name=config_name):
+            return hydra_compose(config_name, overrides=list(overrides),
+                                 return_hydra_config=return_hydra_config)
+    finally:
+        global_hydra.clear()
+        if outer is not None:
+            global_hydra.initialize(outer)
+
+
+def quote_value(value: object) -> str:
+    """``value`` as a quoted Hydra override value that reads back as ``str(value)`` (paths with
+    spaces, ``=``, quotes, backslashes or ``${``)."""
+    # Hydra reads a backslash as an escape only in front of a quote (or of the closing quote)
+    text = re.sub(r"(\\*)('|$)", lambda m: m.group(1) * 2 + ("\\" + m.group(2) if m.group(2)
+                                                               else ""), str(value))
+    return "'" + text.replace("${", "\\${") + "'"  # no interpolation either

@@ -5,6 +5,12 @@ beside ours); :func:`run_experiments` also writes ``<out>/summary.md`` with the 
 each. Trained models are cached in ``<out>/models/<model>/seed<k>/`` and shared between
 experiments (a model is trained by the first experiment that needs it, and a rerun into the same
 ``out`` folder reuses every finished model), so a wall time includes the training it triggered.
+
+Training is ``posernet-train``'s: each model is the ``train`` config composed with one
+``conf/experiment/*.yaml`` file (:meth:`ModelSpec.experiment`), the scale's overrides (sizes,
+epochs) and the model's folder, passed to :func:`posernet.cli.train.train`. So
+``posernet-train +experiment=table1_kp data.root=DATA seed=0`` trains the same model as the
+runner at the ``paper`` scale.
 """
 
 from __future__ import annotations
@@ -19,6 +25,7 @@ import time
 import traceback
 import warnings
 from collections.abc import Callable, Sequence
+from contextlib import redirect_stdout
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -105,25 +112,22 @@ def _alive(lock: Path) -> bool:
 # --------------------------------------------------------------------------- configuration
 @dataclass(frozen=True)
 class Scale:
-    """Sizes of one run: dataset, seeds, epochs and evaluation settings.
+    """Sizes of one run: dataset, seeds, training overrides and evaluation settings.
 
     ``seeds`` are used where the paper reports mean ± std (Tables 1-3); ``ablation_seeds`` for
     the depth / alpha sweeps and the leave-one-scene-out test (medians only in the paper).
+    ``train``/``train_large`` are Hydra overrides of ``posernet-train``'s config for the models
+    trained on small / large graphs (e.g. fewer epochs); empty: the experiment files' values
+    (the paper's).
     """
 
     name: str
     dataset: str | dict[str, Any]
     seeds: tuple[int, ...] = (0, 1, 2)
     ablation_seeds: tuple[int, ...] = (0,)
-    epochs_small: int = 50
-    epochs_large: int = 150
-    lr_small: float = 1e-3
-    lr_large: float = 1e-2
-    batch_small: int = 32
-    batch_large: int = 1
+    train: dict[str, Any] = field(default_factory=dict)
+    train_large: dict[str, Any] = field(default_factory=dict)
     eval_batch: int = 64
-    depths: tuple[int, ...] = (2, 3, 4, 5)
-    alphas: tuple[float, ...] = (0.1, 0.5, 1.0)
     camera_plots: int = 3
     data_seed: int = 0
     progress_bar: bool = True
@@ -153,8 +157,11 @@ def _medium_dataset() -> dict[str, Any]:
 
 SCALES: dict[str, Callable[[], Scale]] = {
     "quick": lambda: Scale("quick", _quick_dataset(), seeds=(0, 1), ablation_seeds=(0,),
-                           epochs_small=2, epochs_large=1, batch_small=4, batch_large=1,
-                           depths=(2, 3, 4, 5), camera_plots=2, progress_bar=False),
+                           train={"trainer.max_epochs": 2, "data.batch_size": 4,
+                                  "data.eval_batch_size": 4},
+                           train_large={"trainer.max_epochs": 1, "data.batch_size": 1,
+                                        "data.eval_batch_size": 4},
+                           camera_plots=2, progress_bar=False),
     # every experiment of the paper on a 2-core CPU in about an hour
     "medium": lambda: Scale("medium", _medium_dataset()),
     "paper": lambda: Scale("paper", "paper"),
@@ -177,6 +184,39 @@ class ModelSpec:
         k = f"{self.estimate}-{self.size}-d{self.depth}-a{self.alpha:g}"
         return k + (f"-loo_{self.leave_out}" if self.leave_out else "")
 
+    def experiment(self) -> tuple[str, dict[str, Any]]:
+        """The ``conf/experiment`` file that trains this model and the overrides that make it
+        this one (the swept value; the others restate the file's own values)."""
+        if self.size == "large":
+            name = "large_graphs"
+        elif self.leave_out:
+            name = "leave_one_out"
+        elif self.depth != 2:
+            name = "depth_sweep"
+        elif self.alpha != 0.1:
+            name = "alpha_sweep"
+        else:
+            name = f"table1_{self.estimate}"
+        overrides: dict[str, Any] = {"data.estimate": self.estimate, "data.size": self.size,
+                                     "model.net.depth": self.depth,
+                                     "model.loss.alpha": self.alpha}
+        if self.leave_out:
+            overrides["data.leave_out_scene"] = self.leave_out
+        return name, overrides
+
+
+def sweep_values(experiment: str, key: str) -> list[Any]:
+    """The values a sweep file (``depth_sweep``, ``alpha_sweep``) declares for ``key``."""
+    from omegaconf import OmegaConf
+
+    from ..conf import compose
+
+    cfg = compose("train", [f"+experiment={experiment}"], return_hydra_config=True)
+    params = cfg.hydra.sweeper.get("params") or {}
+    if key not in params:
+        raise ValueError(f"experiment/{experiment}.yaml declares no sweep over {key}")
+    return list(OmegaConf.create(f"v: [{params[key]}]").v)  # "2,3,4,5" -> [2, 3, 4, 5]
+
 
 @dataclass
 class Context:
@@ -186,6 +226,7 @@ class Context:
     out: Path
     device: str = "cpu"
     data_root: Path | None = None  # default: ``<out>/data``
+    threads: int | None = 1  # torch CPU threads while training (None: torch's default)
     _graphs: dict[tuple[Any, ...], list[Any]] = field(default_factory=dict)
     _evals: dict[tuple[Any, ...], dict[str, Any]] = field(default_factory=dict)
     _results: dict[tuple[Any, ...], Any] = field(default_factory=dict)
@@ -262,44 +303,49 @@ class Context:
                 return None
             time.sleep(_POLL_SECONDS)
 
+    def epochs(self) -> tuple[int, int]:
+        """Training epochs of the small- and the large-graph models (from their configs)."""
+        return tuple(int(self.train_config(ModelSpec(size=z)).trainer.max_epochs)
+                     for z in ("small", "large"))  # type: ignore[return-value]
+
+    def train_config(self, spec: ModelSpec, seed: int = 0, run_dir: Path | None = None,
+                     resume: Path | None = None) -> Any:
+        """``posernet-train``'s config for model ``spec``/``seed``: the experiment file, the
+        spec's and the scale's overrides, this run's data, device and folder."""
+        from ..conf import compose, quote_value
+
+        name, values = spec.experiment()
+        values = {**values, **self.scale.train,
+                  **(self.scale.train_large if spec.size == "large" else {})}
+        run_dir = run_dir or self.out / "models" / spec.key / f"seed{seed}"
+        overrides = [f"+experiment={name}", f"trainer={'gpu' if self.device == 'cuda' else 'cpu'}",
+                     *(f"{k}={v}" for k, v in values.items()),
+                     f"data.root={quote_value(self.data_root)}", f"seed={seed}",
+                     f"out_dir={quote_value(run_dir)}", "test_after_training=false",
+                     f"num_threads={self.threads or 'null'}",
+                     f"trainer.enable_progress_bar={str(self.scale.progress_bar).lower()}",
+                     "trainer.enable_model_summary=false"]
+        if resume is not None:
+            overrides.append(f"ckpt_path={quote_value(resume)}")
+        return compose("train", overrides)
+
     def _train(self, spec: ModelSpec, seed: int, run_dir: Path) -> Path:
-        import lightning as L
+        """Train with ``posernet-train``'s ``train(cfg)`` into ``run_dir`` (its printed lines
+        go to ``run_dir/train.log``); an interrupted run resumes from its ``last.ckpt``."""
+        from ..cli.train import train
 
-        from ..data.datamodule import PoserDataModule
-        from ..lit import PoserNetModule
-        from ..training import build_trainer, checkpoint_callbacks
-
-        done = run_dir / "done.json"
-        s = self.scale
-        large = spec.size == "large"
-        L.seed_everything(seed, workers=True, verbose=False)
-        dm = PoserDataModule(str(self.data_root), estimate=spec.estimate, size=spec.size,
-                             batch_size=s.batch_large if large else s.batch_small,
-                             # validation is on small graphs: batch them as for training there
-                             eval_batch_size=s.batch_small,
-                             leave_out_scene=spec.leave_out, val_size="small" if large else None,
-                             seed=seed)
-        module = PoserNetModule(depth=spec.depth, alpha=spec.alpha,
-                                lr=s.lr_large if large else s.lr_small)
-        ckpt_cb, last_cb = checkpoint_callbacks(run_dir / "checkpoints")
-        # determinism: build_trainer's policy (CPU True; CUDA "warn", so a CUDA op without a
-        # deterministic kernel does not stop a long run; tests/test_cuda.py checks ours have one)
-        trainer = build_trainer(max_epochs=s.epochs_large if large else s.epochs_small,
-                                accelerator="gpu" if self.device == "cuda" else "cpu", devices=1,
-                                logger=False, callbacks=[ckpt_cb, last_cb],
-                                enable_model_summary=False, enable_progress_bar=s.progress_bar,
-                                num_sanity_val_steps=0, default_root_dir=str(run_dir))
-        # an interrupted run resumes from its last epoch (weights, optimiser, best-so-far)
         last = run_dir / "checkpoints" / "last.ckpt"
+        cfg = self.train_config(spec, seed, run_dir, resume=last if last.is_file() else None)
         t0 = time.perf_counter()
-        trainer.fit(module, datamodule=dm, ckpt_path=str(last) if last.is_file() else None)
-        best = Path(ckpt_cb.best_model_path or last_cb.best_model_path)
-        atomic_write_json(done, {"checkpoint": _relative_to(best, run_dir), "model": spec.key,
-                                 "seed": seed,
-                                 "epochs": int(trainer.current_epoch),
-                                 "best_val_loss": None if ckpt_cb.best_model_score is None
-                                 else float(ckpt_cb.best_model_score),
-                                 "train_seconds": time.perf_counter() - t0})
+        run_dir.mkdir(parents=True, exist_ok=True)
+        with open(run_dir / "train.log", "a") as log_file, redirect_stdout(log_file):
+            train(cfg)
+        summary = json.loads((run_dir / "metrics.json").read_text())
+        best = Path(summary["best_checkpoint"] or summary["last_checkpoint"])
+        atomic_write_json(run_dir / "done.json", {
+            "checkpoint": _relative_to(best, run_dir), "model": spec.key, "seed": seed,
+            "experiment": spec.experiment()[0], "epochs": summary["epochs"],
+            "best_val_loss": summary["best"], "train_seconds": time.perf_counter() - t0})
         self.trained.append(f"{spec.key}/seed{seed}")
         return best
 
@@ -363,9 +409,10 @@ def _seed_row(evals: Sequence[dict[str, Any]], kind: str, stage: str,
 
 def _note(ctx: Context, extra: str = "") -> str:
     s = ctx.scale
+    small, large = ctx.epochs()
     return (f"Scale `{s.name}` (synthetic data, {ctx.data_root}); ours: "
-            f"{len(s.seeds)} seed(s) {list(s.seeds)}, {s.epochs_small} epochs (small), "
-            f"{s.epochs_large} (large). Paper: 7-Scenes, 7000 small / 5 large test graphs, "
+            f"{len(s.seeds)} seed(s) {list(s.seeds)}, {small} epochs (small), "
+            f"{large} (large). Paper: 7-Scenes, 7000 small / 5 large test graphs, "
             f"3 seeds.{extra}")
 
 
@@ -425,6 +472,7 @@ def table2(ctx: Context, out: Path) -> list[Path]:
     """Table 2: train on small / large graphs, test on small / large graphs (KP)."""
     seeds = ctx.scale.seeds
     specs = {"Small": ModelSpec(size="small"), "Large": ModelSpec(size="large")}
+    large = ctx.train_config(specs["Large"])
     _jobs(ctx, MODELS["table2"](ctx), "table2")
     paper = {k: P.paper_row(("paper", *k), v, 7000 if k[1] == "Small" else 5)
              for k, v in P.TABLE2.items()}
@@ -440,8 +488,8 @@ def table2(ctx: Context, out: Path) -> list[Path]:
     rows = interleave({k: paper[k] for k in order}, {k: mine[k] for k in order})
     table = ResultTable(rows=rows, label_names=("source", "train", "test"),
                         title="Table 2: small vs large graphs (KP)",
-                        note=_note(ctx, " Large models: lr "
-                                   f"{ctx.scale.lr_large:g}, batch {ctx.scale.batch_large}."))
+                        note=_note(ctx, f" Large models: lr {large.model.optimizer.lr:g}, "
+                                   f"batch {large.data.batch_size}."))
     return list(table.write(out))
 
 
@@ -506,8 +554,8 @@ def _medians(evals: Sequence[dict[str, Any]]) -> tuple[list[float], list[float]]
 def depth(ctx: Context, out: Path) -> list[Path]:
     """Supplementary: GNN depth ablation (KP) and a sweep of the loss weight alpha."""
     seeds = ctx.scale.ablation_seeds
-    dspecs = {d: ModelSpec(depth=d) for d in ctx.scale.depths}
-    aspecs = {a: ModelSpec(alpha=a) for a in ctx.scale.alphas}
+    dspecs = {d: ModelSpec(depth=d) for d in sweep_values("depth_sweep", "model.net.depth")}
+    aspecs = {a: ModelSpec(alpha=a) for a in sweep_values("alpha_sweep", "model.loss.alpha")}
     _jobs(ctx, MODELS["depth"](ctx), "depth")
     files: list[Path] = []
     full: list[TableRow] = []
@@ -631,8 +679,8 @@ def _table2_models(ctx: Context) -> list[Job]:
 
 
 def _depth_models(ctx: Context) -> list[Job]:
-    specs = [*(ModelSpec(depth=d) for d in ctx.scale.depths),
-             *(ModelSpec(alpha=a) for a in ctx.scale.alphas)]
+    specs = [*(ModelSpec(depth=d) for d in sweep_values("depth_sweep", "model.net.depth")),
+             *(ModelSpec(alpha=a) for a in sweep_values("alpha_sweep", "model.loss.alpha"))]
     return [(sp, s) for sp in specs for s in ctx.scale.ablation_seeds]
 
 
@@ -664,7 +712,7 @@ def _train_one(scale: Scale, out: str, data_root: str, device: str, threads: int
         torch.set_num_threads(int(threads))
     _quiet()
     t0 = time.perf_counter()
-    ctx = Context(scale, Path(out), device=device, data_root=Path(data_root))
+    ctx = Context(scale, Path(out), device=device, data_root=Path(data_root), threads=threads)
     ctx.checkpoint(spec, seed)
     return f"{spec.key}/seed{seed}", time.perf_counter() - t0
 
@@ -769,7 +817,8 @@ def run_experiments(scale: str | Scale, out: str | Path, only: str | Sequence[st
     say = echo or (lambda _msg: None)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    ctx = Context(scale, out, device=device, data_root=None if data is None else Path(data))
+    ctx = Context(scale, out, device=device, data_root=None if data is None else Path(data),
+                  threads=num_threads)
     t_all = time.perf_counter()
     status: dict[str, dict[str, Any]] = {}
     t0 = time.perf_counter()
@@ -808,7 +857,7 @@ def run_experiments(scale: str | Scale, out: str | Path, only: str | Sequence[st
         if err is None:
             say(f"[{name}] done in {dt:.1f} s -> {exp_dir}/table.md"
                 if (exp_dir / "table.md").exists() else f"[{name}] done in {dt:.1f} s")
-    write_summary(out, scale, status, time.perf_counter() - t_all, device)
+    write_summary(out, scale, status, time.perf_counter() - t_all, device, ctx.epochs())
     say(f"summary: {out / 'summary.md'}")
     if any(st["ok"] for n, st in status.items() if n in EXPERIMENTS) and any(
             out.glob("*/table.csv")):  # e.g. --only plots writes no table
@@ -842,7 +891,7 @@ def _train_seconds(run_dir: Path) -> float:
 
 
 def write_summary(out: Path, scale: Scale, status: dict[str, dict[str, Any]], total: float,
-                  device: str) -> Path:
+                  device: str, epochs: tuple[int, int]) -> Path:
     """``summary.md`` (+ ``summary.json``): wall time, status, models and files of each experiment.
 
     Runs into the same ``out`` (``--only`` subsets, possibly in parallel processes) are merged:
@@ -867,7 +916,7 @@ def write_summary(out: Path, scale: Scale, status: dict[str, dict[str, Any]], to
 
     lines = [f"# PoserNet experiments, scale `{scale.name}`", "",
              f"Seeds {list(scale.seeds)} (tables 1-3), {list(scale.ablation_seeds)} (depth, "
-             f"alpha, loo); epochs {scale.epochs_small} small / {scale.epochs_large} large. "
+             f"alpha, loo); epochs {epochs[0]} small / {epochs[1]} large. "
              "Models are shared: each is trained by the first experiment that needs it (its "
              "wall time includes that training); runs in parallel processes share the models "
              "and may wait for each other.", "",

@@ -7,13 +7,11 @@ price of torch alone.
 from .conv import PoserConv, PoserConvOutput, graph_inputs
 from .loss import PoserLoss, PoserNetLoss, posernet_loss
 from .mlp import MLP
-from .model import CHECKPOINT_TAG, CheckpointError, PoserNet, read_checkpoint
+from .model import PoserNet
 from .scatter import scatter_count, scatter_max, scatter_mean, scatter_sum
 
 __all__ = [
-    "CHECKPOINT_TAG",
     "MLP",
-    "CheckpointError",
     "PoserConv",
     "PoserConvOutput",
     "PoserLoss",
@@ -21,7 +19,6 @@ __all__ = [
     "PoserNetLoss",
     "graph_inputs",
     "posernet_loss",
-    "read_checkpoint",
     "scatter_count",
     "scatter_max",
     "scatter_mean",

@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import inspect
 import os
-from pathlib import Path
 from typing import Any
 
 import torch
@@ -31,41 +30,7 @@ from torch import Tensor, nn
 from ..geometry import quaternion_canonical, quaternion_normalize
 from .conv import PoserConv, _is_graph, check_module_inputs, graph_inputs, validate_inputs
 
-__all__ = ["CHECKPOINT_TAG", "CheckpointError", "PoserNet", "read_checkpoint"]
-
-# Written into every checkpoint by ``posernet.lit.PoserNetModule`` so that loaders can tell a
-# PoserNet checkpoint from others. The helpers below read those checkpoints with torch alone.
-CHECKPOINT_TAG = "posernet.PoserNetModule"
-
-
-class CheckpointError(ValueError):
-    """A checkpoint file is missing, unreadable or not a PoserNet checkpoint."""
-
-
-def read_checkpoint(path: str | os.PathLike[str]) -> dict[str, Any]:
-    """Load a checkpoint dict on the CPU and check that ``PoserNetModule`` wrote it.
-
-    Uses ``torch.load(weights_only=True)``: no pickled code runs. Raises
-    :class:`CheckpointError` naming the file for a missing, unreadable or foreign checkpoint.
-    """
-    p = Path(path)
-    if not p.is_file():
-        raise CheckpointError(f"checkpoint not found: {p}")
-    try:
-        ckpt = torch.load(p, map_location="cpu", weights_only=True)
-    except Exception as exc:  # torch raises many types for corrupt or foreign files
-        first = (str(exc).strip().splitlines() or [""])[0]
-        raise CheckpointError(f"{p}: not a readable checkpoint ({type(exc).__name__}: "
-                              f"{first})") from exc
-    if not isinstance(ckpt, dict) or "state_dict" not in ckpt:
-        raise CheckpointError(f"{p}: not a Lightning checkpoint (no 'state_dict')")
-    tag = ckpt.get("posernet", {}).get("tag") if isinstance(ckpt.get("posernet"), dict) else None
-    if tag != CHECKPOINT_TAG:
-        writer = ckpt.get("hparams_name") or "another model"
-        raise CheckpointError(f"{p}: not a PoserNet checkpoint (written by {writer}, "
-                              f"no {CHECKPOINT_TAG!r} tag)")
-    return ckpt
-
+__all__ = ["PoserNet"]
 
 class PoserNet(nn.Module):
     """The PoserNet graph network (paper Sec. 3.2).
@@ -141,20 +106,26 @@ class PoserNet(nn.Module):
         Checkpoints that still hold the last round's node-update weights load too (the unused
         weights are dropped; the outputs are the same).
         """
+        from ..checkpoints import read_checkpoint  # the checkpoint file format (torch only)
+
         return cls.from_checkpoint_dict(read_checkpoint(path), path).to(map_location).eval()
 
     @classmethod
     def from_checkpoint_dict(cls, ckpt: dict[str, Any],
                              path: str | os.PathLike[str] = "checkpoint") -> PoserNet:
-        """The network (on the CPU, train mode) of a checkpoint dict from :func:`read_checkpoint`.
+        """The network (on the CPU, train mode) of a checkpoint dict from
+        :func:`posernet.checkpoints.read_checkpoint`.
 
         The one place that turns a checkpoint into weights: :meth:`from_checkpoint` and
-        ``posernet.lit.load_posernet_checkpoint`` both use it. The network's arguments are read
-        from ``hyper_parameters`` (others, e.g. the loss' ``alpha``, are ignored); every entry of
-        ``state_dict`` must be a ``model.`` weight that fits, else :class:`CheckpointError`
-        (naming ``path``) is raised.
+        ``posernet.lit.load_posernet_checkpoint`` both use it. The network's arguments are
+        :func:`posernet.checkpoints.network_hparams` (``hyper_parameters["net"]``; in older
+        checkpoints the flat mapping, whose loss and optimiser values are ignored); every entry
+        of ``state_dict`` must be a ``model.`` weight that fits, else
+        :class:`posernet.checkpoints.CheckpointError` (naming ``path``) is raised.
         """
-        hp = dict(ckpt.get("hyper_parameters") or {})
+        from ..checkpoints import CheckpointError, network_hparams
+
+        hp = network_hparams(ckpt)
         names = set(inspect.signature(cls).parameters)
         prefix = "model."
         state_dict = ckpt["state_dict"]
