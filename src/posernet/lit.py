@@ -108,6 +108,9 @@ class PoserNetModule(L.LightningModule):
             (``depth=2, alpha=0.1, lr=1e-3, lr_patience=3, ...``), so they still load.
     """
 
+    #: written into its checkpoints (``posernet.checkpoints.read_checkpoint`` checks it)
+    CHECKPOINT_TAG = CHECKPOINT_TAG
+
     def __init__(self, net: Mapping[str, Any] | None = None,
                  loss: Mapping[str, Any] | None = None,
                  optimizer: Mapping[str, Any] | None = None,
@@ -209,7 +212,7 @@ class PoserNetModule(L.LightningModule):
 
     # ------------------------------------------------------------------ checkpoints
     def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
-        checkpoint["posernet"] = {"tag": CHECKPOINT_TAG, "version": __version__}
+        checkpoint["posernet"] = {"tag": self.CHECKPOINT_TAG, "version": __version__}
 
     def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
         # Checkpoints written before the last round lost its unused node MLP: the network drops

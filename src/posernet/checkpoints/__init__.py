@@ -41,8 +41,9 @@ def default_checkpoint(name: str = DEFAULT_CHECKPOINT) -> Path:
     return path
 
 
-def read_checkpoint(path: str | os.PathLike[str]) -> dict[str, Any]:
-    """Load a checkpoint dict on the CPU and check that ``PoserNetModule`` wrote it.
+def read_checkpoint(path: str | os.PathLike[str], tag: str = CHECKPOINT_TAG) -> dict[str, Any]:
+    """Load a checkpoint dict on the CPU and check that the module tagged ``tag`` wrote it
+    (default ``PoserNetModule``; the learned synchronisation has its own tag).
 
     Uses ``torch.load(weights_only=True)``. Raises :class:`CheckpointError` naming the file for
     a missing, unreadable or foreign checkpoint.
@@ -60,11 +61,13 @@ def read_checkpoint(path: str | os.PathLike[str]) -> dict[str, Any]:
                               f"{first})") from exc
     if not isinstance(ckpt, dict) or "state_dict" not in ckpt:
         raise CheckpointError(f"{p}: not a Lightning checkpoint (no 'state_dict')")
-    tag = ckpt.get("posernet", {}).get("tag") if isinstance(ckpt.get("posernet"), dict) else None
-    if tag != CHECKPOINT_TAG:
-        writer = ckpt.get("hparams_name") or "another model"
-        raise CheckpointError(f"{p}: not a PoserNet checkpoint (written by {writer}, "
-                              f"no {CHECKPOINT_TAG!r} tag)")
+    found = ckpt.get("posernet", {}).get("tag") if isinstance(ckpt.get("posernet"), dict) \
+        else None
+    if found != tag:
+        writer = found or ckpt.get("hparams_name") or "another model"
+        what = "PoserNet" if tag == CHECKPOINT_TAG else tag.rsplit(".", 1)[-1]
+        raise CheckpointError(f"{p}: not a {what} checkpoint (written by {writer}, "
+                              f"no {tag!r} tag)")
     return ckpt
 
 

@@ -169,9 +169,8 @@ def train(cfg: DictConfig) -> float:
     from lightning.pytorch.callbacks import ModelCheckpoint
     from lightning.pytorch.loggers import CSVLogger
 
-    from ..checkpoints import read_checkpoint
+    from ..checkpoints import CHECKPOINT_TAG, read_checkpoint
     from ..io import atomic_write_json
-    from ..lit import PoserNetModule
     from ..training import trainer_from_config
 
     check_config(cfg, "train")  # every value, CUDA, a writable out_dir: before any output
@@ -181,15 +180,17 @@ def train(cfg: DictConfig) -> float:
     out_dir = Path(cfg.out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     ckpt_path = cfg.get("ckpt_path")
-    resumed: dict[str, Any] = {}
-    if ckpt_path not in (None, "last"):
-        resumed = read_checkpoint(ckpt_path)  # clear error before Lightning's deep one
     in_place = _continues_run(ckpt_path, out_dir)
 
     datamodule = hydra.utils.instantiate(cfg.data)
-    model: PoserNetModule = hydra.utils.instantiate(cfg.model)
-    if not isinstance(model, PoserNetModule):
-        raise TypeError(f"model config must build a PoserNetModule, got {type(model).__name__}")
+    model: L.LightningModule = hydra.utils.instantiate(cfg.model)
+    if not isinstance(model, L.LightningModule):
+        raise TypeError(f"model config must build a LightningModule (e.g. "
+                        f"posernet.lit.PoserNetModule), got {type(model).__name__}")
+    resumed: dict[str, Any] = {}
+    if ckpt_path not in (None, "last"):  # a clear error before Lightning's deep one
+        resumed = read_checkpoint(ckpt_path, getattr(model, "CHECKPOINT_TAG", CHECKPOINT_TAG))
+    num_parameters = sum(p.numel() for p in model.parameters() if p.requires_grad)
     callbacks = _instantiate_dict(cfg.get("callbacks"))
     if in_place:
         callbacks.append(_relocation_callback(str(ckpt_path)))
@@ -197,7 +198,7 @@ def train(cfg: DictConfig) -> float:
     trainer: L.Trainer = trainer_from_config(cfg.trainer, callbacks=callbacks, logger=logger)
     history: Path | None = None
     if trainer.is_global_zero:
-        print(f"PoserNet: {model.num_parameters} parameters; output folder {out_dir}")
+        print(f"{type(model).__name__}: {num_parameters} parameters; output folder {out_dir}")
         if in_place:
             print(f"Resuming from {ckpt_path}: continuing the run in {out_dir}")
         elif ckpt_path not in (None, "last"):
@@ -245,7 +246,7 @@ def train(cfg: DictConfig) -> float:
                                 else ckpt_cb.last_model_path if ckpt_cb is not None else None)
                                or None,
             "epochs": int(trainer.current_epoch),
-            "num_parameters": model.num_parameters,
+            "num_parameters": num_parameters,
             "seed": int(cfg.seed),
             "final_metrics": {k: float(v) for k, v in trainer.callback_metrics.items()
                               if torch.is_tensor(v) and v.numel() == 1
