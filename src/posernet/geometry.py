@@ -438,7 +438,7 @@ def project_to_so3(A: Tensor, max_iter: int = 30) -> Tensor:
             yn = 0.5 * (g * y + inv_t / g)
             delta = (yn - y).abs().amax()
             y = yn
-            if float(delta) < 1e-14:
+            if float(delta.detach()) < 1e-14:
                 break
         cof = _cof9(y)  # one unscaled step polishes orthogonality to machine precision
         y = 0.5 * (y + cof / (cof[:3] * y[:3]).sum(0))

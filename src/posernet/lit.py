@@ -36,7 +36,8 @@ __all__ = ["SECTIONS", "PoserNetModule", "flat_name_section", "load_posernet_che
 #: (``net``: the arguments of :class:`posernet.nn.PoserNet`, defaults from its signature)
 SECTIONS: dict[str, dict[str, Any]] = {
     "net": {k: p.default for k, p in inspect.signature(PoserNet).parameters.items()},
-    "loss": {"alpha": 0.1},
+    "loss": {"alpha": 0.1, "end_to_end": False, "relative_weight": 1.0,
+             "absolute_weight": 1.0, "position_weight": 1.0},
     "optimizer": {"lr": 1e-3, "weight_decay": 0.0},
     "scheduler": {"patience": 3, "factor": 0.316, "min_lr": 1e-6},
 }
@@ -44,7 +45,8 @@ SECTIONS: dict[str, dict[str, Any]] = {
 #: where each flat name of checkpoints written before the config had sections now lives
 _FLAT_NAMES: dict[str, tuple[str, str]] = {
     **{k: ("net", k) for k in SECTIONS["net"]},
-    "alpha": ("loss", "alpha"), "lr": ("optimizer", "lr"),
+    "alpha": ("loss", "alpha"), "end_to_end": ("loss", "end_to_end"),
+    "lr": ("optimizer", "lr"),
     "weight_decay": ("optimizer", "weight_decay"), "lr_patience": ("scheduler", "patience"),
     "lr_factor": ("scheduler", "factor"), "min_lr": ("scheduler", "min_lr"),
 }
@@ -99,7 +101,12 @@ class PoserNetModule(L.LightningModule):
         net: arguments of :class:`posernet.nn.PoserNet` (``depth``, ``node_hidden``,
             ``edge_hidden``, ``mlp_hidden``, ``mlp_layers``, ``negative_slope``,
             ``shared_weights``, ``residual``, ``unit_output``, ``nested_mean``).
-        loss: ``alpha``, the weight of the normalisation terms of the loss (default 0.1).
+        loss: ``alpha``, the weight of the normalisation terms of the loss (default 0.1);
+            ``end_to_end`` (default False) adds a loss on absolute poses through a
+            differentiable synchronisation (:func:`posernet.sync.differentiable_sync`, ground-
+            truth baselines while training) after gauge alignment:
+            ``relative_weight * relative + absolute_weight * (rotation + position_weight *
+            position)``; the batches then need ``pose_gt``.
         optimizer: Adam's ``lr`` (default 1e-3; the paper uses 1e-2 for large graphs) and
             ``weight_decay`` (0).
         scheduler: reduce-on-plateau on ``val/loss``: ``patience`` epochs without improvement
@@ -131,17 +138,41 @@ class PoserNetModule(L.LightningModule):
         if batch.edge_pose_gt is None:
             raise ValueError(f"{split} batch has no 'edge_pose_gt': cannot compute the loss")
         pred = self(batch)
-        out = posernet_loss(pred, batch.edge_pose_gt, self.hparams.loss["alpha"])
+        hp = self.hparams.loss
+        out = posernet_loss(pred, batch.edge_pose_gt, hp["alpha"])
+        loss = out.loss
         n = batch.num_graphs
         on_step = split == "train"
-        self.log(f"{split}/loss", out.loss, batch_size=n, on_step=on_step, on_epoch=True,
+        if hp["end_to_end"]:
+            rot, pos = self._absolute_loss(batch, pred)
+            loss = hp["relative_weight"] * loss + hp["absolute_weight"] * (
+                rot + hp["position_weight"] * pos)
+            for name, value in (("abs_rot", rot), ("abs_pos", pos)):
+                self.log(f"{split}/loss_{name}", value, batch_size=n, on_step=False,
+                         on_epoch=True, sync_dist=split != "train")
+        self.log(f"{split}/loss", loss, batch_size=n, on_step=on_step, on_epoch=True,
                  prog_bar=True, sync_dist=split != "train")
         for name in ("orient", "tr_dir", "q_norm", "t_norm"):
             self.log(f"{split}/loss_{name}", getattr(out, name), batch_size=n, on_step=False,
                      on_epoch=True, sync_dist=split != "train")
         if split != "train":
             self._collect(split, batch, pred.detach())
-        return out.loss
+        return loss
+
+    def _absolute_loss(self, batch: GraphBatch, pred: Tensor) -> tuple[Tensor, Tensor]:
+        """Mean aligned rotation / position losses of the absolute poses synchronised from
+        ``pred`` (float64: the spectral step and the SO(3) projection need it)."""
+        from .sync.differentiable import aligned_pose_loss, differentiable_sync
+
+        if batch.pose_gt is None or batch.edge_pose_gt is None:
+            raise ValueError("loss.end_to_end needs batches with pose_gt and edge_pose_gt")
+        norm = batch.edge_pose_gt[:, 4:].double().norm(dim=-1)
+        poses, solved = differentiable_sync(batch.edge_index, pred.double(), batch.num_nodes,
+                                            batch.node_batch, batch.num_graphs,
+                                            translation_norm=norm)
+        rot, pos = aligned_pose_loss(poses, batch.pose_gt.double(), batch.node_batch,
+                                     batch.num_graphs, solved)
+        return rot.mean().to(pred.dtype), pos.mean().to(pred.dtype)
 
     def training_step(self, batch: GraphBatch, batch_idx: int) -> Tensor:
         return self._step(batch, "train")

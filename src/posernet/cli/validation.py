@@ -144,7 +144,9 @@ MODEL: Schema = {
     "net.depth": integer(1), "net.node_hidden": integer(1), "net.edge_hidden": integer(0),
     "net.mlp_hidden": integer(1), "net.mlp_layers": integer(1), "net.negative_slope": number(),
     "net.shared_weights": boolean(), "net.residual": boolean(), "net.unit_output": boolean(),
-    "net.nested_mean": boolean(), "loss.alpha": number(0), "optimizer.lr": positive(),
+    "net.nested_mean": boolean(), "loss.alpha": number(0), "loss.end_to_end": boolean(),
+    "loss.relative_weight": number(0), "loss.absolute_weight": number(0),
+    "loss.position_weight": number(0), "optimizer.lr": positive(),
     "optimizer.weight_decay": number(0), "scheduler.patience": integer(0),
     "scheduler.factor": number(0, 1, lo_open=True, hi_open=True), "scheduler.min_lr": number(0),
 }
