@@ -59,6 +59,28 @@ output is built or computed, so every parameter gets a gradient (distributed dat
 training needs that) and the edge poses are exactly those of a full layer with the same
 ``Psi_E`` pose weights. Weights saved from a full layer load into such a layer: the unused
 ``Psi_N`` entries are dropped and ``Psi_E``'s last layer keeps its pose rows.
+
+Fast path
+---------
+With the built-in MLPs (``fused=True``, the default) a round computes the same maths in fewer
+operations; the stored parameters are unchanged (the fused weights are views built at run
+time), so checkpoints load either way, and the outputs agree with ``fused=False`` (the literal
+computation above) to float round-off (tested, with gradients):
+
+* the first linear layer is split by input: the columns reading ``h_i, h_j, e_ij, g_ij`` are
+  applied once per edge view and gathered to its pairs, only the 8 box columns run per pair;
+* ``Psi_E`` and ``Psi_N`` read the same input: their first layers run as one wider product;
+* ``Psi_E``'s last layer has no activation, so it commutes with the mean over the pairs: it runs
+  once per edge view on the averaged hidden units;
+* the two views of a pair are adjacent rows (``[M, 2, *]``), one gather serving both;
+* leaky ReLUs run in place (autograd allows it for a non-negative slope);
+* inference on the CPU (no autograd, not under ``torch.compile``) runs in blocks of edges with
+  about ``_BLOCK_PAIRS`` pairs each: activations stay in the cache and no tensor of the size of
+  all pairs is allocated (fresh large allocations cost page faults that outweigh the
+  arithmetic). Sums add the same terms in the same order as the unblocked path: deterministic.
+
+A ``psi_edge`` / ``psi_node`` of your own (any module other than :class:`~posernet.nn.MLP`), or
+an MLP with forward hooks, runs the literal path.
 """
 
 from __future__ import annotations
