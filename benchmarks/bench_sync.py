@@ -268,6 +268,7 @@ def report(rows: list[dict], args: argparse.Namespace, have_gtsam: bool) -> str:
         *machine(args.device),
         "- command: `" + " ".join(["python benchmarks/bench_sync.py", *sys.argv[1:]]) + "`",
         f"- BLAS threads {args.threads}; device for the batched solver: {args.device}.",
+        "",
         f"Input: noisy metric relative poses (rotation noise {args.rot_noise} deg std, "
         f"translation noise {args.trans_noise} m std); EIG-SE3 with IRLS, scale='given'. "
         "Errors: per-graph means after a similarity alignment, median over graphs.",
