@@ -8,7 +8,7 @@ STAMP  := $(VENV)/.installed
 DEMO_DIR ?= outputs/demo
 
 .DEFAULT_GOAL := help
-.PHONY: help install test test-fast lint demo paper paper-medium paper-quick experiments clean
+.PHONY: help install test test-fast lint demo bench paper paper-medium paper-quick experiments clean
 
 help:  ## list the targets
 	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-10s %s\n", $$1, $$2}'
@@ -42,6 +42,14 @@ lint: $(STAMP)  ## ruff check (style and common bugs)
 
 demo: $(STAMP)  ## run the main job on the built-in synthetic default
 	$(VENV)/bin/posernet-demo out_dir=$(DEMO_DIR)
+
+# Quick mode of every benchmark (< 5 min on 2 CPU cores), tables in benchmarks/results/quick/;
+# the committed full tables: run each script without --quick (BENCH_ARGS="--device cuda" on a GPU).
+BENCH_ARGS ?=
+bench: $(STAMP)  ## quick run of every benchmark (tables in benchmarks/results/quick/)
+	cd benchmarks && for b in bench_forward bench_sync bench_train_epoch bench_large; do \
+		../$(PY) $$b.py --quick $(BENCH_ARGS) || exit 1; done
+	cd benchmarks && ../$(PY) bench_frontend.py --frames 6 --scenes chess --no-write
 
 paper: $(STAMP)  ## every paper experiment at full size (~7 h on 2 CPU cores) into results/paper
 	$(MAKE) --no-print-directory experiments SCALE=paper

@@ -118,6 +118,14 @@ def check_edge_index(
     flags = [((t < 0) | (t >= size)).any() for _, t, size, _ in ranged if t.numel()]
     if edge_index.shape[1]:
         flags.append((edge_index[0] == edge_index[1]).any())
+    if flags and torch.compiler.is_compiling():
+        # Inside torch.compile reading the flag would break the graph (a host sync): assert
+        # inside the graph instead; the detailed message needs an eager call.
+        names = ", ".join(key for key, *_ in ranged)
+        torch._assert_async(~torch.stack(flags).any(),
+                            f"{names}: an index is out of range or {name} has a self loop "
+                            "(found inside torch.compile; call eagerly for the details)")
+        return
     if not flags or not bool(torch.stack(flags).any()):
         return
     for key, t, size, what in ranged:

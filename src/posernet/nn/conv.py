@@ -59,6 +59,28 @@ output is built or computed, so every parameter gets a gradient (distributed dat
 training needs that) and the edge poses are exactly those of a full layer with the same
 ``Psi_E`` pose weights. Weights saved from a full layer load into such a layer: the unused
 ``Psi_N`` entries are dropped and ``Psi_E``'s last layer keeps its pose rows.
+
+Fast path
+---------
+With the built-in MLPs (``fused=True``, the default) a round computes the same maths in fewer
+operations; the stored parameters are unchanged (the fused weights are views built at run
+time), so checkpoints load either way, and the outputs agree with ``fused=False`` (the literal
+computation above) to float round-off (tested, with gradients):
+
+* the first linear layer is split by input: the columns reading ``h_i, h_j, e_ij, g_ij`` are
+  applied once per edge view and gathered to its pairs, only the 8 box columns run per pair;
+* ``Psi_E`` and ``Psi_N`` read the same input: their first layers run as one wider product;
+* ``Psi_E``'s last layer has no activation, so it commutes with the mean over the pairs: it runs
+  once per edge view on the averaged hidden units;
+* the two views of a pair are adjacent rows (``[M, 2, *]``), one gather serving both;
+* leaky ReLUs run in place (autograd allows it for a non-negative slope);
+* inference on the CPU (no autograd, not under ``torch.compile``) runs in blocks of edges with
+  about ``_BLOCK_PAIRS`` pairs each: activations stay in the cache and no tensor of the size of
+  all pairs is allocated (fresh large allocations cost page faults that outweigh the
+  arithmetic). Sums add the same terms in the same order as the unblocked path: deterministic.
+
+A ``psi_edge`` / ``psi_node`` of your own (any module other than :class:`~posernet.nn.MLP`), or
+an MLP with forward hooks, runs the literal path.
 """
 
 from __future__ import annotations
@@ -76,7 +98,7 @@ from ..geometry import (
 )
 from ..graph import check_edge_index
 from .mlp import MLP
-from .scatter import scatter_count, scatter_mean, scatter_sum
+from .scatter import _sum, scatter_count, scatter_mean, scatter_sum
 
 __all__ = [
     "PoserConv",
@@ -264,6 +286,10 @@ class PoserConv(nn.Module):
             ``message_dim = 2 * in_channels + 7 + edge_dim + 8``
             (``PoserConv.message_size(in_channels, edge_dim)``): the two node states, the
             pose, the hidden edge state and the two boxes of a pair, in that order.
+        fused: run the built-in MLPs through the fused fast path (default True; see
+            "Fast path" in the module docstring). False runs every network on the
+            concatenated message of every pair, literally as written above (the reference the
+            fast path is tested against). Settable later: ``conv.fused = False``.
 
     Shapes:
         ``x [N, in_channels]``, ``edge_index [2, E]`` (long), ``edge_pose [E, 7]``,
@@ -293,8 +319,10 @@ class PoserConv(nn.Module):
         node_in: int | None = None,
         node_out: int | None = None,
         hidden: int | None = None,
+        fused: bool = True,
     ) -> None:
         super().__init__()
+        self.fused = bool(fused)
         in_channels = _alias("in_channels", in_channels, "node_in", node_in, None)
         if in_channels is None:
             raise TypeError("PoserConv needs in_channels (the size of the node input)")
@@ -473,6 +501,10 @@ class PoserConv(nn.Module):
         update_edge_state = update_edge_state and self.update_edge_state
         if self.edge_dim and edge_state is None:
             edge_state = x.new_zeros(edge_index.shape[1], 2, self.edge_dim)
+        nets = self._fusable_nets(update_nodes)
+        if nets is not None:
+            return self._propagate_fused(nets, x, edge_index, edge_pose, pair_edge, box_src,
+                                         box_dst, edge_state, update_edge_state)
         N, E = x.shape[0], edge_index.shape[1]
         src, dst = edge_index
         # Directed views: rows [0, E) are i -> j as stored, rows [E, 2E) the reverse j -> i.
@@ -535,6 +567,230 @@ class PoserConv(nn.Module):
                              f"{z.shape[1]}] messages to {_shape(out)}, expected "
                              f"[{z.shape[0]}, {width}]")
         return out
+
+    # ----------------------------------------------------------------------- fast path
+
+    def _fusable_nets(self, update_nodes: bool) -> list[MLP] | None:
+        """``[Psi_E]`` or ``[Psi_E, Psi_N]`` when the fast path applies to this call, else None.
+
+        Only the built-in :class:`MLP` (exactly that class, of Linear and LeakyReLU modules,
+        no hooks, the layer's sizes) can be split: the fast path reads its weights directly.
+        Anything else runs the generic path, which also reports wrong sizes.
+        """
+        if not self.fused:
+            return None
+        nets = [self.psi_edge] + ([self.psi_node] if update_nodes else [])
+        for net, width in zip(nets, (self.edge_out_dim, self.out_channels), strict=False):
+            if (type(net) is not MLP or net.in_dim != self.message_dim or net.out_dim != width
+                    or net._forward_hooks or net._forward_pre_hooks
+                    or not all(type(m) in (nn.Linear, nn.LeakyReLU) for m in net.net)):
+                return None
+        return nets  # type: ignore[return-value]
+
+    def _propagate_fused(
+        self,
+        nets: list[MLP],
+        x: Tensor,
+        edge_index: Tensor,
+        edge_pose: Tensor,
+        pair_edge: Tensor,
+        box_src: Tensor,
+        box_dst: Tensor,
+        edge_state: Tensor | None,
+        update_edge_state: bool,
+    ) -> PoserConvOutput:
+        """The round of :meth:`propagate` with the first layers split and fused (same maths).
+
+        Layout: the two views of edge ``e`` are adjacent (``[E, 2, *]``, index 0 = ``i -> j``
+        as stored, 1 = ``j -> i``) and so are the two view rows of pair ``p`` (``[M, 2, *]``),
+        so that one gather by ``pair_edge`` serves both directions.
+        """
+        N, E = x.shape[0], edge_index.shape[1]
+        M = pair_edge.shape[0]
+        src, dst = edge_index[0], edge_index[1]
+        own = torch.stack((src, dst), dim=1)  # [E, 2] node each view starts at
+        other = torch.stack((dst, src), dim=1)
+        own_flat = own.reshape(-1)  # [2E] in view order
+        pose_view = torch.stack((edge_pose, invert_pose_raw(edge_pose)), dim=1)  # [E, 2, 7]
+        pose_in = torch.cat((quaternion_canonical(pose_view[..., :4]), pose_view[..., 4:]), -1)
+        layers = [_linear_layers(net) for net in nets]
+        widths = [lyr[0][0].weight.shape[0] for lyr in layers]
+        w1 = torch.cat([lyr[0][0].weight for lyr in layers])  # [H1, message_dim]
+        b1 = torch.cat([_bias(lyr[0][0]) for lyr in layers])
+        h1 = w1.shape[0]
+        k = self.message_dim - 2 * BOX_DIM  # inputs shared by the pairs of a view
+        w_view = w1[:, :k]
+        # A pair's input is ``[box_src, box_dst]``; the backward view reads the boxes swapped,
+        # which is the same input against swapped weight columns: one [P, 8] x [8, 2 H1].
+        wb = w1[:, k:]  # [H1, 8]: own box, other box
+        wb2 = torch.cat((wb, torch.cat((wb[:, BOX_DIM:], wb[:, :BOX_DIM]), dim=1))).t()
+        slopes = [lyr[0][1] for lyr in layers]
+        shared_act = all(sl == slopes[0] for sl in slopes)
+        # Psi_E's last linear layer (no activation after it) commutes with the mean over the
+        # pairs: averaged hidden units, then one product per edge view instead of per pair.
+        edge_layers = layers[0]
+        defer = len(edge_layers) > 1 and edge_layers[-1][1] is None
+        edge_rest = edge_layers[1:-1] if defer else edge_layers[1:]
+        n_pairs = scatter_count(pair_edge, E)  # [E], the same for both views
+        has = n_pairs > 0
+        denom = n_pairs.clamp_min(1).to(x.dtype)[:, None]
+        w_view_has = has.repeat_interleave(2).to(x.dtype)[:, None]  # [2E, 1]
+
+        def view_inputs(e0: int, e1: int) -> Tensor:
+            """First-layer part shared by the pairs of each view of edges ``e0:e1`` (node
+            states, pose, hidden state), computed once per view: ``[e1 - e0, 2 * H1]``."""
+            feats = [x[own[e0:e1]], x[other[e0:e1]], pose_in[e0:e1]]
+            if self.edge_dim:
+                assert edge_state is not None
+                feats.append(edge_state[e0:e1])
+            z = nn.functional.linear(torch.cat(feats, dim=-1), w_view, b1)
+            return z.reshape(e1 - e0, 2 * h1)
+
+        def messages(per_view: Tensor, pe: Tensor, bs: Tensor, bd: Tensor) -> list[Tensor]:
+            """Per pair, the outputs ``[P, 2 * width]`` of each network (both views; Psi_E
+            without its deferred last layer) for pairs of edges ``pe [P]`` (rows of
+            ``per_view``) with boxes ``bs, bd [P, 4]``."""
+            z = per_view.index_select(0, pe).addmm_(torch.cat((bs, bd), dim=1), wb2)
+            z = z.view(-1, h1)  # [2P, H1]: rows 2p (forward view), 2p + 1 (backward view)
+            if shared_act:
+                z = _leaky(z, slopes[0])
+            outs, col = [], 0
+            for i, (lyr, width) in enumerate(zip(layers, widths, strict=True)):
+                y = z[:, col:col + width]
+                col += width
+                if not shared_act:
+                    y = _leaky(y, slopes[i], inplace=False)
+                for lin, slope in (edge_rest if i == 0 else lyr[1:]):
+                    y = _leaky(nn.functional.linear(y, lin.weight, lin.bias), slope)
+                outs.append(y.reshape(pe.shape[0], 2 * y.shape[1]))
+            return outs
+
+        def reduce(sums: list[Tensor], e0: int, e1: int) -> tuple[Tensor, Tensor | None]:
+            """Per-pair sums of edges ``e0:e1`` -> ``Psi_E``'s mean ``[e1 - e0, 2, 7 (+ d)]``
+            and the rows each view adds to its own node ``[2 (e1 - e0), out]``."""
+            m_edge = (sums[0] / denom[e0:e1]).view(e1 - e0, 2, sums[0].shape[1] // 2)
+            if defer:
+                lin = edge_layers[-1][0]
+                m_edge = nn.functional.linear(m_edge, lin.weight, lin.bias)
+            if len(sums) == 1:
+                return m_edge, None
+            node = sums[1].view(2 * (e1 - e0), sums[1].shape[1] // 2)
+            if self.nested_mean:  # mean over the view's pairs; views without pairs add 0
+                node = node / denom[e0:e1].repeat_interleave(2, dim=0)
+            return m_edge, node
+
+        grads = torch.is_grad_enabled() and any(
+            t.requires_grad for t in (w1, x, edge_pose, box_src, box_dst))
+        if grads or x.device.type != "cpu" or torch.compiler.is_compiling() or \
+                M <= 2 * _BLOCK_PAIRS:
+            m_edge, node_rows = reduce(
+                [_sum(y, pair_edge, 0, E) for y in
+                 messages(view_inputs(0, E), pair_edge, box_src, box_dst)], 0, E)
+            node_total = None if node_rows is None else _sum(node_rows, own_flat, 0, N)
+        else:
+            m_edge, node_total = self._blocked(
+                view_inputs, messages, reduce, pair_edge, box_src, box_dst, n_pairs,
+                own_flat, N, len(nets) > 1)
+
+        # ---- edge update: fuse the directions of the mean message.
+        out = m_edge[..., :POSE_DIM]
+        if self.residual:
+            one = torch.zeros_like(out)
+            one[..., 0] = 1.0
+            pred = compose_pose_vec(out + one, pose_view)
+        else:
+            pred = out
+        has3 = has[:, None, None]
+        pred = torch.where(has3, pred, pose_view)  # edges without pairs keep their pose
+        new_pose = symmetric_pose_mean(pred[:, 0], invert_pose_raw(pred[:, 1]), edge_pose)
+        new_state = None
+        if update_edge_state:
+            assert edge_state is not None
+            new_state = torch.where(has3, m_edge[..., POSE_DIM:], edge_state)
+        if node_total is None:
+            return PoserConvOutput(None, new_pose, new_state)
+
+        # ---- node update: each node hears every neighbour through the view starting at itself.
+        if self.nested_mean:  # the mean over the views that have pairs
+            count = _sum(w_view_has, own_flat, 0, N)
+        else:  # the mean over all pair rows
+            count = _sum(n_pairs.repeat_interleave(2)[:, None].to(x.dtype), own_flat, 0, N)
+        return PoserConvOutput(node_total / count.clamp_min(1.0), new_pose, new_state)
+
+    @staticmethod
+    def _blocked(view_inputs: Any, messages: Any, reduce: Any, pair_edge: Tensor,
+                 box_src: Tensor, box_dst: Tensor, n_pairs: Tensor, own_flat: Tensor, N: int,
+                 nodes: bool) -> tuple[Tensor, Tensor | None]:
+        """The messages of :meth:`_propagate_fused` block by block of edges (inference on the
+        CPU): each block's pairs (about ``_BLOCK_PAIRS``) run through the networks and are
+        reduced while their activations are in the cache, and no tensor of the size of all
+        pairs (or of all edge views times the hidden width) is ever allocated; large fresh
+        allocations cost page faults that take longer than the arithmetic on them.
+
+        Pairs are visited edge by edge (a stable sort when ``pair_edge`` is not sorted), so
+        every sum adds the same terms in the same order as the unblocked path: deterministic.
+        Returns ``Psi_E``'s mean message ``[E, 2, *]`` and the node sums ``[N, out]``.
+        """
+        E = n_pairs.shape[0]
+        if bool((pair_edge[1:] < pair_edge[:-1]).any()):
+            order = torch.argsort(pair_edge, stable=True)
+            pair_edge, box_src, box_dst = pair_edge[order], box_src[order], box_dst[order]
+        ptr = torch.cat((n_pairs.new_zeros(1), torch.cumsum(n_pairs, 0)))  # [E + 1]
+        M = int(ptr[-1])
+        targets = torch.arange(_BLOCK_PAIRS, M, _BLOCK_PAIRS, device=ptr.device)
+        cuts = torch.searchsorted(ptr[1:], targets, right=True)  # edges with all pairs < T
+        bounds = torch.unique_consecutive(torch.cat((cuts.new_zeros(1), cuts,
+                                                     cuts.new_full((1,), E))))
+        edges = bounds.tolist()
+        starts = ptr[bounds].tolist()
+        m_edge: Tensor | None = None
+        total: Tensor | None = None
+        for e0, e1, q0, q1 in zip(edges[:-1], edges[1:], starts[:-1], starts[1:], strict=True):
+            pe = pair_edge[q0:q1] - e0
+            outs = messages(view_inputs(e0, e1), pe, box_src[q0:q1], box_dst[q0:q1])
+            sums = [y.new_zeros(e1 - e0, y.shape[1]).index_add_(0, pe, y) for y in outs]
+            m_blk, node_rows = reduce(sums, e0, e1)
+            if m_edge is None:
+                m_edge = m_blk.new_empty(E, *m_blk.shape[1:])
+            m_edge[e0:e1] = m_blk
+            if nodes:
+                assert node_rows is not None
+                if total is None:
+                    total = node_rows.new_zeros(N, node_rows.shape[1])
+                total.index_add_(0, own_flat[2 * e0:2 * e1], node_rows)
+        assert m_edge is not None
+        return m_edge, total
+
+
+# Pairs per block of the blocked fast path (inference on the CPU): a block's activations
+# (``[P, 2, 64]`` floats, 2 MB at 4096 pairs) stay in the cache from one layer to the next.
+_BLOCK_PAIRS = 4096
+
+
+def _linear_layers(net: MLP) -> list[tuple[nn.Linear, float | None]]:
+    """The linear layers of a built-in MLP, each with the slope of the leaky ReLU after it
+    (``None`` when none follows)."""
+    out: list[tuple[nn.Linear, float | None]] = []
+    for m in net.net:
+        if isinstance(m, nn.Linear):
+            out.append((m, None))
+        else:
+            out[-1] = (out[-1][0], float(m.negative_slope))
+    return out
+
+
+def _bias(lin: nn.Linear) -> Tensor:
+    return lin.bias if lin.bias is not None else lin.weight.new_zeros(lin.weight.shape[0])
+
+
+def _leaky(t: Tensor, slope: float | None, inplace: bool = True) -> Tensor:
+    """Leaky ReLU, in place where autograd allows it (a non-negative slope: the backward pass
+    then reads the sign from the output). ``slope=None``: no activation."""
+    if slope is None:
+        return t
+    if inplace and slope >= 0:
+        return nn.functional.leaky_relu_(t, slope)
+    return nn.functional.leaky_relu(t, slope)
 
 
 def _alias(name: str, value: Any, old: str, old_value: Any, default: Any) -> Any:

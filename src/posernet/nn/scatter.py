@@ -41,10 +41,11 @@ def _check(src: Tensor, index: Tensor, dim: int, dim_size: int | None) -> tuple[
         raise ValueError(f"scatter: index is on {index.device} but src on {src.device}")
     if dim_size is None:
         dim_size = int(index.max()) + 1 if index.numel() else 0
-    elif index.numel() and index.device.type == "cpu" and (
-            int(index.min()) < 0 or int(index.max()) >= dim_size):
-        # Range checked on the CPU only: on a GPU it would cost a host sync per call (callers
-        # such as PoserConv validate their indices once per forward instead).
+    elif index.numel() and index.device.type == "cpu" and not torch.compiler.is_compiling() \
+            and (int(index.min()) < 0 or int(index.max()) >= dim_size):
+        # Range checked on the CPU and in eager mode only: on a GPU it would cost a host sync
+        # per call, under torch.compile a graph break (callers such as PoserConv validate
+        # their indices once per forward instead).
         raise IndexError(
             f"scatter: index values must lie in [0, {dim_size}), got "
             f"[{int(index.min())}, {int(index.max())}]"

@@ -1,0 +1,115 @@
+"""PoserNet forward pass on the paper's test set size: 7000 graphs batched, fast vs literal path.
+
+Both paths run in this process on the same batch with the same weights (the shipped
+checkpoint): the fast path (``PoserConv(fused=True)``, the default) and the literal one
+(``fused=False``: every matched pair runs both MLPs on its concatenated message, the code before
+issue 15). Reported: best-of-``--repeat`` wall time, graphs/s, the ratio, the largest output
+difference between the paths, and the top operators of the fast path (what bounds it).
+
+    python benchmarks/bench_forward.py                 # 7000 graphs -> results/forward.md
+    python benchmarks/bench_forward.py --quick         # 1400 graphs -> results/quick/forward.md
+    python benchmarks/bench_forward.py --device cuda
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+
+import torch
+from _common import best_of, fmt_s, paper_batch, table, write_results
+
+from posernet.nn import PoserConv, PoserNet
+from posernet.nn.model import CheckpointError
+
+SHIPPED = "src/posernet/checkpoints/posernet_synthetic_kp.ckpt"
+
+
+def load_model() -> PoserNet:
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / SHIPPED
+    try:
+        return PoserNet.from_checkpoint(path)
+    except CheckpointError:  # an installed package without the checkpoint: random weights
+        torch.manual_seed(0)
+        return PoserNet().eval()
+
+
+def literal(model: PoserNet) -> PoserNet:
+    ref = copy.deepcopy(model)
+    for m in ref.modules():
+        if isinstance(m, PoserConv):
+            m.fused = False
+    return ref
+
+
+def profile_rows(fn, n: int = 8) -> list[list[str]]:
+    from torch.profiler import profile
+
+    with profile() as prof:
+        fn()
+    events = sorted(prof.key_averages(), key=lambda e: -e.self_cpu_time_total)
+    total = sum(e.self_cpu_time_total for e in events) or 1.0
+    return [[e.key, f"{100 * e.self_cpu_time_total / total:.1f} %", str(e.count)]
+            for e in events[:n]]
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--graphs", type=int, default=None, help="graphs in the batch (7000)")
+    ap.add_argument("--quick", action="store_true", help="1400 graphs, fewer repeats")
+    ap.add_argument("--repeat", type=int, default=None)
+    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--compile", action="store_true", help="also time torch.compile(model)")
+    ap.add_argument("--out", default=None)
+    args = ap.parse_args()
+    torch.set_num_threads(args.threads)
+    n = args.graphs or (1400 if args.quick else 7000)
+    repeat = args.repeat or (2 if args.quick else 3)
+    dev = args.device
+
+    batch = paper_batch(n).to(dev)
+    model = load_model().to(dev)
+    ref = literal(model)
+    print(f"{n} graphs: {batch.num_edges} edges, {batch.num_pairs} matched pairs", flush=True)
+    with torch.no_grad():
+        fast_out = model(batch)
+        ref_out = ref(batch)
+        diff = float((fast_out - ref_out).abs().max())
+        t_fast, all_fast = best_of(lambda: model(batch), repeat, dev)
+        print(f"fast path: {fmt_s(t_fast)} {[round(t, 3) for t in all_fast]}", flush=True)
+        t_ref, all_ref = best_of(lambda: ref(batch), max(1, repeat - 1), dev)
+        print(f"literal path: {fmt_s(t_ref)} {[round(t, 3) for t in all_ref]}", flush=True)
+        rows = [["literal path (`fused=False`, before issue 15)", fmt_s(t_ref),
+                 f"{n / t_ref:.0f}", "1.0x"],
+                ["fast path (default)", fmt_s(t_fast), f"{n / t_fast:.0f}",
+                 f"{t_ref / t_fast:.1f}x"]]
+        if args.compile:
+            compiled = torch.compile(model)
+            t_c, _ = best_of(lambda: compiled(batch), repeat, dev, warmup=2)
+            rows.append(["fast path, `torch.compile`", fmt_s(t_c), f"{n / t_c:.0f}",
+                         f"{t_ref / t_c:.1f}x"])
+        prof = profile_rows(lambda: model(batch)) if dev == "cpu" else []
+    body = [
+        f"Input: {n} random 8-image view graphs of the paper's test-graph size, one batch: "
+        f"{batch.num_edges} edges, {batch.num_pairs} matched detection pairs "
+        f"({batch.num_pairs / batch.num_edges:.1f} per edge); the shipped checkpoint (depth 2, "
+        "3x32 MLPs), float32, `torch.no_grad()`. Best of "
+        f"{repeat} runs (literal path: best of {max(1, repeat - 1)}), both paths in this "
+        "process on the same batch.",
+        "",
+        *table(["path", "forward", "graphs/s", "speed-up"], rows),
+        "",
+        f"Largest output difference between the paths: {diff:.1e} (float32 round-off).",
+    ]
+    if prof:
+        body += ["", "Where the fast path's time goes (torch profiler, self CPU time):", "",
+                 *table(["operator", "share", "calls"], prof)]
+    write_results("forward", "PoserNet forward, paper-size test set, batched", body, args.quick,
+                  dev, args.out)
+
+
+if __name__ == "__main__":
+    main()
