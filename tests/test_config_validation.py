@@ -62,6 +62,18 @@ def test_every_shipped_group_option_passes(command, group, option, tmp_path):
     if option == "gtsam":
         pytest.importorskip("gtsam")
     extra = ["proposals.path=boxes.json"] if option == "file" else []
+    if option == "learned":  # needs its trained network: a clear line without one
+        with pytest.raises(ConfigValueError, match=r"^sync.ckpt_path: a value is required"):
+            check_config(cfg_of(command, f"{group}={option}", tmp=tmp_path), command)
+        import torch
+
+        from posernet.lit_sync import LearnedSyncModule
+
+        module = LearnedSyncModule()
+        ckpt = tmp_path / "sync.ckpt"
+        torch.save({"state_dict": module.state_dict(), "hyper_parameters": dict(module.hparams),
+                    "posernet": {"tag": module.CHECKPOINT_TAG}}, ckpt)
+        extra = [f"sync.ckpt_path={ckpt}"]
     check_config(cfg_of(command, f"{group}={option}", *extra, tmp=tmp_path), command)
 
 
@@ -213,7 +225,8 @@ def test_make_data_execute_exits_1(tmp_path, capsys):
                         "has sections: model.net.depth)"),
     (["model.lr_patience=5"], "model.lr_patience: no such key in this command's config (the "
                               "model config has sections: model.scheduler.patience)"),
-    (["sync=nope"], "sync: 'nope' is not one of eig_se3, gtsam, none, rotation_translation"),
+    (["sync=nope"], "sync: 'nope' is not one of eig_se3, gtsam, learned, none, "
+                   "rotation_translation"),
     (["model.dept=3"], "model.dept: no such key in this command's config"),
     (["device=cuda"], "device: no such key in this command's config (the trainer picks it"),
     (["hydra.run.dir=/proc/posernet-run"], "hydra.run.dir: '/proc/posernet-run' is not a "

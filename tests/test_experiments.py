@@ -87,6 +87,13 @@ def test_quick_tables_have_paper_and_our_rows(quick_run: tuple[Path, dict]) -> N
         assert ("ours", "EIG-SE3", inp) in t3 and ("ours", "EIG-SE3 + PoserNet", inp) in t3
     assert "rotation_translation" in table3_backends()
     assert ("ours", "RotTrans + PoserNet", "KP") in t3
+    for inp in ("KP", "BB"):  # end to end, and the learned synchronisation beside MultiReg
+        assert ("ours", "EIG-SE3 + PoserNet (end-to-end)", inp) in t3
+        assert ("ours", "RotTrans + PoserNet (end-to-end)", inp) in t3
+        for method in ("MultiReg", "MultiReg + PoserNet"):
+            assert ("paper", method, inp) in t3
+        assert ("ours", "Learned sync", inp) in t3 and ("ours", "Learned sync + PoserNet",
+                                                         inp) in t3
 
     depth = {r["depth"]: r for r in _rows(out / "depth" / "table.csv")}
     assert set(depth) == {"2", "3", "4", "5"}
@@ -273,8 +280,9 @@ def test_required_models_list_each_model_once(quick_run: tuple[Path, dict]) -> N
     assert len(jobs) == len(set(jobs))
     for name in EXPERIMENTS:
         assert set(MODELS[name](ctx)) <= set(jobs)
-    # quick: KP/BB x 2 seeds, large x 2 seeds, depth 3-5, alpha 0.5/1, one model per scene
-    assert len(jobs) == 4 + 2 + 3 + 2 + len(ctx.scenes())
+    # quick: KP/BB x 2 seeds, large x 2 seeds, depth 3-5, alpha 0.5/1, one model per scene;
+    # table 3: end-to-end KP/BB and learned sync raw/refined KP/BB, x 2 seeds
+    assert len(jobs) == 4 + 2 + 3 + 2 + len(ctx.scenes()) + 4 + 8
 
 
 @pytest.mark.slow
@@ -311,7 +319,8 @@ def test_runner_models_are_posernet_train_experiment_configs(tmp_path: Path) -> 
     for spec, name in ((ModelSpec(), "table1_kp"), (ModelSpec(estimate="bb"), "table1_bb"),
                        (ModelSpec(size="large"), "large_graphs"),
                        (ModelSpec(depth=4), "depth_sweep"), (ModelSpec(alpha=0.5), "alpha_sweep"),
-                       (ModelSpec(leave_out="fire"), "leave_one_out")):
+                       (ModelSpec(leave_out="fire"), "leave_one_out"),
+                       (ModelSpec(kind="end_to_end"), "end_to_end")):
         assert spec.experiment()[0] == name
         ours = ctx.train_config(spec, seed=1)
         theirs = compose("train", [f"+experiment={name}", f"model.net.depth={spec.depth}",
@@ -334,6 +343,9 @@ def test_runner_models_are_posernet_train_experiment_configs(tmp_path: Path) -> 
     quick = Context(SCALES["quick"](), tmp_path)
     assert quick.epochs() == (2, 1)
     assert quick.train_config(ModelSpec(size="large")).data.batch_size == 1
+    assert ctx.train_config(ModelSpec(kind="end_to_end")).model.loss.end_to_end is True
+    assert ModelSpec(kind="sync", refined=True).key == "sync-kp-refined"
+    assert ModelSpec(kind="end_to_end", estimate="bb").key == "e2e-bb-small-d2-a0.1"
     assert sweep_values("depth_sweep", "model.net.depth") == [2, 3, 4, 5]
     assert sweep_values("alpha_sweep", "model.loss.alpha") == [0.1, 0.5, 1]
 

@@ -65,7 +65,7 @@ ROWS = [
     Row("train", "data.root={data} model.optimizer.lr=-1 hydra.run.dir={run}",
         r"model\.optimizer\.lr: -1 is not a number > 0$"),
     Row("train", "data.root={data} sync=nope hydra.run.dir={run}",
-        r"sync: 'nope' is not one of eig_se3, gtsam, none, rotation_translation$"),
+        r"sync: 'nope' is not one of eig_se3, gtsam, learned, none, rotation_translation$"),
     Row("train", "data.root={tmp}/nope hydra.run.dir={run}",
         r"dataset directory not found: .*/nope", started=True),
     Row("train", "data.root={data} out_dir=/proc/posernet-x hydra.run.dir={run}",

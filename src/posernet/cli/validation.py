@@ -187,6 +187,7 @@ SYNC: Schema = {
     "refine_iters": integer(0), "translation_iters": integer(1),
     "rotation_sigma": positive(), "direction_sigma": positive(), "p_min": integer(3),
     "p_max": integer(3), "huber": boolean(), "lm_tol": positive(), "max_iterations": integer(1),
+    "ckpt_path": path(), "device": DEVICE,  # the learned backend's
 }
 
 PROPOSALS: Schema = {

@@ -170,24 +170,37 @@ SCALES: dict[str, Callable[[], Scale]] = {
 
 @dataclass(frozen=True)
 class ModelSpec:
-    """One model to train: input estimate, graph size, depth, alpha, left-out scene."""
+    """One model to train: input estimate, graph size, depth, alpha, left-out scene, and its
+    kind: ``posernet`` (the paper's training), ``end_to_end`` (trained through a differentiable
+    synchronisation) or ``sync`` (the learned synchronisation, on raw input or, ``refined``, on
+    the edges of the ``posernet`` model of the same estimate and seed)."""
 
     estimate: str = "kp"
     size: str = "small"
     depth: int = 2
     alpha: float = 0.1
     leave_out: str | None = None
+    kind: str = "posernet"
+    refined: bool = False
 
     @property
     def key(self) -> str:
-        """Folder name of the model, e.g. ``kp-small-d2-a0.1`` or ``kp-small-d2-a0.1-loo_fire``."""
+        """Folder name of the model, e.g. ``kp-small-d2-a0.1``, ``kp-small-d2-a0.1-loo_fire``,
+        ``e2e-kp-small-d2-a0.1`` or ``sync-kp-refined``."""
+        if self.kind == "sync":
+            return f"sync-{self.estimate}-{'refined' if self.refined else 'raw'}"
         k = f"{self.estimate}-{self.size}-d{self.depth}-a{self.alpha:g}"
+        k = ("e2e-" + k) if self.kind == "end_to_end" else k
         return k + (f"-loo_{self.leave_out}" if self.leave_out else "")
 
     def experiment(self) -> tuple[str, dict[str, Any]]:
         """The ``conf/experiment`` file that trains this model and the overrides that make it
         this one (the swept value; the others restate the file's own values)."""
-        if self.size == "large":
+        if self.kind == "sync":
+            return "learned_sync", {"data.estimate": self.estimate, "data.size": self.size}
+        if self.kind == "end_to_end":
+            name = "end_to_end"
+        elif self.size == "large":
             name = "large_graphs"
         elif self.leave_out:
             name = "leave_one_out"
@@ -317,6 +330,9 @@ class Context:
         name, values = spec.experiment()
         values = {**values, **self.scale.train,
                   **(self.scale.train_large if spec.size == "large" else {})}
+        if spec.kind == "sync" and spec.refined:  # its input: that PoserNet's refined edges
+            refiner = self.checkpoint(ModelSpec(estimate=spec.estimate, size=spec.size), seed)
+            values["model.input.refiner_ckpt"] = quote_value(refiner)
         run_dir = run_dir or self.out / "models" / spec.key / f"seed{seed}"
         overrides = [f"+experiment={name}", f"trainer={'gpu' if self.device == 'cuda' else 'cpu'}",
                      *(f"{k}={v}" for k, v in values.items()),
@@ -365,6 +381,36 @@ class Context:
                 backend=None if backend is None else get_backend(backend),
                 batch_size=self.scale.eval_batch, device=self.device, progress=False)
         return self._results[key]
+
+    def sync_result(self, estimate: str, seed: int, refined: bool) -> Any:
+        """:class:`~posernet.pipeline.RefineResult` of the learned synchronisation trained on
+        raw (``refined=False``: the initial stage) or on refined input (the PoserNet model of
+        the same estimate and seed refines first: the refined stage), on the small test
+        graphs."""
+        from ..nn import PoserNet
+        from ..pipeline import refine_graphs
+        from ..sync.learned import LearnedSync
+
+        key = ("learned", estimate, seed, refined)
+        if key not in self._results:
+            sync = self.checkpoint(ModelSpec(estimate=estimate, kind="sync", refined=refined),
+                                   seed)
+            model = (PoserNet.from_checkpoint(self.checkpoint(ModelSpec(estimate=estimate), seed),
+                                              map_location=self.device) if refined else None)
+            self._results[key] = refine_graphs(
+                model, self.graphs("small", estimate),
+                backend=LearnedSync(ckpt_path=str(sync), device=self.device),
+                batch_size=self.scale.eval_batch, device=self.device, progress=False)
+        return self._results[key]
+
+    def sync_evaluation(self, estimate: str, seed: int, refined: bool) -> dict[str, Any]:
+        """:func:`~posernet.pipeline.evaluate_result` of :meth:`sync_result` (cached)."""
+        from ..pipeline import evaluate_result
+
+        key = ("learned", estimate, seed, refined)
+        if key not in self._evals:
+            self._evals[key] = evaluate_result(self.sync_result(estimate, seed, refined))
+        return self._evals[key]
 
     def evaluation(self, spec: ModelSpec, seed: int, size: str = "small",
                    backend: str | None = None, scene: str | None = None) -> dict[str, Any]:
@@ -505,9 +551,13 @@ def table3_backends() -> list[str]:
 
 
 def table3(ctx: Context, out: Path) -> list[Path]:
-    """Table 3: absolute poses from motion averaging of initial vs refined relative poses."""
+    """Table 3: absolute poses from motion averaging of initial vs refined relative poses, with
+    every backend; PoserNet trained end to end through a differentiable synchronisation (then
+    each backend); the learned synchronisation on raw and refined input beside the paper's
+    MultiReg."""
     seeds = ctx.scale.seeds
     specs = {e: ModelSpec(estimate=e) for e in ("bb", "kp")}
+    e2e = {e: ModelSpec(estimate=e, kind="end_to_end") for e in ("bb", "kp")}
     _jobs(ctx, MODELS["table3"](ctx), "table3")
     rows: list[TableRow] = []
     notes: list[str] = []
@@ -520,12 +570,17 @@ def table3(ctx: Context, out: Path) -> list[Path]:
                  if b == "eig_se3" else {})
         mine: dict[tuple[str, ...], TableRow] = {}
         try:
-            for stage, label in (("initial", name), ("refined", f"{name} + PoserNet")):
+            for stage, label in (("initial", name), ("refined", f"{name} + PoserNet"),
+                                 ("end_to_end", f"{name} + PoserNet (end-to-end)")):
                 for est, spec in specs.items():
-                    evals = [ctx.evaluation(spec, s, backend=b) for s in seeds]
                     lab = (label, est.upper())
-                    row = (TableRow(lab, evals[0]["absolute"]["initial"]) if stage == "initial"
-                           else _seed_row(evals, "absolute", "refined", lab))
+                    if stage == "initial":
+                        row = TableRow(lab, ctx.evaluation(spec, seeds[0], backend=b)
+                                       ["absolute"]["initial"])
+                    else:
+                        model = spec if stage == "refined" else e2e[est]
+                        evals = [ctx.evaluation(model, s, backend=b) for s in seeds]
+                        row = _seed_row(evals, "absolute", "refined", lab)
                     mine[lab] = ours(row)
         except Exception as exc:  # one backend failing must not lose the others' rows
             if b == backends[0]:
@@ -537,13 +592,39 @@ def table3(ctx: Context, out: Path) -> list[Path]:
         notes.append(f"{name}: scale {desc.get('scale_label', desc.get('scale', '?'))}, "
                      f"alignment {alignment}")
         rows += interleave(paper, mine)
+    rows += _learned_sync_rows(ctx, notes)
     table = ResultTable(rows=rows, label_names=("source", "method", "init"),
                         groups=ABSOLUTE_GROUPS,
                         title="Table 3: motion averaging, absolute poses",
                         note=_note(ctx, " Alignment: Umeyama on camera centres, per "
                                    "connected component. Backends: " + "; ".join(notes)
-                                   + ". The paper's MultiReg rows are not reproduced."))
+                                   + ". End-to-end: PoserNet trained through a differentiable "
+                                   "spectral synchronisation with a loss on aligned absolute "
+                                   "poses (+ the relative loss), then evaluated with each "
+                                   "backend. Learned sync: our MultiReg-style network (not the "
+                                   "authors' MultiReg), trained on raw or on PoserNet-refined "
+                                   "edges, beside the paper's MultiReg rows."))
     return list(table.write(out))
+
+
+def _learned_sync_rows(ctx: Context, notes: list[str]) -> list[TableRow]:
+    """Learned synchronisation on raw and on refined input (KP, BB), the paper's MultiReg
+    rows above ours."""
+    seeds = ctx.scale.seeds
+    paper: dict[tuple[str, ...], TableRow] = {}
+    mine: dict[tuple[str, ...], TableRow] = {}
+    for refined, stage in ((False, "initial"), (True, "refined")):
+        for est in ("bb", "kp"):
+            key = (stage, est)
+            p_label = "MultiReg" + (" + PoserNet" if refined else "")
+            cells = P.TABLE3_MULTIREG[("PoserNet" if refined else "Initial", est.upper())]
+            paper[key] = P.paper_row(("paper", p_label, est.upper()), cells)
+            lab = ("Learned sync" + (" + PoserNet" if refined else ""), est.upper())
+            evals = [ctx.sync_evaluation(est, s, refined) for s in seeds]
+            mine[key] = ours(_seed_row(evals, "absolute", stage, lab))
+    desc = ctx.sync_result("kp", seeds[0], False).backend or {}
+    notes.append(f"Learned sync: scale {desc.get('scale_label', desc.get('scale', '?'))}")
+    return interleave(paper, mine)
 
 
 def _medians(evals: Sequence[dict[str, Any]]) -> tuple[list[float], list[float]]:
@@ -674,6 +755,13 @@ def _table1_models(ctx: Context) -> list[Job]:
     return [(ModelSpec(estimate=e), s) for e in ("bb", "kp") for s in ctx.scale.seeds]
 
 
+def _table3_models(ctx: Context) -> list[Job]:
+    extra = [ModelSpec(estimate=e, kind="end_to_end") for e in ("bb", "kp")]
+    extra += [ModelSpec(estimate=e, kind="sync", refined=r) for r in (False, True)
+              for e in ("bb", "kp")]  # the refined ones after the PoserNet models they use
+    return _table1_models(ctx) + [(sp, s) for sp in extra for s in ctx.scale.seeds]
+
+
 def _table2_models(ctx: Context) -> list[Job]:
     return [(ModelSpec(size=z), s) for z in ("small", "large") for s in ctx.scale.seeds]
 
@@ -695,7 +783,7 @@ def _plots_models(ctx: Context) -> list[Job]:
 
 # The models each experiment needs (trained on demand, or up front by ``train_models``).
 MODELS: dict[str, Callable[[Context], list[Job]]] = {
-    "table1": _table1_models, "table2": _table2_models, "table3": _table1_models,
+    "table1": _table1_models, "table2": _table2_models, "table3": _table3_models,
     "depth": _depth_models, "loo": _loo_models, "plots": _plots_models,
 }
 

@@ -13,6 +13,9 @@ Backends (``available_backends()``):
   (:mod:`posernet.sync.rotation_translation`);
 * ``gtsam`` -- Shonan averaging + gtsam's TranslationRecovery (optional extra
   ``posernet[gtsam]``; listed only when gtsam imports) (:mod:`posernet.sync.gtsam_backend`).
+* ``learned`` -- a trained MultiReg-style message-passing network (``ckpt_path=`` a checkpoint
+  of ``posernet-train model=learned_sync``) (:mod:`posernet.sync.learned`; imported on first
+  use, as is ``posernet.sync.LearnedSync``).
 
 Hydra: ``posernet/conf/sync/<name>.yaml`` holds ``_target_`` (the backend class, or a factory
 returning a backend), a ``name`` label and the backend's options; :func:`backend_from_config`
@@ -40,6 +43,7 @@ from .rotation_translation import RotationTranslation
 __all__ = [
     "SCALE_POLICIES",
     "EigSE3",
+    "LearnedSync",
     "RotationTranslation",
     "SyncBackend",
     "SyncResult",
@@ -152,3 +156,23 @@ def _instantiate(d: dict[str, Any]) -> SyncBackend | None:
 
 register_backend("eig_se3", EigSE3)
 register_backend("rotation_translation", RotationTranslation)
+
+
+def _learned(**options: Any) -> SyncBackend:
+    """Factory of the ``learned`` backend: imports :mod:`posernet.sync.learned` on first use."""
+    from .learned import LearnedSync
+
+    return LearnedSync(**options)
+
+
+register_backend("learned", _learned)
+
+
+def __getattr__(name: str) -> Any:
+    # ``posernet.sync.LearnedSync`` (the _target_ of conf/sync/learned.yaml) without importing
+    # the learned backend with the package.
+    if name == "LearnedSync":
+        from .learned import LearnedSync
+
+        return LearnedSync
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
