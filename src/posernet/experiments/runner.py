@@ -440,8 +440,12 @@ def _jobs(ctx: Context, jobs: Sequence[tuple[ModelSpec, int]], desc: str) -> Non
     ctx.used += [f"{spec.key}/seed{seed}" for spec, seed in pending]
     with tqdm(total=len(pending), desc=f"{desc}: models", unit="model", leave=False) as bar:
         while pending:
-            busy = [job for job in pending if ctx.checkpoint(*job, wait=False) is None]
-            bar.update(len(pending) - len(busy))
+            busy = []
+            for job in pending:  # the bar moves with each finished model
+                if ctx.checkpoint(*job, wait=False) is None:
+                    busy.append(job)
+                else:
+                    bar.update(1)
             if busy:
                 ctx.checkpoint(*busy[0])  # nothing left to do here: wait for the other process
             pending = busy
