@@ -339,7 +339,8 @@ class Context:
                      f"data.root={quote_value(self.data_root)}", f"seed={seed}",
                      f"out_dir={quote_value(run_dir)}", "test_after_training=false",
                      f"num_threads={self.threads or 'null'}",
-                     f"trainer.enable_progress_bar={str(self.scale.progress_bar).lower()}",
+                     # the runner's own bar counts models; a model's printout goes to its log
+                     "trainer.enable_progress_bar=false",
                      "trainer.enable_model_summary=false"]
         if resume is not None:
             overrides.append(f"ckpt_path={quote_value(resume)}")
