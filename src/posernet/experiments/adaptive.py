@@ -1,0 +1,321 @@
+"""Input-adaptive refinement: the evaluation of issue 16.
+
+``python -m posernet.experiments.adaptive --data DIR --model NAME=CKPT [--model ...] --out DIR``
+
+For every model, on the ``test`` graphs of a dataset (the held-out generator variant,
+``conf/dataset/heldout.yaml``, for the final numbers; never used for training or selection):
+
+* ``graphs.md|csv``: per-graph median (paper style: median over graphs of each graph's mean
+  edge error) of initial and refined rotation / direction errors, per input: ``KP``, ``BB``,
+  ``GT`` (ground-truth relative poses, unit translations: the "leave it alone" test) and
+  ``GT+noise`` (ground truth rotated by 0-20 degrees, direction by 0-40, to populate the middle
+  bins).
+* ``bins.md|csv``: per-edge errors pooled over the inputs (``all``: KP, BB, GT and GT+noise)
+  and per input, binned by initial rotation error (< 3, 3-10, 10-30, > 30 degrees): mean and
+  median initial vs refined rotation and direction errors.
+* ``absolute.md|csv`` (``--absolute``): KP input averaged with EIG-SE3 and
+  ``rotation_translation``, uniform vs confidence-weighted IRLS start (and the guard).
+* ``refined_vs_initial.png``: binned refined vs initial error per edge (rotation, direction).
+* ``summary.json``: everything above as numbers.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import math
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from ..graph import ViewGraph
+from ..io import atomic_path, atomic_write_json, atomic_write_text
+from ..metrics import per_graph_mean, relative_pose_errors
+
+__all__ = ["BINS", "bin_table", "edge_errors_for", "evaluate_models", "main"]
+
+#: initial rotation error bins (degrees)
+BINS: tuple[tuple[float, float], ...] = ((0.0, 3.0), (3.0, 10.0), (10.0, 30.0),
+                                         (30.0, math.inf))
+INPUTS = ("KP", "BB", "GT", "GT+noise")
+
+
+def bin_label(lo: float, hi: float) -> str:
+    return f"< {hi:g}" if lo == 0 else (f"> {lo:g}" if math.isinf(hi) else f"{lo:g}-{hi:g}")
+
+
+def make_inputs(graphs: Sequence[ViewGraph], seed: int = 0) -> dict[str, list[ViewGraph]]:
+    """The four inputs of the evaluation (see the module docstring)."""
+    from ..data.mixture import perturb_poses
+
+    gen = torch.Generator().manual_seed(seed)
+    out: dict[str, list[ViewGraph]] = {k: [] for k in INPUTS}
+    for g in graphs:
+        if g.edge_pose_gt is None:
+            raise ValueError(f"graph {g.name!r} has no edge_pose_gt: cannot evaluate")
+        gt = g.edge_pose_gt.clone()
+        gt[:, 4:] = torch.nn.functional.normalize(gt[:, 4:], dim=-1)
+        out["KP"].append(g.with_estimate("kp"))
+        out["BB"].append(g.with_estimate("bb"))
+        out["GT"].append(dataclasses.replace(g, edge_pose=gt))
+        rot = torch.rand(g.num_edges, generator=gen, dtype=gt.dtype) * 20.0
+        out["GT+noise"].append(dataclasses.replace(
+            g, edge_pose=perturb_poses(gt, rot, 2.0 * rot, gen)))
+    return out
+
+
+def edge_errors_for(model: torch.nn.Module | None, graphs: Sequence[ViewGraph],
+                    guard: bool = False) -> dict[str, Tensor]:
+    """Per-edge errors (degrees) of the input and of the refined poses, with each edge's graph:
+    ``rot_init, rot_ref, tdir_init, tdir_ref [E]``, ``graph [E]``; plus ``sigma [E, 4]``
+    (degrees) when the model has a confidence head."""
+    from ..pipeline import refine_graphs
+
+    res = refine_graphs(model, graphs, progress=False, guard=guard)
+    gt = torch.cat([g.edge_pose_gt for g in graphs]).double()
+    graph = torch.arange(len(graphs)).repeat_interleave(
+        torch.tensor([g.num_edges for g in graphs]))
+    out = {"graph": graph}
+    for stage, key in (("initial", "init"), ("refined", "ref")):
+        est = torch.cat(res.edge_pose[stage]).double()
+        out[f"rot_{key}"], out[f"tdir_{key}"] = relative_pose_errors(est, gt)
+    if res.confidence:
+        out["sigma"] = torch.cat(res.confidence).double()
+    return out
+
+
+def per_graph_medians(err: dict[str, Tensor], num_graphs: int) -> dict[str, float]:
+    """Paper-style medians over graphs of each graph's mean edge error."""
+    return {k: float(per_graph_mean(err[k], err["graph"], num_graphs).nanquantile(0.5))
+            for k in ("rot_init", "rot_ref", "tdir_init", "tdir_ref")}
+
+
+def bin_table(err: dict[str, Tensor]) -> list[dict[str, Any]]:
+    """Rows per initial-rotation-error bin: edge count, mean/median initial and refined errors."""
+    rows = []
+    for lo, hi in BINS:
+        sel = (err["rot_init"] >= lo) & (err["rot_init"] < hi)
+        row: dict[str, Any] = {"bin": bin_label(lo, hi), "edges": int(sel.sum())}
+        for k in ("rot_init", "rot_ref", "tdir_init", "tdir_ref"):
+            v = err[k][sel]
+            v = v[~torch.isnan(v)]
+            row[f"{k}_mean"] = float(v.mean()) if v.numel() else float("nan")
+            row[f"{k}_median"] = float(v.median()) if v.numel() else float("nan")
+        rows.append(row)
+    return rows
+
+
+def _cat(errs: Sequence[dict[str, Tensor]]) -> dict[str, Tensor]:
+    keys = [k for k in ("rot_init", "rot_ref", "tdir_init", "tdir_ref") if k in errs[0]]
+    return {k: torch.cat([e[k] for e in errs]) for k in keys}
+
+
+def absolute_rows(model: torch.nn.Module, graphs: Sequence[ViewGraph],
+                  has_conf: bool) -> list[dict[str, Any]]:
+    """KP input averaged with EIG-SE3 and rotation_translation: uniform vs confidence-weighted
+    IRLS start (modes ``start`` and ``prior``) and the guard; median absolute errors."""
+    from ..pipeline import evaluate_result, refine_graphs
+    from ..sync import get_backend
+
+    rows = []
+    variants: list[tuple[str, dict[str, Any], bool, bool]] = [("uniform", {}, False, False)]
+    if has_conf:
+        variants += [("confidence (start)", {"weight_mode": "start"}, True, False),
+                     ("confidence (prior)", {"weight_mode": "prior"}, True, False),
+                     ("guard + confidence (prior)", {"weight_mode": "prior"}, True, True)]
+    for bname in ("eig_se3", "rotation_translation"):
+        for label, opts, weighted, guard in variants:
+            backend = get_backend(bname, **opts)
+            res = refine_graphs(model, graphs, backend=backend, progress=False,
+                                weighted=weighted, guard=guard)
+            ev = evaluate_result(res)
+            for stage in ("initial", "refined"):
+                if stage == "initial" and (guard or label == "confidence (start)"):
+                    continue  # the guard does not change the input; one weighted input row
+                a = ev["absolute"][stage]
+                rows.append({"backend": bname, "poses": "KP" if stage == "initial"
+                             else "KP + PoserNet", "weights": label,
+                             "rot_median_deg": a["rot"].median,
+                             "pos_median": a["trans"].median})
+    return rows
+
+
+def _md(rows: Sequence[dict[str, Any]], digits: int = 2) -> str:
+    if not rows:
+        return ""
+    keys = list(rows[0])
+
+    def fmt(v: Any) -> str:
+        return f"{v:.{digits}f}" if isinstance(v, float) else str(v)
+
+    lines = ["| " + " | ".join(keys) + " |", "|" + "---|" * len(keys)]
+    lines += ["| " + " | ".join(fmt(r[k]) for k in keys) + " |" for r in rows]
+    return "\n".join(lines) + "\n"
+
+
+def _csv(rows: Sequence[dict[str, Any]]) -> str:
+    if not rows:
+        return ""
+    keys = list(rows[0])
+    return "\n".join([",".join(keys)] + [",".join(
+        f"{r[k]:.6g}" if isinstance(r[k], float) else str(r[k]) for k in keys)
+        for r in rows]) + "\n"
+
+
+def write_table(out: Path, stem: str, rows: Sequence[dict[str, Any]], title: str) -> None:
+    atomic_write_text(out / f"{stem}.md", f"# {title}\n\n" + _md(rows))
+    atomic_write_text(out / f"{stem}.csv", _csv(rows))
+
+
+def plot_binned(curves: dict[str, dict[str, Tensor]], path: Path) -> Path:
+    """Binned refined vs initial error per edge (log bins), rotation and direction panels."""
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(11, 4.6), dpi=110)
+    for k, (what, lim) in enumerate((("rot", (0.05, 180.0)), ("tdir", (0.5, 180.0)))):
+        ax = fig.add_subplot(1, 2, k + 1)
+        edges = np.logspace(np.log10(lim[0]), np.log10(lim[1]), 22)
+        for name, err in curves.items():
+            x = err[f"{what}_init"].numpy()
+            y = err[f"{what}_ref"].numpy()
+            ok = ~(np.isnan(x) | np.isnan(y))
+            x, y = x[ok], y[ok]
+            idx = np.digitize(x, edges)
+            cx, my, q1, q3 = [], [], [], []
+            for b in range(1, len(edges)):
+                sel = idx == b
+                if sel.sum() >= 5:
+                    cx.append(np.sqrt(edges[b - 1] * edges[b]))
+                    my.append(y[sel].mean())
+                    q1.append(np.quantile(y[sel], 0.25))
+                    q3.append(np.quantile(y[sel], 0.75))
+            line = ax.plot(cx, my, marker="o", ms=3, label=f"{name} (mean)")[0]
+            ax.fill_between(cx, q1, q3, color=line.get_color(), alpha=0.15)
+        ax.plot(lim, lim, "k--", lw=1, label="refined = initial")
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.set_xlim(*lim)
+        ax.set_ylim(lim[0], lim[1])
+        ax.set_xlabel(f"initial {'rotation' if what == 'rot' else 'direction'} error per edge "
+                      "(deg)")
+        ax.set_ylabel("refined error (deg), binned mean; band: 25-75%")
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend(fontsize=7, loc="upper left")
+    fig.suptitle("Refined vs initial relative-pose error per edge (KP, BB, GT, GT+noise "
+                 "inputs pooled)")
+    fig.tight_layout()
+    with atomic_path(path, suffix=".png") as tmp:
+        fig.savefig(tmp, format="png")
+    return path
+
+
+def evaluate_models(models: dict[str, str], data: str | Path, out: str | Path,
+                    split: str = "test", absolute: bool = True,
+                    max_graphs: int | None = None) -> dict[str, Any]:
+    """Run the whole evaluation (module docstring) and write its files under ``out``."""
+    from ..nn import PoserNet
+    from ..pipeline import load_input_graphs
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    graphs = load_input_graphs(data, split=split, estimate=None, log=lambda *_: None)
+    if max_graphs:
+        graphs = graphs[:max_graphs]
+    inputs = make_inputs(graphs)
+    B = len(graphs)
+    summary: dict[str, Any] = {"data": str(data), "split": split, "graphs": B, "models": {}}
+    graph_rows, bin_rows, abs_rows = [], [], []
+    curves: dict[str, dict[str, Tensor]] = {}
+    for name, ckpt in models.items():
+        model = PoserNet.from_checkpoint(ckpt)
+        errs = {k: edge_errors_for(model, v) for k, v in inputs.items()}
+        m: dict[str, Any] = {"checkpoint": str(ckpt), "per_graph": {}, "bins": {}}
+        for inp, e in errs.items():
+            med = per_graph_medians(e, B)
+            m["per_graph"][inp] = med
+            graph_rows.append({"model": name, "input": inp, **med})
+        pooled = _cat(list(errs.values()))
+        curves[name] = pooled
+        for inp, e in [("all", pooled), *errs.items()]:
+            rows = bin_table(e)
+            m["bins"][inp] = rows
+            bin_rows += [{"model": name, "input": inp, **r} for r in rows]
+        if getattr(model, "confidence", False):
+            e = errs["KP"]
+            s = e["sigma"]
+            ok = ~torch.isnan(e["rot_ref"])
+            rho = float(np.corrcoef(np.log(s[ok, 0].numpy()),
+                                    np.log(e["rot_ref"][ok].clamp_min(1e-3).numpy()))[0, 1])
+            m["confidence_log_corr_rot_KP"] = rho
+            guarded = {k: edge_errors_for(model, v, guard=True) for k, v in inputs.items()}
+            m["guard_per_graph"] = {k: per_graph_medians(v, B) for k, v in guarded.items()}
+            for inp in guarded:
+                graph_rows.append({"model": f"{name} + guard", "input": inp,
+                                   **m["guard_per_graph"][inp]})
+        if absolute:
+            rows = absolute_rows(model, inputs["KP"], bool(getattr(model, "confidence", False)))
+            abs_rows += [{"model": name, **r} for r in rows]
+            m["absolute"] = rows
+        summary["models"][name] = m
+        print(f"[adaptive] {name}: " + ", ".join(
+            f"{k} rot {v['rot_init']:.2f}->{v['rot_ref']:.2f} tdir {v['tdir_init']:.2f}->"
+            f"{v['tdir_ref']:.2f}" for k, v in m["per_graph"].items()), flush=True)
+    title = f"{data} ({split}, {B} graphs)"
+    write_table(out, "graphs", graph_rows,
+                f"Per-graph medians of mean edge errors (deg): {title}")
+    write_table(out, "bins", bin_rows,
+                f"Per-edge errors binned by initial rotation error (deg): {title}")
+    if abs_rows:
+        write_table(out, "absolute", abs_rows,
+                    f"Absolute poses after motion averaging, KP input (median rotation deg, "
+                    f"median position, similarity-aligned, unit-norm translations): {title}")
+    plot_binned(curves, out / "refined_vs_initial.png")
+    atomic_write_json(out / "summary.json", _finite(summary))
+    return summary
+
+
+def _finite(obj: Any) -> Any:
+    """JSON-safe copy: NaN / inf floats (empty bins) become ``None``."""
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {k: _finite(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_finite(v) for v in obj]
+    return obj
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m posernet.experiments.adaptive",
+                                description=__doc__.split("\n\n")[0])
+    p.add_argument("--data", required=True, help="dataset root (posernet-make-data output)")
+    p.add_argument("--model", action="append", required=True,
+                   help="NAME=CHECKPOINT (repeatable); NAME=shipped for the shipped one")
+    p.add_argument("--out", required=True, help="output folder (e.g. results/adaptive)")
+    p.add_argument("--split", default="test")
+    p.add_argument("--no-absolute", action="store_true", help="skip motion averaging")
+    p.add_argument("--max-graphs", type=int, default=None)
+    p.add_argument("--threads", type=int, default=1)
+    a = p.parse_args(argv)
+    torch.set_num_threads(a.threads)
+    models = {}
+    for spec in a.model:
+        if "=" not in spec:
+            p.error(f"--model must be NAME=CHECKPOINT, got {spec!r}")
+        name, path = spec.split("=", 1)
+        if path == "shipped":
+            from ..checkpoints import default_checkpoint
+
+            path = str(default_checkpoint())
+        models[name] = path
+    evaluate_models(models, a.data, a.out, a.split, not a.no_absolute, a.max_graphs)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
