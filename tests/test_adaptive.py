@@ -71,7 +71,7 @@ def test_gate_and_confidence_shapes_and_gradients() -> None:
     out = model(batch, return_extras=True)
     E = batch.num_edges
     assert out.pose.shape == (E, 7) and out.raw.shape == (E, 7)
-    assert out.gate.shape == (E,) and bool(((out.gate > 0) & (out.gate < 1)).all())
+    assert out.gate.shape == (E, 2) and bool(((out.gate > 0) & (out.gate < 1)).all())
     assert out.sigma.shape == (E, 4) and bool((out.sigma > 0).all())
     torch.testing.assert_close(model(batch), out.pose)  # plain forward = final pose
     loss = (out.pose.sum() + out.sigma.log().sum())
@@ -137,7 +137,6 @@ def test_module_trains_every_loss_term() -> None:
     module = PoserNetModule(net=ADAPTIVE, loss={"raw": 0.5, "confidence": 0.1,
                                                 "correction": 0.1})
     batch = GraphBatch.from_graphs(graphs(2))
-    module._step = PoserNetModule._step.__get__(module)  # noqa: SLF001 - plain call, no trainer
     module.log = lambda *a, **k: None  # type: ignore[method-assign]
     loss = module._step(batch, "train")
     loss.backward()
@@ -238,8 +237,8 @@ def _confident_model(keep: bool) -> PoserNet:
     with torch.no_grad():
         last.weight.zero_()
         # outputs: gate logit, log-scales of rot_out, tdir_out, rot_in, tdir_in
-        last.bias.copy_(torch.tensor([3.0, 0.0, 0.0, -2.0, -2.0] if keep
-                                     else [3.0, -2.0, -2.0, 0.0, 0.0]))
+        last.bias.copy_(torch.tensor([3.0, 3.0, 0.0, 0.0, -2.0, -2.0] if keep
+                                     else [3.0, 3.0, -2.0, -2.0, 0.0, 0.0]))
     return model
 
 

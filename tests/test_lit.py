@@ -107,7 +107,9 @@ def test_checkpoint_round_trip(data, tmp_path: Path) -> None:
     expected = module(batch)
     loaded = PoserNetModule.load_from_checkpoint(path, map_location="cpu")  # no Hydra needed
     assert loaded.hparams.net["depth"] == 3 and loaded.hparams.net["residual"]
-    assert loaded.hparams.loss == {"alpha": 0.3}
+    # the adaptive loss terms (issue 16) default to 0: the paper's loss
+    assert loaded.hparams.loss == {"alpha": 0.3, "raw": 0.0, "confidence": 0.0,
+                                   "correction": 0.0}
     loaded.eval()
     torch.testing.assert_close(loaded(batch), expected)
     ours = load_posernet_checkpoint(path)
@@ -262,7 +264,7 @@ def test_flat_hyper_parameters_of_older_checkpoints_map_to_sections(tmp_path: Pa
             "lr_factor": 0.5, "min_lr": 1e-5, "residual": True}
     hp = module_hparams(**flat)
     assert hp["net"]["depth"] == 3 and hp["net"]["residual"] is True
-    assert hp["loss"] == {"alpha": 0.5}
+    assert hp["loss"] == {"alpha": 0.5, "raw": 0.0, "confidence": 0.0, "correction": 0.0}
     assert hp["optimizer"] == {"lr": 0.01, "weight_decay": 1e-4}
     assert hp["scheduler"] == {"patience": 7, "factor": 0.5, "min_lr": 1e-5}
     assert module_hparams(net={"depth": 4}, depth=3)["net"]["depth"] == 4  # sections win

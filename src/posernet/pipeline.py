@@ -161,7 +161,8 @@ class RefineResult:
     component: dict[str, list[Tensor]] = field(default_factory=dict)
     backend: dict[str, Any] | None = None
     #: per graph ``[E_g, 4]`` predicted errors in degrees (``CONFIDENCE_NAMES`` order), when
-    #: the model has a confidence head; ``gate`` ``[E_g]`` when it has a gate
+    #: the model has a confidence head; ``gate`` ``[E_g, 2]`` (rotation, direction) when it
+    #: has a gate
     confidence: list[Tensor] = field(default_factory=list)
     gate: list[Tensor] = field(default_factory=list)
     #: per graph ``[E_g, 2]`` (rotation, direction): where ``guard=True`` kept the input
@@ -403,8 +404,8 @@ def result_to_json(result: RefineResult, info: dict[str, Any] | None = None) -> 
             rec.update({s: _pose_record(m[e]) for s, m in mats.items()})
             if conf is not None:  # the model's predicted errors (degrees)
                 rec["confidence"] = dict(zip(CONFIDENCE_KEYS, conf[e], strict=True))
-            if gate is not None:
-                rec["gate"] = gate[e]
+            if gate is not None:  # 0: the input kept, 1: the network's prediction
+                rec["gate"] = {"rotation": gate[e][0], "direction": gate[e][1]}
             if kept is not None:
                 rec["kept_input"] = {"rotation": kept[e][0], "direction": kept[e][1]}
             edges.append(rec)

@@ -115,6 +115,23 @@ def _cat(errs: Sequence[dict[str, Tensor]]) -> dict[str, Tensor]:
     return {k: torch.cat([e[k] for e in errs]) for k in keys}
 
 
+def lever_row(name: str, m: dict[str, Any]) -> dict[str, Any]:
+    """The one-line comparison of a model (see ``levers.md``)."""
+    pg = m["per_graph"]
+    row: dict[str, Any] = {"model": name, "GT rot": pg["GT"]["rot_ref"],
+                           "GT tdir": pg["GT"]["tdir_ref"],
+                           "KP rot": pg["KP"]["rot_ref"], "KP tdir": pg["KP"]["tdir_ref"],
+                           "BB rot": pg["BB"]["rot_ref"], "BB tdir": pg["BB"]["tdir_ref"]}
+    bins = m["bins"]["all"]
+    for b in bins:
+        row[f"rot {b['bin']}"] = b["rot_ref_mean"]
+    for b in bins:
+        row[f"tdir {b['bin']}"] = b["tdir_ref_mean"]
+    row["worse rot"] = sum(b["rot_ref_mean"] > b["rot_init_mean"] for b in bins)
+    row["worse tdir"] = sum(b["tdir_ref_mean"] > b["tdir_init_mean"] for b in bins)
+    return row
+
+
 def absolute_rows(model: torch.nn.Module, graphs: Sequence[ViewGraph],
                   has_conf: bool) -> list[dict[str, Any]]:
     """KP input averaged with EIG-SE3 and rotation_translation: uniform vs confidence-weighted
@@ -229,7 +246,7 @@ def evaluate_models(models: dict[str, str], data: str | Path, out: str | Path,
     inputs = make_inputs(graphs)
     B = len(graphs)
     summary: dict[str, Any] = {"data": str(data), "split": split, "graphs": B, "models": {}}
-    graph_rows, bin_rows, abs_rows = [], [], []
+    graph_rows, bin_rows, abs_rows, lever_rows = [], [], [], []
     curves: dict[str, dict[str, Tensor]] = {}
     for name, ckpt in models.items():
         model = PoserNet.from_checkpoint(ckpt)
@@ -262,6 +279,7 @@ def evaluate_models(models: dict[str, str], data: str | Path, out: str | Path,
             abs_rows += [{"model": name, **r} for r in rows]
             m["absolute"] = rows
         summary["models"][name] = m
+        lever_rows.append(lever_row(name, m))
         print(f"[adaptive] {name}: " + ", ".join(
             f"{k} rot {v['rot_init']:.2f}->{v['rot_ref']:.2f} tdir {v['tdir_init']:.2f}->"
             f"{v['tdir_ref']:.2f}" for k, v in m["per_graph"].items()), flush=True)
@@ -270,6 +288,11 @@ def evaluate_models(models: dict[str, str], data: str | Path, out: str | Path,
                 f"Per-graph medians of mean edge errors (deg): {title}")
     write_table(out, "bins", bin_rows,
                 f"Per-edge errors binned by initial rotation error (deg): {title}")
+    write_table(out, "levers", lever_rows,
+                f"One row per model: per-graph medians (deg) for GT/KP/BB input, and the mean "
+                f"refined rotation / direction error of the pooled per-edge bins (initial "
+                f"rotation error < 3, 3-10, 10-30, > 30 deg; 'worse': bins whose mean got "
+                f"worse than the initial mean): {title}")
     if abs_rows:
         write_table(out, "absolute", abs_rows,
                     f"Absolute poses after motion averaging, KP input (median rotation deg, "

@@ -64,8 +64,9 @@ class AdaptiveOutput(NamedTuple):
     """What an adaptive PoserNet returns with ``return_extras=True``.
 
     ``pose [E, 7]`` the final (gated) pose; ``raw [E, 7]`` the message-passing prediction
-    before the gate; ``gate [E]`` in (0, 1) (``None`` without a gate); ``sigma [E, 4]`` the
-    error scales in radians in :data:`CONFIDENCE_NAMES` order (``None`` without confidence).
+    before the gate; ``gate [E, 2]`` (rotation, direction) in (0, 1) (``None`` without a
+    gate); ``sigma [E, 4]`` the error scales in radians in :data:`CONFIDENCE_NAMES` order
+    (``None`` without confidence).
     """
 
     pose: Tensor
@@ -175,12 +176,14 @@ class EdgeHead(nn.Module):
     stored direction.
 
     Args:
-        gate: predict the gate (one output).
+        gate: predict the gates (rotation, direction).
         confidence: predict the four error scales (:data:`CONFIDENCE_NAMES`).
         hidden: MLP width (default 32); layers: MLP depth (default 3).
         gate_bias: initial bias of the gate logit (default 0: g = 0.5 at start).
 
-    Shapes: ``forward(feats [E, HEAD_IN_DIM]) -> (gate [E] | None, sigma [E, 4] | None)``.
+    Shapes: ``forward(feats [E, HEAD_IN_DIM]) -> (gate [E, 2] | None, sigma [E, 4] | None)``;
+    the gate has one column for the rotation and one for the translation direction (the
+    direction carries far less information in the boxes, so it needs its own).
     """
 
     def __init__(self, gate: bool, confidence: bool, hidden: int = 32, layers: int = 3,
@@ -189,7 +192,7 @@ class EdgeHead(nn.Module):
         if not (gate or confidence):
             raise ValueError("EdgeHead needs gate=True or confidence=True")
         self.gate, self.confidence = bool(gate), bool(confidence)
-        self.out_dim = int(self.gate) + (len(CONFIDENCE_NAMES) if self.confidence else 0)
+        self.out_dim = 2 * int(self.gate) + (len(CONFIDENCE_NAMES) if self.confidence else 0)
         self.mlp = MLP(HEAD_IN_DIM, self.out_dim, hidden, layers, negative_slope, act_last=False)
         self.gate_bias = float(gate_bias)
         self.reset_parameters()
@@ -200,7 +203,7 @@ class EdgeHead(nn.Module):
         assert isinstance(last, nn.Linear)
         with torch.no_grad():
             if self.gate:
-                last.bias[0] = self.gate_bias
+                last.bias[:2] = self.gate_bias
 
     @staticmethod
     def features(pose_in: Tensor, raw: Tensor, cyc_in: Tensor, cyc_raw: Tensor,
@@ -214,22 +217,25 @@ class EdgeHead(nn.Module):
 
     def forward(self, feats: Tensor) -> tuple[Tensor | None, Tensor | None]:
         out = self.mlp(feats)
-        gate = torch.sigmoid(out[:, 0]) if self.gate else None
+        gate = torch.sigmoid(out[:, :2]) if self.gate else None
         sigma = None
         if self.confidence:
             # s = floor + exp(raw): smooth, positive, and e / s + log s is minimised at s = e
-            sigma = SIGMA_FLOOR + torch.exp(out[:, int(self.gate):].clamp(max=3.0))
+            sigma = SIGMA_FLOOR + torch.exp(out[:, 2 * int(self.gate):].clamp(max=3.0))
         return gate, sigma
 
 
 def blend_poses(pose_in: Tensor, pred: Tensor, gate: Tensor) -> Tensor:
     """``(1 - g) * input + g * prediction`` on unit quaternions (sign-aligned, normalised) and
-    unit translation directions. Shapes: ``[E, 7], [E, 7], [E] -> [E, 7]``."""
+    unit translation directions. Shapes: ``[E, 7], [E, 7], gate [E] or [E, 2]`` (rotation,
+    direction) ``-> [E, 7]``."""
+    g2 = gate[:, None].expand(-1, 2) if gate.ndim == 1 else gate
     q_in = quaternion_normalize(pose_in[:, :4])
     q_pr = quaternion_normalize(pred[:, :4])
     sign = torch.where((q_in * q_pr).sum(-1, keepdim=True) < 0, -1.0, 1.0).to(q_in.dtype)
-    g = gate[:, None]
+    g = g2[:, :1]
     q = quaternion_normalize((1.0 - g) * q_in * sign + g * q_pr)
+    g = g2[:, 1:]
     t_in = nn.functional.normalize(pose_in[:, 4:], dim=-1, eps=1e-12)
     t_pr = nn.functional.normalize(pred[:, 4:], dim=-1, eps=1e-12)
     t = nn.functional.normalize((1.0 - g) * t_in + g * t_pr, dim=-1, eps=1e-12)
