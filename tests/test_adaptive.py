@@ -229,16 +229,18 @@ def test_guard_warns_on_shifted_inputs_and_not_on_in_distribution_ones() -> None
     assert warning_line([], 2.0, 2.1) is None
 
 
-def _confident_model(keep: bool) -> PoserNet:
-    """An adaptive net whose error head says the input is better (``keep``) or worse."""
+def _confident_model(keep: bool, gate: float = 3.0) -> PoserNet:
+    """An adaptive net whose error head says the input is better (``keep``) or worse; its
+    gates are ``sigmoid(gate)`` (an untrained network: its prediction is noise)."""
     torch.manual_seed(0)
     model = PoserNet(**ADAPTIVE).eval()
     last = model.head.mlp.net[-1]
     with torch.no_grad():
         last.weight.zero_()
-        # outputs: gate logit, log-scales of rot_out, tdir_out, rot_in, tdir_in
-        last.bias.copy_(torch.tensor([3.0, 3.0, 0.0, 0.0, -2.0, -2.0] if keep
-                                     else [3.0, 3.0, -2.0, -2.0, 0.0, 0.0]))
+        # outputs: rotation / direction gate logits, log-scales of rot_out, tdir_out, rot_in,
+        # tdir_in
+        last.bias.copy_(torch.tensor([gate, gate, 0.0, 0.0, -2.0, -2.0] if keep
+                                     else [gate, gate, -2.0, -2.0, 0.0, 0.0]))
     return model
 
 
@@ -251,11 +253,19 @@ def test_guard_keeps_the_input_where_the_confidence_says_so() -> None:
         assert bool(kept.kept_input[k].all())
         err = rotation_error_deg(kept.edge_pose["refined"][k][:, :4], g.edge_pose[:, :4])
         assert float(err.max()) < 1e-2
-    free = refine_graphs(_confident_model(False), gs, progress=False, guard=True)
+    # confidence says "refine", and the (nearly closed) gates keep the graph as consistent
+    free = refine_graphs(_confident_model(False, gate=-8.0), gs, progress=False, guard=True)
     assert not any(bool(m.any()) for m in free.kept_input)
-    plain = refine_graphs(_confident_model(False), gs, progress=False)
+    plain = refine_graphs(_confident_model(False, gate=-8.0), gs, progress=False)
     for a, b in zip(free.edge_pose["refined"], plain.edge_pose["refined"], strict=True):
         torch.testing.assert_close(a, b)
+    # an untrained prediction makes exact input graphs less cycle-consistent: kept whole
+    exact = [gt_input(g) for g in gs]
+    noisy = refine_graphs(_confident_model(False), exact, progress=False, guard=True)
+    assert all(bool(m.all()) for m in noisy.kept_input)
+    for k, g in enumerate(exact):
+        err = rotation_error_deg(noisy.edge_pose["refined"][k][:, :4], g.edge_pose[:, :4])
+        assert float(err.max()) < 1e-2
     with pytest.raises(ValueError, match="confidence head"):
         refine_graphs(PoserNet(), gs, progress=False, guard=True)
 

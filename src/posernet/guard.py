@@ -30,7 +30,7 @@ from .graph import GraphBatch, ViewGraph
 from .nn.adaptive import cycle_features
 from .nn.scatter import scatter_count, scatter_mean
 
-__all__ = ["FEATURES", "check_inputs", "cycle_inconsistency", "graph_features",
+__all__ = ["FEATURES", "check_inputs", "cycle_inconsistency", "graph_features", "graph_made_worse",
            "input_statistics", "keep_input_mask", "warning_line"]
 
 #: per-graph summaries compared with the training data; the last is only flagged upwards
@@ -52,6 +52,15 @@ def cycle_inconsistency(batch: GraphBatch, edge_pose: Tensor) -> Tensor:
     eb = batch.edge_batch[has]
     mean = scatter_mean(torch.rad2deg(cyc[has, 0])[:, None], eb, 0, batch.num_graphs)[:, 0]
     return mean
+
+
+def graph_made_worse(batch: GraphBatch, edge_pose: Tensor, refined: Tensor,
+                     tolerance_deg: float = 0.5) -> Tensor:
+    """``[B]`` booleans: graphs whose refined poses have a larger mean rotation cycle
+    discrepancy than their input (by more than ``tolerance_deg``). Ground-truth free."""
+    before = cycle_inconsistency(batch, edge_pose)
+    after = cycle_inconsistency(batch, refined.to(edge_pose.dtype))
+    return after > before + tolerance_deg
 
 
 def graph_features(batch: GraphBatch, edge_pose: Tensor | None = None) -> Tensor:

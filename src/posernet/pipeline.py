@@ -21,7 +21,7 @@ from torch import Tensor
 from tqdm.auto import tqdm
 
 from .graph import GraphBatch, GraphValidationError, ViewGraph, load_graphs
-from .guard import keep_input_mask
+from .guard import graph_made_worse, keep_input_mask
 from .metrics import (
     absolute_errors_per_graph,
     absolute_rows,
@@ -195,7 +195,9 @@ def refine_graphs(
         device: where to run (``"cuda"`` when available and wanted; never assumed).
         guard: keep the input rotation / direction on edges where the model's confidence head
             predicts a smaller error for the input than for its output
-            (:func:`posernet.guard.keep_input_mask`); needs a confidence head.
+            (:func:`posernet.guard.keep_input_mask`), and every input pose of a graph whose
+            refined poses are less cycle-consistent than its input
+            (:func:`posernet.guard.graph_made_worse`); needs a confidence head.
         weighted: start motion averaging's IRLS from the confidence head's weights
             (``1 / sigma^2`` of the stage's predicted errors) instead of uniform ones.
     """
@@ -234,6 +236,10 @@ def refine_graphs(
                 sig_out = sigma[:, :2]
                 if guard:
                     keep = keep_input_mask(sigma)
+                    # a graph the refinement made less cycle-consistent keeps its input
+                    # whole: the confidence head is no judge on inputs unlike its training
+                    worse = graph_made_worse(batch, batch.edge_pose, refined)
+                    keep = keep | worse[batch.edge_batch][:, None]
                     refined = keep_input(batch.edge_pose, refined, keep)
                     sig_out = torch.where(keep, sigma[:, 2:], sigma[:, :2])
                     out.kept_input += _split(keep, batch.edge_ptr)

@@ -262,6 +262,7 @@ def evaluate_models(models: dict[str, str], data: str | Path, out: str | Path,
             rows = bin_table(e)
             m["bins"][inp] = rows
             bin_rows += [{"model": name, "input": inp, **r} for r in rows]
+        lever_rows.append(lever_row(name, m))
         if getattr(model, "confidence", False):
             e = errs["KP"]
             s = e["sigma"]
@@ -274,12 +275,19 @@ def evaluate_models(models: dict[str, str], data: str | Path, out: str | Path,
             for inp in guarded:
                 graph_rows.append({"model": f"{name} + guard", "input": inp,
                                    **m["guard_per_graph"][inp]})
+            g_pooled = _cat(list(guarded.values()))
+            m["guard_bins"] = {inp: bin_table(e) for inp, e in
+                               [("all", g_pooled), *guarded.items()]}
+            for inp, rows in m["guard_bins"].items():
+                bin_rows += [{"model": f"{name} + guard", "input": inp, **r} for r in rows]
+            curves[f"{name} + guard"] = g_pooled
+            lever_rows.append(lever_row(f"{name} + guard", {"per_graph": m["guard_per_graph"],
+                                                           "bins": m["guard_bins"]}))
         if absolute:
             rows = absolute_rows(model, inputs["KP"], bool(getattr(model, "confidence", False)))
             abs_rows += [{"model": name, **r} for r in rows]
             m["absolute"] = rows
         summary["models"][name] = m
-        lever_rows.append(lever_row(name, m))
         print(f"[adaptive] {name}: " + ", ".join(
             f"{k} rot {v['rot_init']:.2f}->{v['rot_ref']:.2f} tdir {v['tdir_init']:.2f}->"
             f"{v['tdir_ref']:.2f}" for k, v in m["per_graph"].items()), flush=True)
@@ -313,6 +321,115 @@ def _finite(obj: Any) -> Any:
     return obj
 
 
+def guard_report(models: dict[str, str], sets: dict[str, Sequence[ViewGraph]],
+                 out: str | Path) -> list[dict[str, Any]]:
+    """The guard on named graph sets: its warning line (or none) per model and set, and the
+    per-graph median rotation / direction errors without and with ``guard=true``."""
+    from ..checkpoints import read_checkpoint
+    from ..graph import GraphBatch
+    from ..guard import check_inputs, cycle_inconsistency, warning_line
+    from ..nn import PoserNet
+    from ..pipeline import refine_graphs
+
+    rows = []
+    for name, ckpt in models.items():
+        model = PoserNet.from_checkpoint(ckpt)
+        stats = (read_checkpoint(ckpt).get("posernet") or {}).get("input_stats")
+        for set_name, graphs in sets.items():
+            graphs = list(graphs)
+            batch = GraphBatch.from_graphs(graphs)
+            res = refine_graphs(model, graphs, progress=False)
+            cyc = {st: float(cycle_inconsistency(batch, torch.cat(p).to(batch.edge_pose.dtype))
+                             .mean()) for st, p in res.edge_pose.items()}
+            line = warning_line(check_inputs(stats, graphs), cyc["initial"], cyc["refined"])
+            err = per_graph_medians(edge_errors_for(model, graphs), len(graphs))
+            row: dict[str, Any] = {"model": name, "graphs": set_name, **err}
+            if getattr(model, "confidence", False):
+                g = per_graph_medians(edge_errors_for(model, graphs, guard=True), len(graphs))
+                row.update({"rot_guard": g["rot_ref"], "tdir_guard": g["tdir_ref"]})
+            else:
+                row.update({"rot_guard": float("nan"), "tdir_guard": float("nan")})
+            row["warning"] = line or "-"
+            rows.append(row)
+    write_table(Path(out), "guard", rows, "Guard: warning line and per-graph medians (deg) "
+                "without / with refine.guard=true")
+    return rows
+
+
+def random_graphs(n: int = 60, seed: int = 0) -> list[ViewGraph]:
+    """Out-of-distribution graphs (random boxes and cameras, 10 deg initial noise, as in the
+    test suite's authors'-schema files)."""
+    from ..testing import random_view_graph
+
+    gen = torch.Generator().manual_seed(seed)
+    out = []
+    for i in range(n):
+        g = random_view_graph(num_nodes=8, extra_edges=10, generator=gen, name=f"ood{i}")
+        g.estimates = {"kp": g.edge_pose, "bb": g.edge_pose}
+        out.append(g)
+    return out
+
+
+def paper_tables(ckpt: str | Path, data: str | Path, out: str | Path, label: str,
+                 paper_dir: str | Path | None = None) -> dict[str, Path]:
+    """Table 1 / Table 3 rows (paper layout) of one checkpoint on a dataset's test split.
+
+    Writes ``table1.md|csv`` (relative poses, KP and BB input) and ``table3.md|csv`` (EIG-SE3
+    and rotation_translation, uniform and confidence-weighted IRLS start) under ``out``; with
+    ``paper_dir`` (e.g. ``results/paper``) ``table1_with_paper.md`` / ``table3_with_paper.md``
+    put the new rows under the existing table, whose rows (paper, paper-faithful model) are
+    kept verbatim.
+    """
+    from ..nn import PoserNet
+    from ..pipeline import evaluate_result, load_input_graphs, refine_graphs, result_tables
+    from ..report import ABSOLUTE_GROUPS, ResultTable, TableRow
+    from ..sync import get_backend
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    model = PoserNet.from_checkpoint(ckpt)
+    has_conf = bool(getattr(model, "confidence", False))
+    graphs = load_input_graphs(data, split="test", estimate=None, log=lambda *_: None)
+    rel_rows, abs_rows = [], []
+    for est in ("bb", "kp"):
+        inp = [g.with_estimate(est) for g in graphs]
+        for bname, short in (("eig_se3", "EIG-SE3"), ("rotation_translation", "RotTrans")):
+            modes = [False, True] if has_conf else [False]
+            for weighted in modes:
+                res = refine_graphs(model, inp, backend=get_backend(bname, weight_mode="prior"),
+                                    progress=False, weighted=weighted)
+                ev = evaluate_result(res)
+                tabs = result_tables(ev, label=est.upper(), backend=res.backend)
+                if bname == "eig_se3" and not weighted:
+                    rel = {r.labels[1]: r for r in tabs["relative"].rows}
+                    rel_rows.append(TableRow((est.upper(), f"{label}"), rel["PoserNet"].cells))
+                tag = " (confidence-weighted)" if weighted else ""
+                for r in tabs["absolute"].rows:
+                    stage = (f"{short}{tag}" if r.labels[1] == bname
+                             else f"{short} + {label}{tag}")
+                    if r.labels[1] == bname and weighted:
+                        stage = f"{short} (input confidence from {label})"
+                    abs_rows.append(TableRow((stage, est.upper()), r.cells, placed=r.placed))
+    t1 = ResultTable(rows=rel_rows, title=f"Table 1 rows: {label}",
+                     note=f"{len(graphs)} test graphs of {data}; checkpoint {ckpt}")
+    t3 = ResultTable(rows=abs_rows, label_names=("method", "init"), groups=ABSOLUTE_GROUPS,
+                     title=f"Table 3 rows: {label}",
+                     note=f"{len(graphs)} test graphs of {data}; unit-norm relative translations "
+                          "(EIG-SE3), scale-free (RotTrans); similarity alignment; confidence "
+                          "weights: IRLS 'prior' mode")
+    paths = {}
+    for name, tab in (("table1", t1), ("table3", t3)):
+        paths[name] = tab.write(out, name)[0]
+        if paper_dir is not None:
+            src = Path(paper_dir) / name / "table.md"
+            if src.is_file():
+                text = (src.read_text() + f"\n\n**Rows added (issue 16): {label}**\n\n"
+                        + tab.to_markdown())
+                paths[f"{name}_with_paper"] = atomic_write_text(
+                    out / f"{name}_with_paper.md", text)
+    return paths
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m posernet.experiments.adaptive",
                                 description=__doc__.split("\n\n")[0])
@@ -324,6 +441,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--no-absolute", action="store_true", help="skip motion averaging")
     p.add_argument("--max-graphs", type=int, default=None)
     p.add_argument("--threads", type=int, default=1)
+    p.add_argument("--guard", action="store_true",
+                   help="instead: the guard report on the --data KP test graphs and on random "
+                        "out-of-distribution graphs, for every --model")
+    p.add_argument("--paper-tables", default=None, metavar="LABEL",
+                   help="instead: Table 1/3 rows of the (single) --model, labelled LABEL")
+    p.add_argument("--paper-dir", default=None,
+                   help="with --paper-tables: the runner's folder (e.g. results/paper) whose "
+                        "tables the rows are appended to (in new files)")
     a = p.parse_args(argv)
     torch.set_num_threads(a.threads)
     models = {}
@@ -336,6 +461,19 @@ def main(argv: Sequence[str] | None = None) -> int:
 
             path = str(default_checkpoint())
         models[name] = path
+    if a.guard:
+        from ..pipeline import load_input_graphs
+
+        kp = [g.with_estimate("kp") for g in
+              load_input_graphs(a.data, split=a.split, estimate=None, log=lambda *_: None)]
+        guard_report(models, {f"{Path(a.data).name} KP": kp, "random (OOD)": random_graphs()},
+                     a.out)
+        return 0
+    if a.paper_tables:
+        if len(models) != 1:
+            p.error("--paper-tables takes exactly one --model")
+        paper_tables(next(iter(models.values())), a.data, a.out, a.paper_tables, a.paper_dir)
+        return 0
     evaluate_models(models, a.data, a.out, a.split, not a.no_absolute, a.max_graphs)
     return 0
 
