@@ -107,7 +107,11 @@ def test_checkpoint_round_trip(data, tmp_path: Path) -> None:
     expected = module(batch)
     loaded = PoserNetModule.load_from_checkpoint(path, map_location="cpu")  # no Hydra needed
     assert loaded.hparams.net["depth"] == 3 and loaded.hparams.net["residual"]
-    assert loaded.hparams.loss["alpha"] == 0.3 and not loaded.hparams.loss["end_to_end"]
+    # the adaptive terms (issue 16) default to 0 and end to end (issue 17) off: the paper's
+    assert loaded.hparams.loss == {"alpha": 0.3, "raw": 0.0, "confidence": 0.0,
+                                   "correction": 0.0, "end_to_end": False,
+                                   "relative_weight": 1.0, "absolute_weight": 1.0,
+                                   "position_weight": 1.0}
     loaded.eval()
     torch.testing.assert_close(loaded(batch), expected)
     ours = load_posernet_checkpoint(path)
@@ -207,8 +211,10 @@ def test_optimizer_and_scheduler() -> None:
 
 MODEL_CONFIG_DIR = Path(CONFIG_DIR) / "model"
 MODEL_CONFIGS = sorted(p.stem for p in MODEL_CONFIG_DIR.glob("*.yaml"))
+# the checkpoint shipped before issue 16: the older layout (flat hyper-parameters, last-round
+# node MLP and its Adam state)
 SHIPPED = (Path(__file__).resolve().parents[1] / "src" / "posernet" / "checkpoints"
-           / "posernet_synthetic_kp.ckpt")
+           / "posernet_synthetic_kp_v1.ckpt")
 
 
 def test_model_configs_are_found() -> None:
@@ -263,6 +269,7 @@ def test_flat_hyper_parameters_of_older_checkpoints_map_to_sections(tmp_path: Pa
     hp = module_hparams(**flat)
     assert hp["net"]["depth"] == 3 and hp["net"]["residual"] is True
     assert hp["loss"]["alpha"] == 0.5
+    assert not any(hp["loss"][k] for k in ("raw", "confidence", "correction", "end_to_end"))
     assert hp["optimizer"] == {"lr": 0.01, "weight_decay": 1e-4}
     assert hp["scheduler"] == {"patience": 7, "factor": 0.5, "min_lr": 1e-5}
     assert module_hparams(net={"depth": 4}, depth=3)["net"]["depth"] == 4  # sections win

@@ -363,8 +363,11 @@ def test_mismatching_state_dicts_still_fail() -> None:
 # --------------------------------------------------------------------------- shipped weights
 
 ROOT = Path(__file__).resolve().parents[1]
-SHIPPED = ROOT / "src" / "posernet" / "checkpoints" / "posernet_synthetic_kp.ckpt"
-# Refined poses of the shipped checkpoint on simulate_graphs("tiny", count=1)[0], recorded with
+# The checkpoint shipped before issue 16 (KP-only training, no gate), kept as
+# posernet_synthetic_kp_v1.ckpt: the file of the older layout (flat hyper-parameters, the last
+# round's node MLP) whose outputs are pinned here.
+SHIPPED = ROOT / "src" / "posernet" / "checkpoints" / "posernet_synthetic_kp_v1.ckpt"
+# Refined poses of that checkpoint on simulate_graphs("tiny", count=1)[0], recorded with
 # the network as it was before the last round lost its (unused) node MLP.
 SHIPPED_OUTPUT = [
     [0.98046255, 0.01855820, -0.17766526, -0.08236386, 0.02089171, -0.71550101, 0.69829917],
@@ -403,6 +406,37 @@ def test_shipped_checkpoint_gives_the_recorded_output(tiny_graph: ViewGraph) -> 
     with torch.no_grad():
         torch.testing.assert_close(module(GraphBatch.from_graphs([tiny_graph])), expected,
                                    atol=2e-6, rtol=0)
+
+
+# The shipped checkpoint since issue 16 (input-adaptive: gates, confidence head, cycle
+# feature; depth 3), recorded on the same graph when it was shipped: final pose, gates
+# (rotation, direction) and error scales (radians: rot_out, tdir_out, rot_in, tdir_in).
+ADAPTIVE_SHIPPED = ROOT / "src" / "posernet" / "checkpoints" / "posernet_synthetic_kp.ckpt"
+ADAPTIVE_OUTPUT = [
+    [0.96475887, -0.09072094, -0.21105959, -0.12831184, -0.06779908, -0.78775579, 0.6122452],
+    [0.99934554, -0.01487446, 0.03052061, 0.01247871, 0.10999707, -0.71368814, 0.691773],
+    [0.99656445, 0.08213076, -0.00256176, 0.01035756, -0.32261494, 0.1112143, -0.93997395],
+]
+ADAPTIVE_GATE = [[0.15618227, 0.00449855], [0.17779386, 0.0020249], [0.05116312, 0.0004819]]
+ADAPTIVE_SIGMA = [[0.10575411, 0.404158, 0.1179649, 0.43019927],
+                  [0.05273693, 0.41807628, 0.06034322, 0.38217121],
+                  [0.04214329, 0.19579802, 0.04326676, 0.18242127]]
+
+
+def test_adaptive_shipped_checkpoint_gives_the_recorded_output(tiny_graph: ViewGraph) -> None:
+    from posernet.lit import PoserNetModule
+
+    model = PoserNet.from_checkpoint(ADAPTIVE_SHIPPED)
+    assert model.gate and model.confidence and model.cycle_feature and model.depth == 3
+    with torch.no_grad():
+        out = model(tiny_graph, return_extras=True)
+    torch.testing.assert_close(out.pose, torch.tensor(ADAPTIVE_OUTPUT), atol=1e-5, rtol=0)
+    torch.testing.assert_close(out.gate, torch.tensor(ADAPTIVE_GATE), atol=1e-5, rtol=0)
+    torch.testing.assert_close(out.sigma, torch.tensor(ADAPTIVE_SIGMA), atol=1e-5, rtol=0)
+    module = PoserNetModule.load_from_checkpoint(ADAPTIVE_SHIPPED, map_location="cpu").eval()
+    with torch.no_grad():
+        torch.testing.assert_close(module(GraphBatch.from_graphs([tiny_graph])), out.pose,
+                                   atol=1e-6, rtol=0)
 
 
 @pytest.mark.parametrize("key", sorted(RESULTS_OUTPUT))

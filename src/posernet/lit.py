@@ -24,9 +24,11 @@ from torch import Tensor
 
 from . import __version__
 from .checkpoints import CHECKPOINT_TAG, CheckpointError, read_checkpoint
+from .geometry import quaternion_angle
 from .graph import GraphBatch
 from .metrics import relative_errors_per_graph
 from .nn import PoserNet, posernet_loss
+from .nn.adaptive import edge_errors, heteroscedastic_nll
 
 __all__ = ["SECTIONS", "PoserNetModule", "flat_name_section", "load_posernet_checkpoint",
            "module_hparams", "upgrade_optimizer_states"]
@@ -36,8 +38,9 @@ __all__ = ["SECTIONS", "PoserNetModule", "flat_name_section", "load_posernet_che
 #: (``net``: the arguments of :class:`posernet.nn.PoserNet`, defaults from its signature)
 SECTIONS: dict[str, dict[str, Any]] = {
     "net": {k: p.default for k, p in inspect.signature(PoserNet).parameters.items()},
-    "loss": {"alpha": 0.1, "end_to_end": False, "relative_weight": 1.0,
-             "absolute_weight": 1.0, "position_weight": 1.0},
+    "loss": {"alpha": 0.1, "raw": 0.0, "confidence": 0.0, "correction": 0.0,
+             "end_to_end": False, "relative_weight": 1.0, "absolute_weight": 1.0,
+             "position_weight": 1.0},
     "optimizer": {"lr": 1e-3, "weight_decay": 0.0},
     "scheduler": {"patience": 3, "factor": 0.316, "min_lr": 1e-6},
 }
@@ -102,11 +105,16 @@ class PoserNetModule(L.LightningModule):
             ``edge_hidden``, ``mlp_hidden``, ``mlp_layers``, ``negative_slope``,
             ``shared_weights``, ``residual``, ``unit_output``, ``nested_mean``).
         loss: ``alpha``, the weight of the normalisation terms of the loss (default 0.1);
-            ``end_to_end`` (default False) adds a loss on absolute poses through a
-            differentiable synchronisation (:func:`posernet.sync.differentiable_sync`, ground-
-            truth baselines while training) after gauge alignment:
-            ``relative_weight * relative + absolute_weight * (rotation + position_weight *
-            position)``; the batches then need ``pose_gt``.
+            ``raw``: weight of the same loss on the pre-gate prediction (gated networks);
+            ``confidence``: weight of the heteroscedastic error-scale loss
+            (:func:`posernet.nn.adaptive.heteroscedastic_nll`); ``correction``: weight of the
+            small-correction prior, the mean rotation angle between output and input (radians).
+            All three default to 0 (the paper's loss). ``end_to_end`` (default False) adds a
+            loss on absolute poses through a differentiable synchronisation
+            (:func:`posernet.sync.differentiable.differentiable_sync`, ground-truth baselines
+            while training) after gauge alignment: ``relative_weight * relative +
+            absolute_weight * (rotation + position_weight * position)``; the batches then need
+            ``pose_gt``.
         optimizer: Adam's ``lr`` (default 1e-3; the paper uses 1e-2 for large graphs) and
             ``weight_decay`` (0).
         scheduler: reduce-on-plateau on ``val/loss``: ``patience`` epochs without improvement
@@ -137,27 +145,41 @@ class PoserNetModule(L.LightningModule):
     def _step(self, batch: GraphBatch, split: str) -> Tensor:
         if batch.edge_pose_gt is None:
             raise ValueError(f"{split} batch has no 'edge_pose_gt': cannot compute the loss")
-        pred = self(batch)
-        hp = self.hparams.loss
-        out = posernet_loss(pred, batch.edge_pose_gt, hp["alpha"])
-        loss = out.loss
+        lh = self.hparams.loss
+        gt = batch.edge_pose_gt
+        extras = self.model(batch, return_extras=True) if self.model.adaptive else None
+        pred = extras.pose if extras is not None else self(batch)
+        out = posernet_loss(pred, gt, lh["alpha"])
+        total = out.loss
+        terms: dict[str, Tensor] = {}
+        if extras is not None and extras.gate is not None and lh.get("raw", 0.0):
+            terms["raw"] = posernet_loss(extras.raw, gt, lh["alpha"]).loss
+            total = total + lh["raw"] * terms["raw"]
+        if extras is not None and extras.sigma is not None and lh.get("confidence", 0.0):
+            # the scales learn the errors; the errors are data here (no gradient to the pose)
+            err = torch.cat((edge_errors(pred, gt), edge_errors(batch.edge_pose, gt)), dim=-1)
+            terms["confidence"] = heteroscedastic_nll(err.detach(), extras.sigma).mean()
+            total = total + lh["confidence"] * terms["confidence"]
+        if lh.get("correction", 0.0):
+            terms["correction"] = quaternion_angle(pred[:, :4], batch.edge_pose[:, :4]).mean()
+            total = total + lh["correction"] * terms["correction"]
+        if lh.get("end_to_end", False):
+            terms["abs_rot"], terms["abs_pos"] = self._absolute_loss(batch, pred)
+            total = lh["relative_weight"] * total + lh["absolute_weight"] * (
+                terms["abs_rot"] + lh["position_weight"] * terms["abs_pos"])
         n = batch.num_graphs
         on_step = split == "train"
-        if hp["end_to_end"]:
-            rot, pos = self._absolute_loss(batch, pred)
-            loss = hp["relative_weight"] * loss + hp["absolute_weight"] * (
-                rot + hp["position_weight"] * pos)
-            for name, value in (("abs_rot", rot), ("abs_pos", pos)):
-                self.log(f"{split}/loss_{name}", value, batch_size=n, on_step=False,
-                         on_epoch=True, sync_dist=split != "train")
-        self.log(f"{split}/loss", loss, batch_size=n, on_step=on_step, on_epoch=True,
+        self.log(f"{split}/loss", total, batch_size=n, on_step=on_step, on_epoch=True,
                  prog_bar=True, sync_dist=split != "train")
         for name in ("orient", "tr_dir", "q_norm", "t_norm"):
             self.log(f"{split}/loss_{name}", getattr(out, name), batch_size=n, on_step=False,
                      on_epoch=True, sync_dist=split != "train")
+        for name, value in terms.items():
+            self.log(f"{split}/loss_{name}", value, batch_size=n, on_step=False,
+                     on_epoch=True, sync_dist=split != "train")
         if split != "train":
             self._collect(split, batch, pred.detach())
-        return loss
+        return total
 
     def _absolute_loss(self, batch: GraphBatch, pred: Tensor) -> tuple[Tensor, Tensor]:
         """Mean aligned rotation / position losses of the absolute poses synchronised from
@@ -242,8 +264,20 @@ class PoserNetModule(L.LightningModule):
                                  "strict": False}}
 
     # ------------------------------------------------------------------ checkpoints
+    def on_fit_start(self) -> None:
+        # statistics of the training inputs, saved with the checkpoint for the OOD guard
+        dm = getattr(self.trainer, "datamodule", None) if self._trainer is not None else None
+        graphs = getattr(dm, "train_graphs", None)
+        if graphs:
+            from .guard import input_statistics
+
+            self.input_stats = input_statistics(graphs)
+
     def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
         checkpoint["posernet"] = {"tag": self.CHECKPOINT_TAG, "version": __version__}
+        stats = getattr(self, "input_stats", None)
+        if stats:
+            checkpoint["posernet"]["input_stats"] = stats
 
     def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
         # Checkpoints written before the last round lost its unused node MLP: the network drops

@@ -21,6 +21,7 @@ from torch import Tensor
 from tqdm.auto import tqdm
 
 from .graph import GraphBatch, GraphValidationError, ViewGraph, load_graphs
+from .guard import graph_made_worse, keep_input_mask
 from .metrics import (
     absolute_errors_per_graph,
     absolute_rows,
@@ -159,6 +160,13 @@ class RefineResult:
     solved: dict[str, list[Tensor]] = field(default_factory=dict)
     component: dict[str, list[Tensor]] = field(default_factory=dict)
     backend: dict[str, Any] | None = None
+    #: per graph ``[E_g, 4]`` predicted errors in degrees (``CONFIDENCE_NAMES`` order), when
+    #: the model has a confidence head; ``gate`` ``[E_g, 2]`` (rotation, direction) when it
+    #: has a gate
+    confidence: list[Tensor] = field(default_factory=list)
+    gate: list[Tensor] = field(default_factory=list)
+    #: per graph ``[E_g, 2]`` (rotation, direction): where ``guard=True`` kept the input
+    kept_input: list[Tensor] = field(default_factory=list)
 
 
 def _split(t: Tensor, ptr: Tensor) -> list[Tensor]:
@@ -173,6 +181,8 @@ def refine_graphs(
     batch_size: int = 64,
     device: str | torch.device = "cpu",
     progress: bool = True,
+    guard: bool = False,
+    weighted: bool = False,
 ) -> RefineResult:
     """Refine every graph's ``edge_pose`` with ``model`` and average initial and refined poses.
 
@@ -183,6 +193,13 @@ def refine_graphs(
         backend: a :mod:`posernet.sync` backend, or ``None`` for relative poses only.
         batch_size: graphs per forward pass / per batched motion-averaging solve.
         device: where to run (``"cuda"`` when available and wanted; never assumed).
+        guard: keep the input rotation / direction on edges where the model's confidence head
+            predicts a smaller error for the input than for its output
+            (:func:`posernet.guard.keep_input_mask`), and every input pose of a graph whose
+            refined poses are less cycle-consistent than its input
+            (:func:`posernet.guard.graph_made_worse`); needs a confidence head.
+        weighted: start motion averaging's IRLS from the confidence head's weights
+            (``1 / sigma^2`` of the stage's predicted errors) instead of uniform ones.
     """
     graphs = list(graphs)
     if not graphs:
@@ -195,6 +212,12 @@ def refine_graphs(
         out.backend = backend.describe()
         for d in (out.absolute, out.solved, out.component):
             d.update({s: [] for s in stages})
+    adaptive = model is not None and bool(getattr(model, "adaptive", False))
+    has_conf = adaptive and bool(getattr(model, "confidence", False))
+    if (guard or weighted) and not has_conf:
+        what = "guard=true" if guard else "confidence weights"
+        raise ValueError(f"{what} needs a checkpoint with a confidence head "
+                         "(net.confidence=true, e.g. model=adaptive)")
     if model is not None:
         model = model.to(device).eval()
     bar = tqdm(total=len(graphs), desc="refine", unit="graph", disable=not progress)
@@ -202,18 +225,53 @@ def refine_graphs(
         chunk = graphs[i:i + batch_size]
         batch = GraphBatch.from_graphs(chunk).to(device)
         poses = {"initial": batch.edge_pose}
-        if model is not None:
+        weights: dict[str, Tensor | None] = {"initial": None, "refined": None}
+        if adaptive:
+            ex = model(batch, return_extras=True)
+            refined = ex.pose.to(batch.edge_pose.dtype)
+            if ex.gate is not None:
+                out.gate += _split(ex.gate, batch.edge_ptr)
+            if ex.sigma is not None:
+                sigma = ex.sigma.to(batch.edge_pose.dtype)
+                sig_out = sigma[:, :2]
+                if guard:
+                    keep = keep_input_mask(sigma)
+                    # a graph the refinement made less cycle-consistent keeps its input
+                    # whole: the confidence head is no judge on inputs unlike its training
+                    worse = graph_made_worse(batch, batch.edge_pose, refined)
+                    keep = keep | worse[batch.edge_batch][:, None]
+                    refined = keep_input(batch.edge_pose, refined, keep)
+                    sig_out = torch.where(keep, sigma[:, 2:], sigma[:, :2])
+                    out.kept_input += _split(keep, batch.edge_ptr)
+                out.confidence += _split(torch.rad2deg(sigma), batch.edge_ptr)
+                if weighted:
+                    weights = {"initial": sigma[:, 2:].pow(-2), "refined": sig_out.pow(-2)}
+            poses["refined"] = refined
+        elif model is not None:
             poses["refined"] = model(batch).to(batch.edge_pose.dtype)
         for s, p in poses.items():
             out.edge_pose[s] += _split(p, batch.edge_ptr)
             if backend is not None:
-                res = backend.solve_with_info(batch, p)
+                res = (backend.solve_with_info(batch, p, edge_weight=weights[s])
+                       if weights[s] is not None else backend.solve_with_info(batch, p))
                 out.absolute[s] += _split(res.poses, batch.ptr)
                 out.solved[s] += _split(res.solved, batch.ptr)
                 out.component[s] += _split(res.component, batch.ptr)
         bar.update(len(chunk))
     bar.close()
     return out
+
+
+def keep_input(edge_pose: Tensor, refined: Tensor, keep: Tensor) -> Tensor:
+    """``refined [E, 7]`` with the input rotation (``keep[:, 0]``) and the input direction
+    (``keep[:, 1]``) put back where ``keep [E, 2]`` says so (unit quaternion and direction)."""
+    from .geometry import quaternion_canonical, quaternion_normalize
+
+    q_in = quaternion_canonical(quaternion_normalize(edge_pose[:, :4]))
+    t_in = torch.nn.functional.normalize(edge_pose[:, 4:], dim=-1, eps=1e-12)
+    q = torch.where(keep[:, :1], q_in, refined[:, :4])
+    t = torch.where(keep[:, 1:], t_in, refined[:, 4:])
+    return torch.cat((q, t), dim=-1)
 
 
 def _global_components(per_graph: Sequence[Tensor]) -> Tensor:
@@ -314,8 +372,17 @@ def _pose_record(T: Tensor) -> dict[str, Any]:
     return {"q_wxyz": p[:4].tolist(), "t": p[4:].tolist(), "matrix": T.double().tolist()}
 
 
+#: keys of an edge's ``confidence`` record in refined.json (degrees): the predicted error of
+#: the refined rotation / direction and of the input rotation / direction
+CONFIDENCE_KEYS = ("rot_err_deg", "tdir_err_deg", "input_rot_err_deg", "input_tdir_err_deg")
+
+
 def result_to_json(result: RefineResult, info: dict[str, Any] | None = None) -> dict[str, Any]:
     """JSON-ready record of a :class:`RefineResult` (format ``posernet-refined``, version 1).
+
+    With an adaptive checkpoint every edge also has ``confidence`` (the model's predicted
+    errors in degrees, :data:`CONFIDENCE_KEYS`), ``gate`` (0 = input kept, 1 = prediction) and,
+    with ``guard=true``, ``kept_input`` (``rotation`` / ``direction`` booleans).
 
     Per graph: ``edges`` (``source``/``target`` camera ids and, per stage, the relative pose of
     ``source -> target`` as ``q_wxyz``, ``t`` and the 4x4 ``matrix`` mapping source-camera points
@@ -335,9 +402,18 @@ def result_to_json(result: RefineResult, info: dict[str, Any] | None = None) -> 
             ids = [str(i) for i in range(g.num_nodes)]
         mats = {s: pose_vec_to_matrix(p[k].double()) for s, p in result.edge_pose.items()}
         edges = []
+        conf = result.confidence[k].double().tolist() if result.confidence else None
+        gate = result.gate[k].double().tolist() if result.gate else None
+        kept = result.kept_input[k].tolist() if result.kept_input else None
         for e, (i, j) in enumerate(g.edge_index.T.tolist()):
             rec: dict[str, Any] = {"source": str(ids[i]), "target": str(ids[j])}
             rec.update({s: _pose_record(m[e]) for s, m in mats.items()})
+            if conf is not None:  # the model's predicted errors (degrees)
+                rec["confidence"] = dict(zip(CONFIDENCE_KEYS, conf[e], strict=True))
+            if gate is not None:  # 0: the input kept, 1: the network's prediction
+                rec["gate"] = {"rotation": gate[e][0], "direction": gate[e][1]}
+            if kept is not None:
+                rec["kept_input"] = {"rotation": kept[e][0], "direction": kept[e][1]}
             edges.append(rec)
         cams: dict[str, Any] = {}
         placed = {s: 0 for s in result.absolute}

@@ -6,10 +6,13 @@ with :data:`CHECKPOINT_TAG`. :func:`read_checkpoint` reads one with torch alone
 turns it into the network and :func:`posernet.lit.load_posernet_checkpoint` into the Lightning
 module.
 
-``posernet_synthetic_kp.ckpt`` is a small PoserNet (default architecture) trained on the
-*synthetic* ``paper`` preset with KP initial poses -- not on 7-Scenes. It exists so that
-``posernet-refine`` and ``make demo`` work out of the box; train your own for real data.
-``README.md`` (section "Shipped checkpoint") gives the command that reproduces it.
+``posernet_synthetic_kp.ckpt`` is a small input-adaptive PoserNet (``model=adaptive``: gate,
+confidence head, cycle-consistency feature) trained on the *synthetic* ``paper`` preset with a
+mixture of initial-pose qualities -- not on 7-Scenes. It exists so that ``posernet-refine`` and
+``make demo`` work out of the box; train your own for real data. ``posernet_synthetic_kp_v1.ckpt``
+is the checkpoint shipped before it (residual PoserNet trained on KP input only, which regresses
+every input towards its error floor). ``README.md`` (section "Shipped checkpoint") gives the
+commands that reproduce both.
 """
 
 from __future__ import annotations

@@ -10,6 +10,7 @@ tables are printed and written next to it (``table.md``/``.csv``, ``abs_table.md
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -47,9 +48,22 @@ def refine(cfg: DictConfig) -> dict[str, Any]:
     graphs = load_input_graphs(cfg.input, split=cfg.split, estimate=estimate,
                                strict=bool(cfg.strict), size=str(cfg.get("size", "small")),
                                log=print)
+    has_conf = bool(getattr(model, "confidence", False))
+    guard = bool(cfg.get("guard", False))
+    if guard and not has_conf:
+        raise ValueError(f"refine.guard=true needs a checkpoint with a confidence head "
+                         f"(net.confidence=true); {ckpt} has none")
+    weighted = bool(cfg.get("confidence_weights", True)) and has_conf and backend is not None
     result = refine_graphs(model, graphs, backend=backend, batch_size=int(cfg.batch_size),
-                           device=device)
-    info = {"input": str(cfg.input), "estimate": estimate, "checkpoint": str(ckpt)}
+                           device=device, guard=guard, weighted=weighted)
+    info: dict[str, Any] = {"input": str(cfg.input), "estimate": estimate,
+                            "checkpoint": str(ckpt), "guard": guard,
+                            "confidence_weights": weighted}
+    if bool(cfg.get("check_inputs", True)):
+        line, report = _check(ckpt, graphs, result)
+        info["input_check"] = report
+        if line:
+            print(f"posernet-refine: {line}", file=sys.stderr)
     out = {"output": atomic_write_json(cfg.output, result_to_json(result, info), indent=1)}
     if any(g.edge_pose_gt is not None for g in graphs):  # graphs without it are counted
         ev = evaluate_result(result)
@@ -63,6 +77,24 @@ def refine(cfg: DictConfig) -> dict[str, Any]:
         out["tables"] = tables
     print(f"wrote {out['output']} ({len(graphs)} graphs)")
     return out
+
+
+def _check(ckpt: Path, graphs: list[Any], result: Any) -> tuple[str | None, dict[str, Any]]:
+    """The guard's checks (:mod:`posernet.guard`): the warning line (or None) and a record."""
+    import torch
+
+    from ..checkpoints import read_checkpoint
+    from ..graph import GraphBatch
+    from ..guard import check_inputs, cycle_inconsistency, warning_line
+
+    stats = (read_checkpoint(ckpt).get("posernet") or {}).get("input_stats")
+    reasons = check_inputs(stats, graphs)
+    batch = GraphBatch.from_graphs(graphs)  # one batched pass, no loop over graphs
+    cyc = {stage: float(cycle_inconsistency(batch, torch.cat(poses).to(batch.edge_pose.dtype))
+                        .mean()) for stage, poses in result.edge_pose.items()}
+    line = warning_line(reasons, cyc["initial"], cyc.get("refined", float("nan")))
+    return line, {"training_stats": stats is not None, "reasons": reasons,
+                  "cycle_deg": cyc, "warning": line}
 
 
 @hydra.main(version_base="1.3", config_path=CONFIG_DIR, config_name="refine")

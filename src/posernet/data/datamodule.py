@@ -8,14 +8,16 @@ training sequences, never from the test split.
 from __future__ import annotations
 
 import os
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
+from typing import Any
 
 import lightning as L
 import torch
 from torch.utils.data import DataLoader
 
 from ..graph import GraphBatch, ViewGraph
+from .mixture import MixedInitDataset, check_mixture
 from .store import SIZES, DatasetError, available_scenes, open_split, read_manifest
 
 __all__ = ["PoserDataModule", "collate_graphs"]
@@ -45,7 +47,15 @@ class PoserDataModule(L.LightningDataModule):
             ``batch_size``); e.g. 32 to validate a large-graph model (batch 1) on small graphs
             without one step per graph.
         shuffle: shuffle the training graphs each epoch (seeded by ``seed``).
-        seed: seed of the shuffling.
+        seed: seed of the shuffling (and of the initial-pose mixture).
+        init_mix: train on a mixture of initial-pose qualities instead of ``estimate`` alone:
+            a mapping of sources (``kp``, ``bb``, ``gt`` = ground truth + small noise,
+            ``recorrupt`` = ground truth + large noise) to weights, redrawn every epoch
+            (:class:`posernet.data.mixture.MixedInitDataset`). Default ``None``: off.
+            Validation and test keep ``estimate``.
+        gt_noise_deg: largest rotation noise of the ``gt`` source (degrees, default 3).
+        recorrupt_deg: largest rotation noise of the ``recorrupt`` source (default 60).
+        mix_edge_fraction: chance a graph mixes sources per edge rather than per graph (0.5).
     """
 
     def __init__(
@@ -61,8 +71,14 @@ class PoserDataModule(L.LightningDataModule):
         seed: int = 0,
         val_size: str | None = None,
         eval_batch_size: int | None = None,
+        init_mix: Mapping[str, Any] | None = None,
+        gt_noise_deg: float = 3.0,
+        recorrupt_deg: float = 60.0,
+        mix_edge_fraction: float = 0.5,
     ) -> None:
         super().__init__()
+        if init_mix is not None:
+            init_mix = check_mixture(init_mix)  # fail early, naming the bad entry
         if estimate not in ESTIMATES:
             raise ValueError(f"estimate must be one of {list(ESTIMATES)}, got {estimate!r}")
         for name, v in (("size", size), ("test_size", test_size), ("val_size", val_size)):
@@ -87,6 +103,9 @@ class PoserDataModule(L.LightningDataModule):
         self.shuffle = shuffle
         self.seed = int(seed)
         self.leave_out_scene = leave_out_scene
+        self.init_mix = init_mix
+        self.gt_noise_deg, self.recorrupt_deg = float(gt_noise_deg), float(recorrupt_deg)
+        self.mix_edge_fraction = float(mix_edge_fraction)
         if leave_out_scene is not None:
             scenes = set()
             for s in SIZES:
@@ -108,6 +127,9 @@ class PoserDataModule(L.LightningDataModule):
                 "eval_batch_size": self.eval_batch_size,
                 "leave_out_scene": leave_out_scene,
                 "seed": self.seed,
+                **({"init_mix": dict(init_mix), "gt_noise_deg": self.gt_noise_deg,
+                    "recorrupt_deg": self.recorrupt_deg,
+                    "mix_edge_fraction": self.mix_edge_fraction} if init_mix else {}),
             }
         )
         self.train_graphs: list[ViewGraph] | None = None
@@ -163,7 +185,11 @@ class PoserDataModule(L.LightningDataModule):
         )
 
     def train_dataloader(self) -> DataLoader:
-        return self._loader(self.train_graphs, self.shuffle, "train")
+        if self.init_mix is None or self.train_graphs is None:
+            return self._loader(self.train_graphs, self.shuffle, "train")
+        mixed = MixedInitDataset(self.train_graphs, self.init_mix, self.gt_noise_deg,
+                                 self.recorrupt_deg, self.mix_edge_fraction, self.seed)
+        return self._loader(mixed, self.shuffle, "train")  # type: ignore[arg-type]
 
     def val_dataloader(self) -> DataLoader:
         return self._loader(self.val_graphs, False, "val", self.eval_batch_size)

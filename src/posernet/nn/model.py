@@ -28,9 +28,18 @@ import torch
 from torch import Tensor, nn
 
 from ..geometry import quaternion_canonical, quaternion_normalize
+from .adaptive import (
+    CYCLE_DIM,
+    AdaptiveOutput,
+    EdgeHead,
+    _pair_stats,
+    blend_poses,
+    cycle_features,
+)
 from .conv import PoserConv, _is_graph, check_module_inputs, graph_inputs, validate_inputs
 
 __all__ = ["PoserNet"]
+
 
 class PoserNet(nn.Module):
     """The PoserNet graph network (paper Sec. 3.2).
@@ -51,6 +60,17 @@ class PoserNet(nn.Module):
         unit_output: normalise the output quaternion and translation (default False: the paper
             leaves the norms to the loss' normalisation terms).
         nested_mean: the paper's nested mean for the node update (default True).
+        gate: a learned per-edge gate between the input pose and the prediction
+            (:class:`posernet.nn.adaptive.EdgeHead`; default False).
+        confidence: a per-edge heteroscedastic error head: the expected rotation / direction
+            error of the output and of the input (default False).
+        cycle_feature: the rotation cycle consistency of the input poses
+            (:func:`posernet.nn.adaptive.cycle_features`) is the initial hidden edge state;
+            needs ``edge_hidden >= 3`` (default False).
+        head_hidden: width of the gate / confidence MLP (default 32).
+
+        The four adaptive options default off: a network without them has exactly the
+        parameters and outputs it had before they existed (old checkpoints load unchanged).
 
     Shapes:
         ``forward(graph)`` with a ``ViewGraph``/``GraphBatch`` (or a PyG ``Batch`` of
@@ -73,10 +93,21 @@ class PoserNet(nn.Module):
         residual: bool = False,
         unit_output: bool = False,
         nested_mean: bool = True,
+        gate: bool = False,
+        confidence: bool = False,
+        cycle_feature: bool = False,
+        head_hidden: int = 32,
     ) -> None:
         super().__init__()
         if depth < 1:
             raise ValueError(f"PoserNet depth must be >= 1, got {depth}")
+        if cycle_feature and edge_hidden < CYCLE_DIM:
+            raise ValueError(f"PoserNet cycle_feature=True needs edge_hidden >= {CYCLE_DIM} "
+                             f"(the cycle features are the initial edge state), got "
+                             f"edge_hidden={edge_hidden}")
+        self.edge_hidden = edge_hidden
+        self.gate, self.confidence, self.cycle_feature = bool(gate), bool(confidence), \
+            bool(cycle_feature)
         self.depth, self.node_in, self.node_hidden = depth, node_in, node_hidden
         self.shared_weights, self.residual, self.unit_output = shared_weights, residual, unit_output
 
@@ -96,6 +127,16 @@ class PoserNet(nn.Module):
             self.encoder = nn.Identity()
             self.convs = nn.ModuleList([conv(node_in if k == 0 else node_hidden,
                                              last=k == depth - 1) for k in range(depth)])
+        # built only when asked for: old checkpoints have no such weights
+        self.head: EdgeHead | None = (
+            EdgeHead(self.gate, self.confidence, hidden=head_hidden, layers=mlp_layers,
+                     negative_slope=negative_slope)
+            if (self.gate or self.confidence) else None)
+
+    @property
+    def adaptive(self) -> bool:
+        """True when the network has a gate or a confidence head (``return_extras`` helps)."""
+        return self.head is not None
 
     @classmethod
     def from_checkpoint(cls, path: str | os.PathLike[str],
@@ -145,6 +186,8 @@ class PoserNet(nn.Module):
             self.encoder.reset_parameters()
         for c in self.convs:
             c.reset_parameters()
+        if self.head is not None:
+            self.head.reset_parameters()
 
     def forward(
         self,
@@ -155,11 +198,14 @@ class PoserNet(nn.Module):
         pair_box_src: Tensor | None = None,
         pair_box_dst: Tensor | None = None,
         return_all: bool = False,
-    ) -> Tensor | list[Tensor]:
+        return_extras: bool = False,
+    ) -> Tensor | list[Tensor] | AdaptiveOutput:
         """Refine every edge's relative pose.
 
         ``x`` may be a graph: a ``ViewGraph``/``GraphBatch``, or a
         :class:`posernet.nn.pyg.PoserData` / a PyTorch Geometric ``Batch`` of them.
+        ``return_extras=True`` returns an :class:`~posernet.nn.adaptive.AdaptiveOutput`
+        (final pose, pre-gate prediction, gate and error scales; ``None`` where not built).
         """
         if _is_graph(x):
             inputs = graph_inputs(x)
@@ -172,8 +218,16 @@ class PoserNet(nn.Module):
         validate_inputs(type(self).__name__, node_dim=self.node_in, **inputs)
         check_module_inputs(self, inputs["x"])
         h = self.encoder(inputs["x"])
-        pose = inputs["edge_pose"]
+        pose = pose_in = inputs["edge_pose"]
         state = None
+        cyc_in = None
+        if self.cycle_feature or self.head is not None:
+            cyc_in = cycle_features(inputs["edge_index"], pose_in, inputs["x"].shape[0])
+        if self.cycle_feature:
+            assert cyc_in is not None
+            # both directions see the same (direction-invariant) consistency features
+            state = pose.new_zeros(pose.shape[0], 2, self.edge_hidden)
+            state[:, :, :cyc_in.shape[1]] = cyc_in[:, None]
         outputs = []
         for k in range(self.depth):
             conv = self.convs[0 if self.shared_weights else k]
@@ -185,6 +239,22 @@ class PoserNet(nn.Module):
                 update_edge_state=not last,
             )
             outputs.append(self._finalise(pose))
+        raw = outputs[-1]
+        gate = sigma = None
+        if self.head is not None:
+            assert cyc_in is not None
+            E = raw.shape[0]
+            stats = _pair_stats(inputs["pair_edge"], inputs["pair_box_src"],
+                                inputs["pair_box_dst"], E)
+            cyc_raw = cycle_features(inputs["edge_index"], raw, inputs["x"].shape[0])
+            # the head judges the prediction; it does not train the prediction through its
+            # features (the pose loss does, through the blend)
+            feats = EdgeHead.features(pose_in, raw.detach(), cyc_in, cyc_raw, stats)
+            gate, sigma = self.head(feats)
+            if gate is not None:
+                outputs[-1] = blend_poses(pose_in, raw, gate)
+        if return_extras:
+            return AdaptiveOutput(outputs[-1], raw, gate, sigma)
         return outputs if return_all else outputs[-1]
 
     def _finalise(self, pose: Tensor) -> Tensor:

@@ -155,18 +155,28 @@ class SyncBackend(ABC):
                          for f in fields(self.options))
         return f"{type(self).__name__}({opts})"
 
-    def solve(self, batch: GraphBatch | ViewGraph, edge_pose: Tensor | None = None) -> Tensor:
+    def solve(self, batch: GraphBatch | ViewGraph, edge_pose: Tensor | None = None,
+              edge_weight: Tensor | None = None) -> Tensor:
         """Absolute world-to-camera poses ``[N, 4, 4]`` from relative poses ``edge_pose [E, 7]``
-        on the stored edges of ``batch`` (``batch.edge_pose`` when omitted)."""
-        return self.solve_with_info(batch, edge_pose).poses
+        on the stored edges of ``batch`` (``batch.edge_pose`` when omitted).
+
+        ``edge_weight [E]`` or ``[E, 2]`` (rotation, translation): optional positive per-edge
+        confidence (e.g. PoserNet's error head) the robust solve starts from
+        (:mod:`posernet.sync.weighted`); backends without support ignore it."""
+        return self.solve_with_info(batch, edge_pose, edge_weight).poses
 
     def solve_with_info(self, batch: GraphBatch | ViewGraph,
-                        edge_pose: Tensor | None = None) -> SyncResult:
+                        edge_pose: Tensor | None = None,
+                        edge_weight: Tensor | None = None) -> SyncResult:
         """Like :meth:`solve` but returns the full :class:`SyncResult`."""
         if edge_pose is None:
             edge_pose = getattr(batch, "edge_pose", None)
         struct = graph_structure(batch)
         validate_sync_input(struct, edge_pose)
+        if edge_weight is not None:
+            from .weighted import check_edge_weight
+
+            struct["edge_weight"] = check_edge_weight(edge_weight, struct["edge_index"].shape[1])
         gt = getattr(batch, "edge_pose_gt", None) if self.options.scale == "oracle" else None
         comps = connected_components(struct["edge_index"], struct["num_nodes"],
                                      struct["node_batch"], struct["num_graphs"])

@@ -78,6 +78,7 @@ from .spectral import (
     sparse_N,
     split_by_size,
 )
+from .weighted import WEIGHT_MODES, padded_weights, weighted_rotation_irls
 
 __all__ = ["EigSE3", "EigSE3Options", "eig_translations", "solve_padded"]
 
@@ -90,9 +91,13 @@ class EigSE3Options(SpectralOptions):
     scale: str = "unit"
     krylov_tol: float = 1e-12
     krylov_max_cycles: int = 500
+    weight_mode: str = "start"  # per-edge weights given to solve(): start | prior (weighted.py)
 
     def check(self) -> None:
         super().check()
+        if self.weight_mode not in WEIGHT_MODES:
+            raise ValueError(f"weight_mode={self.weight_mode!r}; choose one of "
+                             f"{list(WEIGHT_MODES)}")
         check_positive("krylov_tol", self.krylov_tol)
         check_positive("krylov_max_cycles", self.krylov_max_cycles, integer=True)
 
@@ -143,8 +148,12 @@ def eig_translations(prob: PaddedProblem, sol: RotationSolution, krylov: bool) -
 # --------------------------------------------------------------------------- backend
 
 
-def solve_padded(prob: PaddedProblem, opts: EigSE3Options) -> tuple[Tensor, Tensor, dict]:
-    """EIG-SE3 on every component of ``prob``: ``(R [G, n, 3, 3], t [G, n, 3], info)``."""
+def solve_padded(prob: PaddedProblem, opts: EigSE3Options,
+                 w0: Tensor | None = None) -> tuple[Tensor, Tensor, dict]:
+    """EIG-SE3 on every component of ``prob``: ``(R [G, n, 3, 3], t [G, n, 3], info)``.
+
+    ``w0 [G, m]``: optional starting weights of the IRLS (:mod:`posernet.sync.weighted`;
+    dense solver)."""
     G, n, m = prob.G, prob.n, prob.m
     dt, dev = prob.R.dtype, prob.R.device
     R = torch.eye(3, dtype=dt, device=dev).expand(G, n, 3, 3).clone()
@@ -153,10 +162,16 @@ def solve_padded(prob: PaddedProblem, opts: EigSE3Options) -> tuple[Tensor, Tens
     iters = torch.zeros(G, dtype=torch.long, device=dev)
     conv = torch.zeros(G, dtype=torch.bool, device=dev)
     eig_ok = torch.ones(G, dtype=torch.bool, device=dev)
-    for idx, krylov in split_by_size(prob, opts.solver, opts.dense_max_nodes):
+    groups = (split_by_size(prob, opts.solver, opts.dense_max_nodes) if w0 is None
+              else [(torch.arange(G, device=dev), False)])
+    for idx, krylov in groups:
         sub = prob.select(idx) if idx.numel() < G else prob
-        sol = rotation_irls(sub, opts.robust, opts.max_iters, opts.tol, opts.theta, krylov,
-                            opts.krylov_tol, opts.krylov_max_cycles, opts.seed)
+        if w0 is not None:
+            sol = weighted_rotation_irls(sub, w0[idx, :sub.m], opts.robust, opts.max_iters,
+                                         opts.tol, opts.theta, opts.weight_mode)
+        else:
+            sol = rotation_irls(sub, opts.robust, opts.max_iters, opts.tol, opts.theta, krylov,
+                                opts.krylov_tol, opts.krylov_max_cycles, opts.seed)
         ts = eig_translations(sub, sol, krylov)
         R[idx, :sub.n], t[idx, :sub.n] = sol.R, ts
         w_edge[idx, :sub.m] = sol.w_edge
@@ -182,7 +197,8 @@ class EigSE3(SyncBackend):
         R_e = edge_rotations(edge_pose)
         t_e = apply_scale_policy(edge_pose[:, 4:], o.scale, edge_pose_gt)
         prob = build_padded(struct["edge_index"], R_e, t_e, comps)
-        R, t, info = solve_padded(prob, o)
+        w = struct.get("edge_weight")
+        R, t, info = solve_padded(prob, o, None if w is None else padded_weights(prob, w[:, 0]))
         if not bool(info["eig_converged"].all()):
             warnings.warn(
                 f"eig_se3: the Krylov eigen-solver did not reach krylov_tol={o.krylov_tol} in "

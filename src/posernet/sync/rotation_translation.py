@@ -48,6 +48,7 @@ from .components import Components
 from .padding import PaddedProblem, assemble, build_padded, edge_rotations
 from .robust import mad_cauchy_weights, mad_huber_weights
 from .spectral import SpectralOptions, rotation_irls, split_by_size
+from .weighted import WEIGHT_MODES, padded_weights, weighted_rotation_irls
 
 __all__ = ["RotationTranslation", "RotationTranslationOptions", "refine_rotations",
            "translations_from_directions", "translations_metric"]
@@ -62,9 +63,13 @@ class RotationTranslationOptions(SpectralOptions):
     scale: str = "free"
     refine_iters: int = 20
     translation_iters: int = 20
+    weight_mode: str = "start"  # per-edge weights given to solve(): start | prior (weighted.py)
 
     def check(self) -> None:
         super().check()
+        if self.weight_mode not in WEIGHT_MODES:
+            raise ValueError(f"weight_mode={self.weight_mode!r}; choose one of "
+                             f"{list(WEIGHT_MODES)}")
         check_positive("translation_iters", self.translation_iters, integer=True)
         if not isinstance(self.refine_iters, int) or self.refine_iters < 0:
             raise ValueError(f"refine_iters must be an integer >= 0, got {self.refine_iters!r}")
@@ -156,10 +161,12 @@ def translations_metric(prob: PaddedProblem, R: Tensor, iters: int, robust: bool
 
 
 def translations_from_directions(prob: PaddedProblem, R: Tensor, iters: int, robust: bool,
-                                 theta: float, ridge_rel: float = 1e-10) -> Tensor:
+                                 theta: float, ridge_rel: float = 1e-10,
+                                 w0: Tensor | None = None) -> Tensor:
     """Scale-free camera centres ``[G, n, 3]`` (centroid 0, RMS radius 1) from directions.
 
-    See the module docstring for the objective, constraints and reweighting.
+    See the module docstring for the objective, constraints and reweighting. ``w0 [G, m]``:
+    optional starting edge weights (per-edge confidence; uniform when omitted).
     """
     G, n, m = prob.G, prob.n, prob.m
     dt, dev = R.dtype, R.device
@@ -171,7 +178,7 @@ def translations_from_directions(prob: PaddedProblem, R: Tensor, iters: int, rob
     gi = torch.arange(G, device=dev)[:, None].expand(G, m)
     vm = prob.node_mask.to(dt)
     size = 3 * n + 4
-    a = emask.to(dt)
+    a = emask.to(dt) if w0 is None else torch.where(emask, w0.to(dt), torch.zeros_like(w0))
     c = torch.zeros(G, n, 3, dtype=dt, device=dev)
     for it in range(iters if robust else 1):
         K = torch.zeros(G, n, n, 3, 3, dtype=dt, device=dev)
@@ -243,16 +250,26 @@ class RotationTranslation(SyncBackend):
         w_edge = torch.zeros(G, m, dtype=dt, device=dev)
         iters = torch.zeros(G, dtype=torch.long, device=dev)
         conv = torch.zeros(G, dtype=torch.bool, device=dev)
-        for idx, krylov in split_by_size(prob, o.solver, o.dense_max_nodes):
+        w = struct.get("edge_weight")
+        w_rot = None if w is None else padded_weights(prob, w[:, 0])
+        groups = (split_by_size(prob, o.solver, o.dense_max_nodes) if w_rot is None
+                  else [(torch.arange(G, device=dev), False)])
+        for idx, krylov in groups:
             sub = prob.select(idx) if idx.numel() < G else prob
-            sol = rotation_irls(sub, o.robust, o.max_iters, o.tol, o.theta, krylov,
-                                seed=o.seed)
+            if w_rot is not None:
+                sol = weighted_rotation_irls(sub, w_rot[idx, :sub.m], o.robust, o.max_iters,
+                                             o.tol, o.theta, o.weight_mode)
+            else:
+                sol = rotation_irls(sub, o.robust, o.max_iters, o.tol, o.theta, krylov,
+                                    seed=o.seed)
             R[idx, :sub.n] = sol.R
             w_edge[idx, :sub.m] = sol.w_edge
             iters[idx], conv[idx] = sol.iterations, sol.converged
         R = refine_rotations(prob, R, o.refine_iters, o.robust, o.theta)
         if o.scale == "free":
-            c = translations_from_directions(prob, R, o.translation_iters, o.robust, o.theta)
+            c = translations_from_directions(
+                prob, R, o.translation_iters, o.robust, o.theta,
+                w0=None if w is None else padded_weights(prob, w[:, 1]))
         else:
             c = translations_metric(prob, R, o.translation_iters, o.robust, o.theta)
         t = -(R @ c[..., None]).squeeze(-1)
