@@ -28,7 +28,10 @@ still read by ``name`` through the registry of :func:`get_backend`.
 Modules: :mod:`~posernet.sync.backend` (interface, result, input checks, scale policy),
 :mod:`~posernet.sync.components` (connected components), :mod:`~posernet.sync.padding` (the
 padded per-component layout), :mod:`~posernet.sync.robust` (IRLS weights),
-:mod:`~posernet.sync.spectral` (spectral rotation synchronisation shared by the backends).
+:mod:`~posernet.sync.spectral` (spectral rotation synchronisation shared by the backends),
+:mod:`~posernet.sync.differentiable` (a differentiable spectral synchronisation and the aligned
+absolute-pose loss, for end-to-end training), :mod:`~posernet.sync.learned` (the learned
+synchronisation backend, imported on first use).
 """
 
 from __future__ import annotations
@@ -37,6 +40,7 @@ from collections.abc import Callable
 from typing import Any
 
 from .backend import SCALE_POLICIES, SyncBackend, SyncResult, as_mapping
+from .differentiable import aligned_pose_loss, differentiable_sync
 from .eig_se3 import EigSE3
 from .rotation_translation import RotationTranslation
 
@@ -47,8 +51,10 @@ __all__ = [
     "RotationTranslation",
     "SyncBackend",
     "SyncResult",
+    "aligned_pose_loss",
     "available_backends",
     "backend_from_config",
+    "differentiable_sync",
     "get_backend",
     "no_backend",
     "register_backend",
