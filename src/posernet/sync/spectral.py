@@ -348,15 +348,23 @@ class RotationSolution:
 
 def rotation_irls(prob: PaddedProblem, robust: bool, max_iters: int, tol: float, theta: float,
                   krylov: bool, krylov_tol: float = 1e-12, krylov_max_cycles: int = 500,
-                  seed: int = 0) -> RotationSolution:
+                  seed: int = 0, w0: Tensor | None = None,
+                  prior: bool = False) -> RotationSolution:
     """Spectral rotation synchronisation with EIG-SE3's IRLS, batched over components.
 
     Only components whose weights are still changing are re-solved (masking). With
-    ``robust=False`` this is a single solve with unit weights.
+    ``robust=False`` this is a single solve. The first solve uses unit weights, or ``w0
+    [G, m]`` (0 on pads; e.g. per-edge confidence, :mod:`posernet.sync.weighted`); with
+    ``prior=True`` every later solve multiplies the Cauchy weights by ``w0`` too.
     """
     G, n, dev, dt = prob.G, prob.n, prob.R.device, prob.R.dtype
-    w_edge = prob.edge_mask.to(dt)
-    w_diag = torch.ones(G, dtype=dt, device=dev)
+    if w0 is None:
+        w_edge = prob.edge_mask.to(dt)
+        w_diag = torch.ones(G, dtype=dt, device=dev)
+    else:
+        w_edge = torch.where(prob.edge_mask, w0.to(dt), torch.zeros((), dtype=dt, device=dev))
+        w_diag = w_edge.amax(dim=1)
+    w_prior = w_edge.clone() if prior and w0 is not None else None
     R = torch.eye(3, dtype=dt, device=dev).expand(G, n, 3, 3).clone()
     V3 = torch.zeros(G, 3 * n, 3, dtype=dt, device=dev)
     Rh = torch.zeros_like(V3)
@@ -403,6 +411,8 @@ def rotation_irls(prob: PaddedProblem, robust: bool, max_iters: int, tol: float,
             break
         res = rotation_residuals(sub, Rs)
         w_new = mad_cauchy_weights(res, sub.edge_mask, theta)
+        if w_prior is not None:
+            w_new = w_new * w_prior[idx, :ms]
         wd_new = w_new.amax(dim=1)
         cnt = sub.count.to(dt)
         # |W_old - W|_F / (|W|_F n) over the full symmetric n x n weight matrix.

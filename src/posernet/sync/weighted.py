@@ -23,15 +23,7 @@ import torch
 from torch import Tensor
 
 from .padding import PaddedProblem
-from .robust import mad_cauchy_weights
-from .spectral import (
-    RotationSolution,
-    degrees,
-    dense_N,
-    rotation_residuals,
-    rotations_from_eigvecs,
-    top3_dense,
-)
+from .spectral import RotationSolution, rotation_irls
 
 __all__ = ["WEIGHT_MODES", "check_edge_weight", "padded_weights", "weighted_rotation_irls"]
 
@@ -71,53 +63,12 @@ def weighted_rotation_irls(prob: PaddedProblem, w0: Tensor, robust: bool, max_it
                            tol: float, theta: float, mode: str = "start") -> RotationSolution:
     """Spectral rotation synchronisation with EIG-SE3's IRLS started from weights ``w0``.
 
-    ``w0 [G, m]`` (from :func:`padded_weights`; 0 on pads). The loop is the published one
-    (dense solver): Cauchy weights with a MAD threshold, diagonal weight ``max(w)``, stop when
-    ``|W_old - W|_F / (|W|_F n) <= tol`` or after ``max_iters`` solves; only components whose
-    weights still change are re-solved.
+    ``w0 [G, m]`` (from :func:`padded_weights`; 0 on pads). The loop is the published one,
+    :func:`posernet.sync.spectral.rotation_irls` with the dense solver: Cauchy weights with a
+    MAD threshold, diagonal weight ``max(w)``, stop when ``|W_old - W|_F / (|W|_F n) <= tol``
+    or after ``max_iters`` solves; ``mode="prior"`` keeps multiplying by ``w0``.
     """
     if mode not in WEIGHT_MODES:
         raise ValueError(f"weight mode must be one of {list(WEIGHT_MODES)}, got {mode!r}")
-    G, n, dev, dt = prob.G, prob.n, prob.R.device, prob.R.dtype
-    w_edge = torch.where(prob.edge_mask, w0.to(dt), torch.zeros((), dtype=dt, device=dev))
-    prior = w_edge.clone()
-    w_diag = w_edge.amax(dim=1)
-    R = torch.eye(3, dtype=dt, device=dev).expand(G, n, 3, 3).clone()
-    V3 = torch.zeros(G, 3 * n, 3, dtype=dt, device=dev)
-    Rh = torch.zeros_like(V3)
-    used_edge, used_diag = w_edge.clone(), w_diag.clone()
-    iters = torch.zeros(G, dtype=torch.long, device=dev)
-    converged = torch.zeros(G, dtype=torch.bool, device=dev)
-    active = torch.ones(G, dtype=torch.bool, device=dev)
-    for k in range(1, (max_iters if robust else 1) + 1):
-        idx = active.nonzero().squeeze(1)
-        sub = prob.select(idx) if idx.numel() < G else prob
-        ns, ms = sub.n, sub.m
-        we, wd = w_edge[idx, :ms], w_diag[idx]
-        s = degrees(sub, we, wd).rsqrt()
-        V3s = top3_dense(dense_N(sub, we, wd, s))
-        Rs, Rhs = rotations_from_eigvecs(V3s, s, sub.node_mask)
-        R[idx, :ns], V3[idx, :3 * ns], Rh[idx, :3 * ns] = Rs, V3s, Rhs
-        used_edge[idx, :ms], used_diag[idx] = we, wd
-        iters[idx] = k
-        if not robust:
-            converged[:] = True
-            break
-        res = rotation_residuals(sub, Rs)
-        w_new = mad_cauchy_weights(res, sub.edge_mask, theta)
-        if mode == "prior":
-            w_new = w_new * prior[idx, :ms]
-        wd_new = w_new.amax(dim=1)
-        cnt = sub.count.to(dt)
-        num = (2 * ((we - w_new) ** 2).sum(1) + cnt * (wd - wd_new) ** 2).sqrt()
-        den = (2 * (w_new ** 2).sum(1) + cnt * wd_new ** 2).sqrt() * cnt
-        delta = num / den.clamp_min(1e-300)
-        w_edge[idx, :ms], w_diag[idx] = w_new, wd_new
-        stop = delta <= tol
-        converged[idx[stop]] = True
-        active[idx[stop]] = False
-        if not bool(active.any()):
-            break
-    eig_ok = torch.ones(G, dtype=torch.bool, device=dev)
-    return RotationSolution(R=R, V3=V3, Rh=Rh, w_edge=used_edge, w_diag=used_diag,
-                            iterations=iters, converged=converged, eig_converged=eig_ok)
+    return rotation_irls(prob, robust, max_iters, tol, theta, krylov=False, w0=w0,
+                         prior=mode == "prior")
