@@ -17,6 +17,7 @@ import torch
 
 from posernet.graph import GraphBatch, ViewGraph
 from posernet.io import atomic_write_text
+from posernet.report import cpu_model
 from posernet.testing import random_view_graph
 
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -69,14 +70,7 @@ def best_of(fn: Callable[[], object], repeat: int, device: str | torch.device = 
 def machine(device: str = "cpu") -> list[str]:
     """Lines describing where and how the numbers were taken."""
     load = os.getloadavg() if hasattr(os, "getloadavg") else (float("nan"),) * 3
-    cpu = platform.processor() or platform.machine()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
+    cpu = cpu_model()
     gpu = ""
     if torch.device(device).type == "cuda" and torch.cuda.is_available():
         gpu = f", GPU {torch.cuda.get_device_name(0)}"

@@ -19,8 +19,8 @@ import copy
 import torch
 from _common import best_of, fmt_s, paper_batch, table, write_results
 
+from posernet.checkpoints import CheckpointError
 from posernet.nn import PoserConv, PoserNet
-from posernet.nn.model import CheckpointError
 
 SHIPPED = "src/posernet/checkpoints/posernet_synthetic_kp.ckpt"
 

@@ -18,14 +18,13 @@ import os
 from collections.abc import Mapping
 from typing import Any
 
-import lightning as L
 import torch
 from torch import Tensor
 
-from . import __version__
 from .checkpoints import CHECKPOINT_TAG, CheckpointError, read_checkpoint
 from .geometry import quaternion_angle
 from .graph import GraphBatch
+from .lit_base import SectionedModule, fill_sections
 from .metrics import relative_errors_per_graph
 from .nn import PoserNet, posernet_loss
 from .nn.adaptive import edge_errors, heteroscedastic_nll
@@ -71,30 +70,20 @@ def module_hparams(net: Mapping[str, Any] | None = None, loss: Mapping[str, Any]
     ``lr_patience``, ...); a given section value wins over a flat one. Unknown names raise
     ``TypeError`` naming them.
     """
-    given = {"net": net, "loss": loss, "optimizer": optimizer, "scheduler": scheduler}
     unknown = [k for k in flat if k not in _FLAT_NAMES]
     if unknown:
         raise TypeError(f"unknown PoserNetModule hyper-parameter(s) {unknown}; sections: "
                         f"{list(SECTIONS)}")
-    out = {name: dict(defaults) for name, defaults in SECTIONS.items()}
+    given = {"net": net, "loss": loss, "optimizer": optimizer, "scheduler": scheduler}
+    out = fill_sections(SECTIONS, "PoserNetModule", given)
     for key, value in flat.items():
         section, name = _FLAT_NAMES[key]
-        out[section][name] = value
-    for section, values in given.items():
-        if values is None:
-            continue
-        if not isinstance(values, Mapping):
-            raise TypeError(f"PoserNetModule {section}= must be a mapping, got "
-                            f"{type(values).__name__}")
-        bad = [k for k in values if k not in SECTIONS[section]]
-        if bad:
-            raise TypeError(f"unknown {section} hyper-parameter(s) {bad}; known: "
-                            f"{list(SECTIONS[section])}")
-        out[section].update({str(k): v for k, v in values.items()})
+        if name not in (given[section] or {}):  # a section value wins over a flat one
+            out[section][name] = value
     return out
 
 
-class PoserNetModule(L.LightningModule):
+class PoserNetModule(SectionedModule):
     """PoserNet + its loss + optimiser, for Lightning.
 
     The arguments mirror ``conf/model/posernet.yaml``, one plain mapping per section, so a
@@ -123,8 +112,9 @@ class PoserNetModule(L.LightningModule):
             (``depth=2, alpha=0.1, lr=1e-3, lr_patience=3, ...``), so they still load.
     """
 
-    #: written into its checkpoints (``posernet.checkpoints.read_checkpoint`` checks it)
     CHECKPOINT_TAG = CHECKPOINT_TAG
+    MEDIAN_METRICS = ("rot_err_deg", "tdir_err_deg", "rot_err_deg_init", "tdir_err_deg_init")
+    MEDIAN_PROG_BAR = 2
 
     def __init__(self, net: Mapping[str, Any] | None = None,
                  loss: Mapping[str, Any] | None = None,
@@ -134,7 +124,6 @@ class PoserNetModule(L.LightningModule):
         hp = module_hparams(net, loss, optimizer, scheduler, **flat)
         self.save_hyperparameters(hp)
         self.model = PoserNet(**hp["net"])
-        self._errors: dict[str, list[Tensor]] = {}
 
     # ------------------------------------------------------------------ inference
     def forward(self, batch: GraphBatch, edge_pose: Tensor | None = None) -> Tensor:
@@ -196,18 +185,6 @@ class PoserNetModule(L.LightningModule):
                                      batch.num_graphs, solved)
         return rot.mean().to(pred.dtype), pos.mean().to(pred.dtype)
 
-    def training_step(self, batch: GraphBatch, batch_idx: int) -> Tensor:
-        return self._step(batch, "train")
-
-    def validation_step(self, batch: GraphBatch, batch_idx: int) -> Tensor:
-        return self._step(batch, "val")
-
-    def test_step(self, batch: GraphBatch, batch_idx: int) -> Tensor:
-        return self._step(batch, "test")
-
-    def predict_step(self, batch: GraphBatch, batch_idx: int) -> Tensor:
-        return self(batch)
-
     # ------------------------------------------------------------------ per-graph metrics
     def _collect(self, split: str, batch: GraphBatch, pred: Tensor) -> None:
         """Store each graph's mean edge errors (refined and initial) for the epoch's median."""
@@ -216,52 +193,7 @@ class PoserNetModule(L.LightningModule):
         for pose in (pred, batch.edge_pose):  # the tables' per-graph errors (posernet.metrics)
             per_graph = relative_errors_per_graph(pose, batch.edge_pose_gt, batch.edge_batch, n)
             rows += [per_graph["rot"], per_graph["tdir"]]
-        self._errors.setdefault(split, []).append(torch.stack(rows, dim=-1))  # [B, 4]
-
-    def _log_medians(self, split: str) -> None:
-        chunks = self._errors.pop(split, [])
-        if not chunks:
-            return
-        errs = torch.cat(chunks)
-        if self.trainer is not None and self.trainer.world_size > 1:
-            # Pad to a common length so every rank can all_gather, then drop the padding.
-            n = torch.tensor(errs.shape[0], device=errs.device)
-            max_n = int(self.all_gather(n).max())
-            pad = errs.new_full((max_n - errs.shape[0], errs.shape[1]), float("nan"))
-            errs = self.all_gather(torch.cat((errs, pad))).reshape(-1, errs.shape[1])
-        errs = errs.float()
-        names = ("rot_err_deg", "tdir_err_deg", "rot_err_deg_init", "tdir_err_deg_init")
-        for k, name in enumerate(names):
-            col = errs[:, k]
-            col = col[~torch.isnan(col)]
-            if col.numel():
-                # Every rank holds the gathered errors, so no further sync is needed.
-                self.log(f"{split}/{name}", col.quantile(0.5), prog_bar=k < 2)
-
-    def on_validation_epoch_start(self) -> None:
-        self._errors.pop("val", None)
-
-    def on_validation_epoch_end(self) -> None:
-        self._log_medians("val")
-
-    def on_test_epoch_start(self) -> None:
-        self._errors.pop("test", None)
-
-    def on_test_epoch_end(self) -> None:
-        self._log_medians("test")
-
-    # ------------------------------------------------------------------ optimiser
-    def configure_optimizers(self) -> dict[str, Any]:
-        opt_hp, sched_hp = self.hparams.optimizer, self.hparams.scheduler
-        opt = torch.optim.Adam(self.parameters(), lr=opt_hp["lr"],
-                               weight_decay=opt_hp["weight_decay"])
-        sched = torch.optim.lr_scheduler.ReduceLROnPlateau(
-            opt, mode="min", factor=sched_hp["factor"], patience=sched_hp["patience"],
-            min_lr=sched_hp["min_lr"])
-        # strict=False: runs without validation (e.g. limit_val_batches=0) only warn.
-        return {"optimizer": opt,
-                "lr_scheduler": {"scheduler": sched, "monitor": "val/loss", "interval": "epoch",
-                                 "strict": False}}
+        self._store(split, torch.stack(rows, dim=-1))  # [B, 4]
 
     # ------------------------------------------------------------------ checkpoints
     def on_fit_start(self) -> None:
@@ -274,7 +206,7 @@ class PoserNetModule(L.LightningModule):
             self.input_stats = input_statistics(graphs)
 
     def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
-        checkpoint["posernet"] = {"tag": self.CHECKPOINT_TAG, "version": __version__}
+        super().on_save_checkpoint(checkpoint)
         stats = getattr(self, "input_stats", None)
         if stats:
             checkpoint["posernet"]["input_stats"] = stats
@@ -285,10 +217,6 @@ class PoserNetModule(L.LightningModule):
         # resumed run must lose them too, or Adam's state would not fit the parameters.
         upgrade_optimizer_states(checkpoint, self)
 
-    @property
-    def num_parameters(self) -> int:
-        """Number of trainable parameters of the network."""
-        return sum(p.numel() for p in self.model.parameters() if p.requires_grad)
 
 
 # --------------------------------------------------------------------------- old checkpoints

@@ -19,15 +19,14 @@ for the initial solution.
 from __future__ import annotations
 
 import inspect
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
 from typing import Any
 
-import lightning as L
 import torch
-from torch import Tensor
+from torch import Tensor, nn
 
-from . import __version__
 from .graph import GraphBatch
+from .lit_base import SectionedModule, fill_sections
 from .metrics import absolute_errors_per_graph
 from .sync.components import connected_components
 from .sync.learned import LEARNED_SYNC_TAG, LearnedSyncNet, all_pairs, learned_sync_loss
@@ -44,27 +43,9 @@ SECTIONS: dict[str, dict[str, Any]] = {
     "input": {"refiner_ckpt": None},
 }
 
-_METRICS = ("abs_rot_err_deg", "abs_pos_err", "abs_rot_err_deg_init", "abs_pos_err_init")
-
-
 def sync_module_hparams(**sections: Mapping[str, Any] | None) -> dict[str, dict[str, Any]]:
     """Every section filled with its defaults; ``TypeError`` naming unknown sections / keys."""
-    unknown = [s for s in sections if s not in SECTIONS]
-    if unknown:
-        raise TypeError(f"unknown LearnedSyncModule section(s) {unknown}; sections: "
-                        f"{list(SECTIONS)}")
-    out = {name: dict(defaults) for name, defaults in SECTIONS.items()}
-    for section, values in sections.items():
-        if values is None:
-            continue
-        if not isinstance(values, Mapping):
-            raise TypeError(f"LearnedSyncModule {section}= must be a mapping, got "
-                            f"{type(values).__name__}")
-        bad = [k for k in values if k not in SECTIONS[section]]
-        if bad:
-            raise TypeError(f"unknown {section} hyper-parameter(s) {bad}; known: "
-                            f"{list(SECTIONS[section])}")
-        out[section].update({str(k): v for k, v in values.items()})
+    out = fill_sections(SECTIONS, "LearnedSyncModule", sections)
     ref = out["input"]["refiner_ckpt"]
     if ref is not None and (not isinstance(ref, str) or not ref):
         raise TypeError(f"input.refiner_ckpt must be a path or null, got {ref!r}")
@@ -73,7 +54,7 @@ def sync_module_hparams(**sections: Mapping[str, Any] | None) -> dict[str, dict[
     return out
 
 
-class LearnedSyncModule(L.LightningModule):
+class LearnedSyncModule(SectionedModule):
     """:class:`LearnedSyncNet` + :func:`learned_sync_loss` + Adam, for Lightning.
 
     Args:
@@ -89,6 +70,8 @@ class LearnedSyncModule(L.LightningModule):
 
     #: written into its checkpoints (``read_checkpoint(path, LearnedSyncModule.CHECKPOINT_TAG)``)
     CHECKPOINT_TAG = LEARNED_SYNC_TAG
+    MEDIAN_METRICS = ("abs_rot_err_deg", "abs_pos_err", "abs_rot_err_deg_init",
+                      "abs_pos_err_init")
 
     def __init__(self, net: Mapping[str, Any] | None = None,
                  loss: Mapping[str, Any] | None = None,
@@ -103,7 +86,6 @@ class LearnedSyncModule(L.LightningModule):
         # The refiner is not a submodule: its weights stay out of this module's checkpoint and
         # optimiser (it is frozen, and the backend gets already refined poses from its caller).
         self._refiner: Any = None
-        self._errors: dict[str, list[Tensor]] = {}
 
     # ------------------------------------------------------------------ input
     @property
@@ -168,18 +150,6 @@ class LearnedSyncModule(L.LightningModule):
             self._collect(split, batch, outs[-1].detach(), init)
         return out.loss
 
-    def training_step(self, batch: GraphBatch, batch_idx: int) -> Tensor:
-        return self._step(batch, "train")
-
-    def validation_step(self, batch: GraphBatch, batch_idx: int) -> Tensor:
-        return self._step(batch, "val")
-
-    def test_step(self, batch: GraphBatch, batch_idx: int) -> Tensor:
-        return self._step(batch, "test")
-
-    def predict_step(self, batch: GraphBatch, batch_idx: int) -> Tensor:
-        return self(batch)
-
     # ------------------------------------------------------------------ per-graph metrics
     def _collect(self, split: str, batch: GraphBatch, poses: Tensor, init: Tensor) -> None:
         """Each graph's mean aligned absolute errors (learned, initial) for the epoch median."""
@@ -193,56 +163,7 @@ class LearnedSyncModule(L.LightningModule):
                                           alignment="similarity", component=comps.comp,
                                           solved=solved)
             cols += [e["rot"], e["trans"]]
-        self._errors.setdefault(split, []).append(torch.stack(cols, dim=-1))  # [B, 4]
+        self._store(split, torch.stack(cols, dim=-1))  # [B, 4]
 
-    def _log_medians(self, split: str) -> None:
-        chunks = self._errors.pop(split, [])
-        if not chunks:
-            return
-        errs = torch.cat(chunks)
-        trainer = self._trainer  # None outside a Trainer (``self.trainer`` would raise)
-        if trainer is not None and trainer.world_size > 1:
-            # pad to a common length so every rank can all_gather, then drop the padding
-            n = torch.tensor(errs.shape[0], device=errs.device)
-            max_n = int(self.all_gather(n).max())
-            pad = errs.new_full((max_n - errs.shape[0], errs.shape[1]), float("nan"))
-            errs = self.all_gather(torch.cat((errs, pad))).reshape(-1, errs.shape[1])
-        errs = errs.float()
-        for k, name in enumerate(_METRICS):
-            col = errs[:, k]
-            col = col[~torch.isnan(col)]
-            if col.numel():
-                self.log(f"{split}/{name}", col.quantile(0.5), prog_bar=k == 0)
-
-    def on_validation_epoch_start(self) -> None:
-        self._errors.pop("val", None)
-
-    def on_validation_epoch_end(self) -> None:
-        self._log_medians("val")
-
-    def on_test_epoch_start(self) -> None:
-        self._errors.pop("test", None)
-
-    def on_test_epoch_end(self) -> None:
-        self._log_medians("test")
-
-    # ------------------------------------------------------------------ optimiser
-    def configure_optimizers(self) -> dict[str, Any]:
-        opt_hp, sched_hp = self.hparams.optimizer, self.hparams.scheduler
-        opt = torch.optim.Adam(self.net.parameters(), lr=opt_hp["lr"],
-                               weight_decay=opt_hp["weight_decay"])
-        sched = torch.optim.lr_scheduler.ReduceLROnPlateau(
-            opt, mode="min", factor=sched_hp["factor"], patience=sched_hp["patience"],
-            min_lr=sched_hp["min_lr"])
-        return {"optimizer": opt,
-                "lr_scheduler": {"scheduler": sched, "monitor": "val/loss", "interval": "epoch",
-                                 "strict": False}}
-
-    # ------------------------------------------------------------------ checkpoints
-    def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
-        checkpoint["posernet"] = {"tag": self.CHECKPOINT_TAG, "version": __version__}
-
-    @property
-    def num_parameters(self) -> int:
-        """Number of trainable parameters of the network."""
-        return sum(p.numel() for p in self.net.parameters() if p.requires_grad)
+    def trainable_parameters(self) -> Iterator[nn.Parameter]:
+        return self.net.parameters()  # the frozen refiner is not a submodule anyway

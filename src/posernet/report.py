@@ -34,6 +34,7 @@ __all__ = [
     "MetricGroup",
     "ResultTable",
     "TableRow",
+    "cpu_model",
     "mean_std_row",
     "relative_row",
 ]
@@ -269,3 +270,17 @@ class ResultTable:
         md = atomic_write_text(out / f"{stem}.md", self.to_markdown(digits))
         cs = atomic_write_text(out / f"{stem}.csv", self.to_csv())
         return md, cs
+
+
+def cpu_model() -> str:
+    """The CPU's model name (``/proc/cpuinfo``; else what :mod:`platform` says), for the machine
+    lines of result tables and benchmarks."""
+    import platform
+
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()

@@ -960,14 +960,9 @@ def run_experiments(scale: str | Scale, out: str | Path, only: str | Sequence[st
 
 def machine_description(device: str) -> str:
     """One line naming the machine: CPU, cores, torch threads, GPU when used, versions."""
-    cpu = platform.processor() or platform.machine()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
+    from ..report import cpu_model
+
+    cpu = cpu_model()
     gpu = (f", GPU {torch.cuda.get_device_name(0)}"
            if device == "cuda" and torch.cuda.is_available() else "")
     return (f"{cpu}, {os.cpu_count()} logical cores, {torch.get_num_threads()} torch thread(s)"
