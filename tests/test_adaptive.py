@@ -307,3 +307,19 @@ def test_refine_writes_confidence_and_the_guard_warning(tmp_path: Path, capsys) 
     assert edge["kept_input"] == {"rotation": True, "direction": True}
     assert rec["guard"] is True and rec["confidence_weights"] is True
     assert rec["input_check"]["warning"] is not None
+
+
+def test_evaluation_command_reports_bad_input_in_one_line(tmp_path, capsys) -> None:
+    from posernet.experiments.adaptive import main
+    from posernet.testing import write_random_dataset
+
+    out = tmp_path / "out"
+    assert main(["--data", str(tmp_path / "nope"), "--out", str(out), "--model",
+                 "shipped=shipped"]) == 1
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "--data" in err and "nope" in err
+    data = write_random_dataset(tmp_path / "data", {"test": 1})
+    assert main(["--data", str(data), "--out", str(out), "--model",
+                 f"a={tmp_path / 'missing.ckpt'}", "--no-absolute"]) == 1
+    assert "checkpoint not found" in capsys.readouterr().err
+    assert not out.exists()

@@ -240,10 +240,10 @@ def evaluate_models(models: dict[str, str], data: str | Path, out: str | Path,
     from ..pipeline import load_input_graphs
 
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
     graphs = load_input_graphs(data, split=split, estimate=None, log=lambda *_: None)
     if max_graphs:
         graphs = graphs[:max_graphs]
+    out.mkdir(parents=True, exist_ok=True)  # after the input loaded: bad input writes nothing
     inputs = make_inputs(graphs)
     B = len(graphs)
     summary: dict[str, Any] = {"data": str(data), "split": split, "graphs": B, "models": {}}
@@ -453,6 +453,17 @@ def main(argv: Sequence[str] | None = None) -> int:
                    help="with --paper-tables: the runner's folder (e.g. results/paper) whose "
                         "tables the rows are appended to (in new files)")
     a = p.parse_args(argv)
+    try:
+        return _run(p, a)
+    except (FileNotFoundError, ValueError) as exc:  # bad data / checkpoint: one line, exit 1
+        print(f"{p.prog}: error: {exc}", file=sys.stderr)
+        return 1
+
+
+def _run(p: argparse.ArgumentParser, a: argparse.Namespace) -> int:
+    if not Path(a.data).exists():
+        raise FileNotFoundError(f"--data {a.data}: no such dataset folder (posernet-make-data "
+                                "writes one)")
     torch.set_num_threads(a.threads)
     models = {}
     for spec in a.model:
@@ -464,6 +475,10 @@ def main(argv: Sequence[str] | None = None) -> int:
 
             path = str(default_checkpoint())
         models[name] = path
+    from ..checkpoints import read_checkpoint
+
+    for path in models.values():  # every checkpoint readable before any output
+        read_checkpoint(path)
     if a.guard:
         from ..pipeline import load_input_graphs
 
