@@ -21,6 +21,7 @@ from posernet.nn.adaptive import (
     EdgeHead,
     blend_poses,
     cycle_features,
+    edge_errors,
     heteroscedastic_nll,
 )
 from posernet.testing import random_view_graph
@@ -59,8 +60,8 @@ def test_adaptive_options_default_off_and_old_parameters_unchanged() -> None:
     names = [n for n, _ in a.named_parameters()]
     assert not any(n.startswith("head.") for n in names)
     hp = module_hparams()
-    assert {k: hp["loss"][k] for k in ("alpha", "raw", "confidence", "correction")} == {
-        "alpha": 0.1, "raw": 0.0, "confidence": 0.0, "correction": 0.0}
+    assert {k: hp["loss"][k] for k in ("alpha", "raw", "confidence", "correction", "harm")} == {
+        "alpha": 0.1, "raw": 0.0, "confidence": 0.0, "correction": 0.0, "harm": 0.0}
     with pytest.raises(ValueError, match="edge_hidden >= 3"):
         PoserNet(cycle_feature=True)
 
@@ -136,7 +137,7 @@ def test_heteroscedastic_loss_is_minimal_at_the_true_error() -> None:
 def test_module_trains_every_loss_term() -> None:
     torch.manual_seed(0)
     module = PoserNetModule(net=ADAPTIVE, loss={"raw": 0.5, "confidence": 0.1,
-                                                "correction": 0.1})
+                                                "correction": 0.1, "harm": 1.0})
     batch = GraphBatch.from_graphs(graphs(2))
     module.log = lambda *a, **k: None  # type: ignore[method-assign]
     loss = module._step(batch, "train")
@@ -220,6 +221,8 @@ def test_guard_warns_on_shifted_inputs_and_not_on_in_distribution_ones() -> None
                for g in graphs(10, seed=2)]
     reasons = check_inputs(stats, shifted)
     assert len(reasons) == 1 and reasons[0].startswith("node_focal")
+    # in the user's units (pixels), not the network's normalised ones
+    assert "median 1462 outside the training range [585, 585]" in reasons[0]
     worse = graphs(10, seed=2, rot_noise_deg=120.0)
     assert any(r.startswith("cycle_deg") for r in check_inputs(stats, worse))
     better = [gt_input(g) for g in graphs(10, seed=2)]  # better inputs are no reason to warn
@@ -323,3 +326,31 @@ def test_evaluation_command_reports_bad_input_in_one_line(tmp_path, capsys) -> N
                  f"a={tmp_path / 'missing.ckpt'}", "--no-absolute"]) == 1
     assert "checkpoint not found" in capsys.readouterr().err
     assert not out.exists()
+
+
+def test_harm_term_is_the_excess_error_over_the_input_and_trains_the_gate_shut() -> None:
+    torch.manual_seed(0)
+    exact = graphs(3, rot_noise_deg=0.0)  # ground-truth input: any change does harm
+    for g in exact:
+        g.edge_pose = g.edge_pose_gt.clone()
+        g.edge_pose[:, 4:] = g.edge_pose[:, 4:] / g.edge_pose[:, 4:].norm(dim=-1, keepdim=True)
+    batch = GraphBatch.from_graphs(exact)
+    module = PoserNetModule(net=ADAPTIVE, loss={"harm": 1.0})
+    logged: dict[str, float] = {}
+    def log(name: str, value: torch.Tensor, **_: object) -> None:
+        logged[name] = float(torch.as_tensor(value).detach())
+
+    module.log = log  # type: ignore[method-assign]
+    module._step(batch, "train")
+    with torch.no_grad():
+        out = module(batch)
+        expected = edge_errors(out, batch.edge_pose_gt).sum(-1).mean()
+    assert float(expected) > 1e-3
+    assert logged["train/loss_harm"] == pytest.approx(float(expected), rel=1e-4)
+    opt = torch.optim.Adam(module.parameters(), lr=1e-2)
+    for _ in range(60):
+        opt.zero_grad()
+        module._step(batch, "train").backward()
+        opt.step()
+    module._step(batch, "train")
+    assert logged["train/loss_harm"] < 0.3 * float(expected)

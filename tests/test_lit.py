@@ -109,7 +109,7 @@ def test_checkpoint_round_trip(data, tmp_path: Path) -> None:
     assert loaded.hparams.net["depth"] == 3 and loaded.hparams.net["residual"]
     # the adaptive terms (issue 16) default to 0 and end to end (issue 17) off: the paper's
     assert loaded.hparams.loss == {"alpha": 0.3, "raw": 0.0, "confidence": 0.0,
-                                   "correction": 0.0, "end_to_end": False,
+                                   "correction": 0.0, "harm": 0.0, "end_to_end": False,
                                    "relative_weight": 1.0, "absolute_weight": 1.0,
                                    "position_weight": 1.0}
     loaded.eval()
@@ -269,7 +269,8 @@ def test_flat_hyper_parameters_of_older_checkpoints_map_to_sections(tmp_path: Pa
     hp = module_hparams(**flat)
     assert hp["net"]["depth"] == 3 and hp["net"]["residual"] is True
     assert hp["loss"]["alpha"] == 0.5
-    assert not any(hp["loss"][k] for k in ("raw", "confidence", "correction", "end_to_end"))
+    assert not any(hp["loss"][k] for k in ("raw", "confidence", "correction", "harm",
+                                               "end_to_end"))
     assert hp["optimizer"] == {"lr": 0.01, "weight_decay": 1e-4}
     assert hp["scheduler"] == {"patience": 7, "factor": 0.5, "min_lr": 1e-5}
     assert module_hparams(net={"depth": 4}, depth=3)["net"]["depth"] == 4  # sections win

@@ -26,7 +26,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from .graph import GraphBatch, ViewGraph
+from .graph import REF_FOCAL, REF_HEIGHT, REF_K1, REF_WIDTH, GraphBatch, ViewGraph
 from .nn.adaptive import cycle_features
 from .nn.scatter import scatter_count, scatter_mean
 
@@ -42,6 +42,14 @@ _LO, _HI = 0.005, 0.995
 #: a feature is flagged when more than this share of the input graphs lies outside the
 #: training range widened by ``_MARGIN`` of its width on each side
 _SHARE, _MARGIN = 0.25, 0.1
+#: the node features are stored normalised (:func:`posernet.graph.node_attributes`); the
+#: warning names them in the units a user knows (pixels, the distortion coefficient)
+_DISPLAY = {
+    "node_width": lambda v: (v + 1.0) * REF_WIDTH,
+    "node_height": lambda v: (v + 1.0) * REF_HEIGHT,
+    "node_focal": lambda v: (v + 1.0) * REF_FOCAL,
+    "node_k1": lambda v: v * REF_K1,
+}
 
 
 def cycle_inconsistency(batch: GraphBatch, edge_pose: Tensor) -> Tensor:
@@ -123,10 +131,10 @@ def check_inputs(stats: Mapping[str, Any] | None, graphs: Sequence[ViewGraph]) -
         out = above[:, k] if name in _UPPER_ONLY else (above[:, k] | below[:, k])
         share = float(out.double().mean())
         if share > _SHARE:
-            med = float(feats[:, k].median())
-            reasons.append(f"{name} median {med:.3g} outside the training range "
-                           f"[{float(lo[k]):.3g}, {float(hi[k]):.3g}] in {100 * share:.0f}% "
-                           "of the graphs")
+            show = _DISPLAY.get(name, float)
+            med, a, b = (show(float(v)) for v in (feats[:, k].median(), lo[k], hi[k]))
+            reasons.append(f"{name} median {med:.4g} outside the training range "
+                           f"[{a:.4g}, {b:.4g}] in {100 * share:.0f}% of the graphs")
     return reasons
 
 

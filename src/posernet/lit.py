@@ -27,7 +27,7 @@ from .graph import GraphBatch
 from .lit_base import SectionedModule, fill_sections
 from .metrics import relative_errors_per_graph
 from .nn import PoserNet, posernet_loss
-from .nn.adaptive import edge_errors, heteroscedastic_nll
+from .nn.adaptive import blend_poses, edge_errors, heteroscedastic_nll
 
 __all__ = ["SECTIONS", "PoserNetModule", "flat_name_section", "load_posernet_checkpoint",
            "module_hparams", "upgrade_optimizer_states"]
@@ -37,7 +37,7 @@ __all__ = ["SECTIONS", "PoserNetModule", "flat_name_section", "load_posernet_che
 #: (``net``: the arguments of :class:`posernet.nn.PoserNet`, defaults from its signature)
 SECTIONS: dict[str, dict[str, Any]] = {
     "net": {k: p.default for k, p in inspect.signature(PoserNet).parameters.items()},
-    "loss": {"alpha": 0.1, "raw": 0.0, "confidence": 0.0, "correction": 0.0,
+    "loss": {"alpha": 0.1, "raw": 0.0, "confidence": 0.0, "correction": 0.0, "harm": 0.0,
              "end_to_end": False, "relative_weight": 1.0, "absolute_weight": 1.0,
              "position_weight": 1.0},
     "optimizer": {"lr": 1e-3, "weight_decay": 0.0},
@@ -97,9 +97,13 @@ class PoserNetModule(SectionedModule):
             ``raw``: weight of the same loss on the pre-gate prediction (gated networks);
             ``confidence``: weight of the heteroscedastic error-scale loss
             (:func:`posernet.nn.adaptive.heteroscedastic_nll`); ``correction``: weight of the
-            small-correction prior, the mean rotation angle between output and input (radians).
-            All three default to 0 (the paper's loss). ``end_to_end`` (default False) adds a
-            loss on absolute poses through a differentiable synchronisation
+            small-correction prior, the mean rotation angle between output and input (radians);
+            ``harm``: weight of the do-no-harm hinge, the mean excess of each edge's output
+            rotation and direction errors over its input's (radians, 0 where the output is
+            better), which makes the network leave an edge alone where it cannot tell that it
+            would improve it (with a gate it trains the gate only). All four default to 0
+            (the paper's loss). ``end_to_end`` (default False) adds a loss on absolute poses
+            through a differentiable synchronisation
             (:func:`posernet.sync.differentiable.differentiable_sync`, ground-truth baselines
             while training) after gauge alignment: ``relative_weight * relative +
             absolute_weight * (rotation + position_weight * position)``; the batches then need
@@ -152,6 +156,14 @@ class PoserNetModule(SectionedModule):
         if lh.get("correction", 0.0):
             terms["correction"] = quaternion_angle(pred[:, :4], batch.edge_pose[:, :4]).mean()
             total = total + lh["correction"] * terms["correction"]
+        if lh.get("harm", 0.0):
+            # with a gate the hinge trains the decision only (the prediction is data here):
+            # through the prediction it would pull every estimate towards its input
+            judged = pred if extras is None or extras.gate is None else blend_poses(
+                batch.edge_pose, extras.raw.detach(), extras.gate)
+            worse = edge_errors(judged, gt) - edge_errors(batch.edge_pose, gt).detach()
+            terms["harm"] = worse.clamp_min(0.0).sum(-1).mean()
+            total = total + lh["harm"] * terms["harm"]
         if lh.get("end_to_end", False):
             terms["abs_rot"], terms["abs_pos"] = self._absolute_loss(batch, pred)
             total = lh["relative_weight"] * total + lh["absolute_weight"] * (
