@@ -409,18 +409,19 @@ def test_shipped_checkpoint_gives_the_recorded_output(tiny_graph: ViewGraph) -> 
 
 
 # The shipped checkpoint since issue 16 (input-adaptive: gates, confidence head, cycle
-# feature; depth 3), recorded on the same graph when it was shipped: final pose, gates
-# (rotation, direction) and error scales (radians: rot_out, tdir_out, rot_in, tdir_in).
+# feature; depth 3, 64-wide MLPs and node state), recorded on the same graph when it was
+# shipped: final pose, gates (rotation, direction) and error scales (radians: rot_out,
+# tdir_out, rot_in, tdir_in).
 ADAPTIVE_SHIPPED = ROOT / "src" / "posernet" / "checkpoints" / "posernet_synthetic_kp.ckpt"
 ADAPTIVE_OUTPUT = [
-    [0.96475887, -0.09072094, -0.21105959, -0.12831184, -0.06779908, -0.78775579, 0.6122452],
-    [0.99934554, -0.01487446, 0.03052061, 0.01247871, 0.10999707, -0.71368814, 0.691773],
-    [0.99656445, 0.08213076, -0.00256176, 0.01035756, -0.32261494, 0.1112143, -0.93997395],
+    [0.96130705, -0.09892673, -0.21861133, -0.13531944, -0.06808624, -0.78797442, 0.61193192],
+    [0.99903566, -0.0244842, 0.03331506, 0.01477997, 0.10986078, -0.71379, 0.69168955],
+    [0.99649906, 0.08274812, -0.00092615, 0.01189916, -0.32254764, 0.11117847, -0.94000131],
 ]
-ADAPTIVE_GATE = [[0.15618227, 0.00449855], [0.17779386, 0.0020249], [0.05116312, 0.0004819]]
-ADAPTIVE_SIGMA = [[0.10575411, 0.404158, 0.1179649, 0.43019927],
-                  [0.05273693, 0.41807628, 0.06034322, 0.38217121],
-                  [0.04214329, 0.19579802, 0.04326676, 0.18242127]]
+ADAPTIVE_GATE = [[0.0077444, 4.513e-05], [0.02618179, 0.00046964], [0.02867028, 0.00081518]]
+ADAPTIVE_SIGMA = [[0.03184, 0.1018301, 0.02961854, 0.09957438],
+                  [0.02022495, 0.12141502, 0.01965646, 0.12183568],
+                  [0.02822148, 0.18736894, 0.02605579, 0.18383166]]
 
 
 def test_adaptive_shipped_checkpoint_gives_the_recorded_output(tiny_graph: ViewGraph) -> None:
@@ -428,6 +429,7 @@ def test_adaptive_shipped_checkpoint_gives_the_recorded_output(tiny_graph: ViewG
 
     model = PoserNet.from_checkpoint(ADAPTIVE_SHIPPED)
     assert model.gate and model.confidence and model.cycle_feature and model.depth == 3
+    assert model.node_hidden == 64
     with torch.no_grad():
         out = model(tiny_graph, return_extras=True)
     torch.testing.assert_close(out.pose, torch.tensor(ADAPTIVE_OUTPUT), atol=1e-5, rtol=0)
