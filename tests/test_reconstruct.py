@@ -18,6 +18,7 @@ import numpy as np
 import pytest
 import torch
 
+from posernet.checkpoints import default_checkpoint
 from posernet.data.render import render_intrinsics, render_sevenscenes
 from posernet.data.sevenscenes import SevenScenesScene
 
@@ -91,7 +92,7 @@ def test_reconstruct_without_ground_truth_and_with_a_blank_image(scene, tmp_path
     cv2.imwrite(str(imgs / "zz_blank.png"), np.full((H, W, 3), 127, np.uint8))
     out = tmp_path / "out"
     r = _run(f"images={imgs}", f"intrinsics=[{_intr(scene)}]", f"out_dir={out}",
-             "matcher=sift", "refine=true")
+             "matcher=sift", "refine=true", "guard=true")
     assert r.returncode == 0, r.stderr
     assert "without ground-truth poses" in r.stdout
     assert "1 without any proposal" in r.stdout
@@ -101,8 +102,15 @@ def test_reconstruct_without_ground_truth_and_with_a_blank_image(scene, tmp_path
     blank = cams["zz_blank.png"]
     assert blank["solved"] is False and blank["camera_to_world"] is None
     assert sum(c["solved"] for c in cams.values()) == 5
-    stage = json.loads((out / "poses.json").read_text())["stage"]
-    assert stage == "refined"
+    record = json.loads((out / "poses.json").read_text())
+    assert record["stage"] == "refined" and record["guard"] is True
+    # the guard's checks ran against the shipped model's training statistics; the rendered
+    # images' graph (no distortion, more boxes and edges per image) is unlike them: one line
+    check = record["input_check"]
+    assert check["training_stats"] and check["warning"] and check["reasons"]
+    warnings = [ln for ln in r.stderr.splitlines() if "WARNING" in ln]
+    assert len(warnings) == 1 and warnings[0].startswith("posernet-reconstruct: WARNING: ")
+    assert set(check["cycle_deg"]) == {"initial", "refined"}
 
 
 @pytest.mark.slow
@@ -118,6 +126,10 @@ def test_reconstruct_without_ground_truth_and_with_a_blank_image(scene, tmp_path
         (["intrinsics=500,500,160,120", "estimate=xx"], "estimate: 'xx' is not one of kp, bb"),
         (["intrinsics=500,500,160,120", "refine=true", "ckpt_path=/nonexistent.ckpt"],
          "nonexistent.ckpt"),
+        (["intrinsics=500,500,160,120", "guard=maybe"], "guard: 'maybe' is not true or false"),
+        (["intrinsics=500,500,160,120", "refine=true", "guard=true",
+          f"ckpt_path={default_checkpoint('posernet_synthetic_kp_v1.ckpt')}"],
+         "needs a checkpoint with a confidence head"),
         (["intrinsics=500,500,160,120", "proposals=file",
           "proposals.path=/nonexistent/boxes.json"], "boxes.json"),
     ],

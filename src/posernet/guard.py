@@ -14,7 +14,7 @@ test file: 10 -> 108 degrees), and a user cannot tell in advance. Two checks, no
 
 Both are reported in one warning line (:func:`warning_line`). With a confidence head, the
 model's own error scales decide per edge whether to keep the input
-(:func:`keep_input_mask`, ``refine.guard=true``).
+(:func:`keep_input_mask`, ``guard=true`` of ``posernet-refine`` and ``posernet-reconstruct``).
 """
 
 from __future__ import annotations
@@ -31,7 +31,7 @@ from .nn.adaptive import cycle_features
 from .nn.scatter import scatter_count, scatter_mean
 
 __all__ = ["FEATURES", "check_inputs", "cycle_inconsistency", "graph_features", "graph_made_worse",
-           "input_statistics", "keep_input_mask", "warning_line"]
+           "input_statistics", "keep_input_mask", "refinement_check", "warning_line"]
 
 #: per-graph summaries compared with the training data; the last is only flagged upwards
 FEATURES = ("node_width", "node_height", "node_focal", "node_k1", "rotation_deg",
@@ -159,4 +159,24 @@ def warning_line(reasons: Sequence[str], cycle_in: float, cycle_out: float,
     if not parts:
         return None
     return ("WARNING: input unlike this model's training data or made worse by it; refinement "
-            "may not help (consider refine.guard=true): " + "; ".join(parts))
+            "may not help (consider guard=true): " + "; ".join(parts))
+
+
+def refinement_check(
+    stats: Mapping[str, Any] | None, graphs: Sequence[ViewGraph],
+    edge_pose: Mapping[str, Sequence[Tensor]],
+) -> tuple[str | None, dict[str, Any]]:
+    """Both checks for one refine run: the warning line (or ``None``) and a JSON-ready record.
+
+    ``stats``: the checkpoint's training-input statistics (``None``: only the cycle check);
+    ``edge_pose``: per stage (``initial``, ``refined``) the ``[E_g, 7]`` poses of each graph,
+    as :class:`posernet.pipeline.RefineResult` holds them.
+    """
+    reasons = check_inputs(stats, graphs)
+    batch = GraphBatch.from_graphs(list(graphs))  # one batched pass, no loop over graphs
+    cyc = {stage: float(cycle_inconsistency(batch, torch.cat(list(poses))
+                                            .to(batch.edge_pose.dtype)).mean())
+           for stage, poses in edge_pose.items()}
+    line = warning_line(reasons, cyc["initial"], cyc.get("refined", float("nan")))
+    return line, {"training_stats": stats is not None, "reasons": reasons,
+                  "cycle_deg": cyc, "warning": line}

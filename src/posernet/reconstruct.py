@@ -60,9 +60,12 @@ def reconstruct(
     name: str = "images",
     estimate: str = "kp",
     progress: bool = True,
+    guard: bool = False,
 ) -> Reconstruction:
     """Evaluate every image pair, assemble the graph, refine its ``estimate`` (``kp`` or ``bb``)
-    initial poses with ``model`` (``None``: no refinement) and average them with ``backend``."""
+    initial poses with ``model`` (``None``: no refinement) and average them with ``backend``.
+    ``guard``: keep the input pose where the model's confidence says refinement would not help
+    (:func:`posernet.pipeline.refine_graphs`; needs a confidence head)."""
     n = len(frontend.records)
     frontend.prepare(progress=progress)
     frontend.evaluate_pairs(list(itertools.combinations(range(n), 2)), progress=progress)
@@ -73,7 +76,7 @@ def reconstruct(
             f"no image pair shares {frontend.rules.min_boxes} matched boxes, so no camera can "
             f"be placed ({'; '.join(frontend.summary.lines()[:2])})")
     result = refine_graphs(model, [graph], backend=backend, batch_size=1, device=device,
-                           progress=False)
+                           progress=False, guard=guard)
     return Reconstruction(frontend, graph, stats, result)
 
 

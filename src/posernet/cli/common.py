@@ -245,3 +245,13 @@ def quote_list_args(argv: list[str], keys: tuple[str, ...]) -> list[str]:
     string instead (``intrinsics=585,585,320,240`` is what users type)."""
     pattern = re.compile(rf"^({'|'.join(map(re.escape, keys))})=([^'\"\[].*,.*)$")
     return [pattern.sub(r"\1='\2'", a) for a in argv]
+
+
+def guard_check(ckpt: Path, graphs: list[Any], result: Any) -> tuple[str | None, dict[str, Any]]:
+    """The guard's checks (:func:`posernet.guard.refinement_check`) of a refine run with the
+    training-input statistics stored in checkpoint ``ckpt``: the warning line and a record."""
+    from ..checkpoints import read_checkpoint
+    from ..guard import refinement_check
+
+    stats = (read_checkpoint(ckpt).get("posernet") or {}).get("input_stats")
+    return refinement_check(stats, graphs, result.edge_pose)

@@ -13,6 +13,7 @@ recovered cameras in 3D). With a pose file per image (``<name>.pose.txt``, 7-Sce
 
 from __future__ import annotations
 
+import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -22,7 +23,14 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from . import CONFIG_DIR
-from .common import check_config, resolve_device, run_app, run_task, set_threads
+from .common import (
+    check_config,
+    guard_check,
+    resolve_device,
+    run_app,
+    run_task,
+    set_threads,
+)
 
 __all__ = ["main", "run"]
 
@@ -107,6 +115,10 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     if cfg.refine:
         ckpt = Path(cfg.ckpt_path) if cfg.get("ckpt_path") else default_checkpoint()
         model = PoserNet.from_checkpoint(ckpt, map_location=device)
+    guard = bool(cfg.get("guard", False)) and model is not None
+    if guard and not getattr(model, "confidence", False):
+        raise ValueError(f"guard=true needs a checkpoint with a confidence head "
+                         f"(net.confidence=true); {ckpt} has none")
     backend = backend_from_config(OmegaConf.to_container(cfg.sync, resolve=True))
     frontend = ImageFrontend(
         records, instantiate(cfg.proposals), instantiate(cfg.matcher),
@@ -117,10 +129,14 @@ def run(cfg: DictConfig) -> dict[str, Any]:
           f"({'with' if has_gt else 'without'} ground-truth poses); matcher "
           f"{getattr(frontend.matcher, 'name', type(frontend.matcher).__name__)}")
     rec = reconstruct(frontend, model, backend, device=device, name=Path(cfg.images).name,
-                      estimate=str(cfg.estimate), progress=bool(cfg.progress))
+                      estimate=str(cfg.estimate), progress=bool(cfg.progress), guard=guard)
     print("[2/3] front end: " + "\n      ".join(frontend.summary.lines()))
-    info = {"images": str(cfg.images), "estimate": str(cfg.estimate),
-            "checkpoint": str(ckpt) if ckpt else None}
+    info: dict[str, Any] = {"images": str(cfg.images), "estimate": str(cfg.estimate),
+                            "checkpoint": str(ckpt) if ckpt else None, "guard": guard}
+    if ckpt is not None and bool(cfg.get("check_inputs", True)):
+        line, info["input_check"] = guard_check(ckpt, [rec.graph], rec.result)
+        if line:
+            print(f"posernet-reconstruct: {line}", file=sys.stderr)
     out.mkdir(parents=True, exist_ok=True)
     files: dict[str, Any] = {"poses": write_poses_json(out / "poses.json", rec, info)}
     solved = sum(c["solved"] for c in _load(files["poses"])["cameras"].values())

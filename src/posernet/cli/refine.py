@@ -18,7 +18,14 @@ import hydra
 from omegaconf import DictConfig, OmegaConf
 
 from . import CONFIG_DIR
-from .common import check_config, resolve_device, run_app, run_task, set_threads
+from .common import (
+    check_config,
+    guard_check,
+    resolve_device,
+    run_app,
+    run_task,
+    set_threads,
+)
 
 __all__ = ["main", "refine"]
 
@@ -51,7 +58,7 @@ def refine(cfg: DictConfig) -> dict[str, Any]:
     has_conf = bool(getattr(model, "confidence", False))
     guard = bool(cfg.get("guard", False))
     if guard and not has_conf:
-        raise ValueError(f"refine.guard=true needs a checkpoint with a confidence head "
+        raise ValueError(f"guard=true needs a checkpoint with a confidence head "
                          f"(net.confidence=true); {ckpt} has none")
     weighted = bool(cfg.get("confidence_weights", True)) and has_conf and backend is not None
     result = refine_graphs(model, graphs, backend=backend, batch_size=int(cfg.batch_size),
@@ -60,7 +67,7 @@ def refine(cfg: DictConfig) -> dict[str, Any]:
                             "checkpoint": str(ckpt), "guard": guard,
                             "confidence_weights": weighted}
     if bool(cfg.get("check_inputs", True)):
-        line, report = _check(ckpt, graphs, result)
+        line, report = guard_check(ckpt, graphs, result)
         info["input_check"] = report
         if line:
             print(f"posernet-refine: {line}", file=sys.stderr)
@@ -77,24 +84,6 @@ def refine(cfg: DictConfig) -> dict[str, Any]:
         out["tables"] = tables
     print(f"wrote {out['output']} ({len(graphs)} graphs)")
     return out
-
-
-def _check(ckpt: Path, graphs: list[Any], result: Any) -> tuple[str | None, dict[str, Any]]:
-    """The guard's checks (:mod:`posernet.guard`): the warning line (or None) and a record."""
-    import torch
-
-    from ..checkpoints import read_checkpoint
-    from ..graph import GraphBatch
-    from ..guard import check_inputs, cycle_inconsistency, warning_line
-
-    stats = (read_checkpoint(ckpt).get("posernet") or {}).get("input_stats")
-    reasons = check_inputs(stats, graphs)
-    batch = GraphBatch.from_graphs(graphs)  # one batched pass, no loop over graphs
-    cyc = {stage: float(cycle_inconsistency(batch, torch.cat(poses).to(batch.edge_pose.dtype))
-                        .mean()) for stage, poses in result.edge_pose.items()}
-    line = warning_line(reasons, cyc["initial"], cyc.get("refined", float("nan")))
-    return line, {"training_stats": stats is not None, "reasons": reasons,
-                  "cycle_deg": cyc, "warning": line}
 
 
 @hydra.main(version_base="1.3", config_path=CONFIG_DIR, config_name="refine")

@@ -306,6 +306,7 @@ COMMANDS: dict[str, Command] = {
         keys={"input": path(), "split": text(), "size": choice("small", "large", "all"),
               "estimate": ESTIMATE_IN, "strict": boolean(),
               "ckpt_path": path(null=True), "output": path(), "batch_size": integer(1),
+              "guard": boolean(), "confidence_weights": boolean(), "check_inputs": boolean(),
               "device": DEVICE, "num_threads": THREADS, "digits": DIGITS, "out_dir": path()},
         groups={"sync": SYNC}, outputs=_outputs(("output", "file")), checks=(_check_sync,)),
     "demo": Command(
@@ -318,6 +319,7 @@ COMMANDS: dict[str, Command] = {
     "reconstruct": Command(
         keys={"images": path(), "pattern": text(null=True), "intrinsics": anything(INTRINSICS),
               "gt_poses": path(null=True), "out_dir": path(), "refine": boolean(),
+              "guard": boolean(), "check_inputs": boolean(),
               "ckpt_path": path(null=True), "estimate": ESTIMATE, "kp_top_pairs": integer(0),
               "seed": SEED, "workers": integer(1), "pictures": integer(0), "device": DEVICE,
               "num_threads": THREADS, "progress": boolean(), "digits": DIGITS},
