@@ -353,7 +353,7 @@ def guard_report(models: dict[str, str], sets: dict[str, Sequence[ViewGraph]],
             row["warning"] = line or "-"
             rows.append(row)
     write_table(Path(out), "guard", rows, "Guard: warning line and per-graph medians (deg) "
-                "without / with refine.guard=true")
+                "without / with guard=true")
     return rows
 
 
