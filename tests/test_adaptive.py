@@ -354,3 +354,44 @@ def test_harm_term_is_the_excess_error_over_the_input_and_trains_the_gate_shut()
         opt.step()
     module._step(batch, "train")
     assert logged["train/loss_harm"] < 0.3 * float(expected)
+
+
+def test_separation_auc_matches_the_pairwise_definition() -> None:
+    from posernet.experiments.adaptive import separation_auc
+
+    gen = torch.Generator().manual_seed(0)
+    for _ in range(20):
+        n = int(torch.randint(2, 40, (1,), generator=gen))
+        score = torch.randint(0, 6, (n,), generator=gen).double()  # many ties
+        positive = torch.rand(n, generator=gen) < 0.4
+        if positive.all() or not positive.any():
+            assert math.isnan(separation_auc(score, positive))
+            continue
+        p, q = score[positive][:, None], score[~positive][None, :]
+        expected = float(((p > q).double() + 0.5 * (p == q).double()).mean())
+        assert separation_auc(score, positive) == pytest.approx(expected, abs=1e-12)
+    s = torch.arange(6.0)
+    assert separation_auc(s, s > 2) == 1.0 and separation_auc(-s, s > 2) == 0.0
+
+
+@pytest.mark.slow
+def test_evaluation_command_writes_every_table_and_the_plot(tmp_path) -> None:
+    from posernet.experiments.adaptive import main
+    from posernet.testing import write_random_dataset
+
+    data = write_random_dataset(tmp_path / "data", {"test": 2})
+    out = tmp_path / "out"
+    assert main(["--data", str(data), "--out", str(out), "--model", "shipped=shipped",
+                 "--no-absolute", "--threads", "1"]) == 0
+    for stem in ("graphs", "bins", "levers", "confidence"):
+        assert (out / f"{stem}.md").is_file() and (out / f"{stem}.csv").is_file()
+    assert (out / "refined_vs_initial.png").stat().st_size > 10_000
+    summary = json.loads((out / "summary.json").read_text())
+    conf = summary["models"]["shipped"]["confidence"]
+    assert [r["input"] for r in conf] == ["KP", "BB", "GT", "GT+noise"]
+    for r in conf:
+        auc = r["auc_in_lt3_vs_3to10"]
+        assert auc is None or 0.0 <= auc <= 1.0  # None: a class is empty (JSON has no NaN)
+        # exact (ground-truth) input has no spread to correlate with: None there
+        assert (r["corr_rot_in"] is None) if r["input"] == "GT" else \
+            -1.0 <= r["corr_rot_in"] <= 1.0

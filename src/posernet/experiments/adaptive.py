@@ -15,6 +15,9 @@ For every model, on the ``test`` graphs of a dataset (the held-out generator var
   median initial vs refined rotation and direction errors.
 * ``absolute.md|csv`` (``--absolute``): KP input averaged with EIG-SE3 and
   ``rotation_translation``, uniform vs confidence-weighted IRLS start (and the guard).
+* ``confidence.md|csv`` (models with a confidence head): per input, the correlation of the
+  logs of predicted and actual errors, and the AUC with which the predicted input rotation error
+  tells input edges under 3 degrees from 3-10 degree ones.
 * ``refined_vs_initial.png``: binned refined vs initial error per edge (rotation, direction).
 * ``summary.json``: everything above as numbers.
 """
@@ -162,6 +165,55 @@ def absolute_rows(model: torch.nn.Module, graphs: Sequence[ViewGraph],
     return rows
 
 
+def separation_auc(score: Tensor, positive: Tensor) -> float:
+    """Probability that a random positive scores higher than a random negative (ties count
+    half): the area under the ROC curve of ``score [N]`` for the booleans ``positive [N]``;
+    NaN without both classes."""
+    pos, neg = score[positive].double(), score[~positive].double()
+    if pos.numel() == 0 or neg.numel() == 0:
+        return float("nan")
+    allv = torch.cat((pos, neg))
+    order = torch.argsort(allv, stable=True)
+    ranks = torch.empty_like(allv)
+    ranks[order] = torch.arange(1, allv.numel() + 1, dtype=allv.dtype)
+    # average ranks of ties
+    uniq, inv = torch.unique(allv, return_inverse=True)
+    mean_rank = torch.zeros(uniq.numel(), dtype=allv.dtype).index_add_(0, inv, ranks) / \
+        torch.bincount(inv, minlength=uniq.numel()).to(allv.dtype)
+    r = mean_rank[inv][:pos.numel()].sum()
+    n1, n0 = pos.numel(), neg.numel()
+    return float((r - n1 * (n1 + 1) / 2) / (n1 * n0))
+
+
+def confidence_rows(name: str, errs: dict[str, dict[str, Tensor]]) -> list[dict[str, Any]]:
+    """How good the predicted errors are, per input: correlation of log predicted and log
+    actual error (output and input rotation, output direction) and the AUC with which the
+    predicted input error tells input edges under 3 degrees from 3-10 degree ones (the
+    decision the gate must make to leave good poses alone)."""
+    rows = []
+    for inp, e in errs.items():
+        s = e["sigma"]
+
+        def log_corr(pred: Tensor, actual: Tensor) -> float:
+            ok = torch.isfinite(actual) & torch.isfinite(pred)
+            if int(ok.sum()) < 3:
+                return float("nan")
+            a = torch.log(pred[ok].clamp_min(1e-3))
+            b = torch.log(actual[ok].clamp_min(1e-3))
+            return float(torch.corrcoef(torch.stack((a, b)))[0, 1])
+
+        init = e["rot_init"]
+        near = init < 10.0
+        rows.append({
+            "model": name, "input": inp, "edges": int(init.numel()),
+            "corr_rot_out": log_corr(s[:, 0], e["rot_ref"]),
+            "corr_tdir_out": log_corr(s[:, 1], e["tdir_ref"]),
+            "corr_rot_in": log_corr(s[:, 2], init),
+            "auc_in_lt3_vs_3to10": separation_auc(-s[near, 2], init[near] < 3.0),
+        })
+    return rows
+
+
 def _md(rows: Sequence[dict[str, Any]], digits: int = 2) -> str:
     if not rows:
         return ""
@@ -247,7 +299,7 @@ def evaluate_models(models: dict[str, str], data: str | Path, out: str | Path,
     inputs = make_inputs(graphs)
     B = len(graphs)
     summary: dict[str, Any] = {"data": str(data), "split": split, "graphs": B, "models": {}}
-    graph_rows, bin_rows, abs_rows, lever_rows = [], [], [], []
+    graph_rows, bin_rows, abs_rows, lever_rows, conf_rows = [], [], [], [], []
     curves: dict[str, dict[str, Tensor]] = {}
     for name, ckpt in models.items():
         model = PoserNet.from_checkpoint(ckpt)
@@ -271,6 +323,8 @@ def evaluate_models(models: dict[str, str], data: str | Path, out: str | Path,
             rho = float(np.corrcoef(np.log(s[ok, 0].numpy()),
                                     np.log(e["rot_ref"][ok].clamp_min(1e-3).numpy()))[0, 1])
             m["confidence_log_corr_rot_KP"] = rho
+            m["confidence"] = confidence_rows(name, errs)
+            conf_rows += m["confidence"]
             guarded = {k: edge_errors_for(model, v, guard=True) for k, v in inputs.items()}
             m["guard_per_graph"] = {k: per_graph_medians(v, B) for k, v in guarded.items()}
             for inp in guarded:
@@ -302,6 +356,11 @@ def evaluate_models(models: dict[str, str], data: str | Path, out: str | Path,
                 f"refined rotation / direction error of the pooled per-edge bins (initial "
                 f"rotation error < 3, 3-10, 10-30, > 30 deg; 'worse': bins whose mean got "
                 f"worse than the initial mean): {title}")
+    if conf_rows:
+        write_table(out, "confidence", conf_rows,
+                    f"Predicted per-edge errors vs actual ones (correlation of logs) and the AUC "
+                    f"with which the predicted input rotation error separates input edges under "
+                    f"3 deg from 3-10 deg ones: {title}")
     if abs_rows:
         write_table(out, "absolute", abs_rows,
                     f"Absolute poses after motion averaging, KP input (median rotation deg, "
