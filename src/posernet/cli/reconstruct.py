@@ -26,6 +26,7 @@ from . import CONFIG_DIR
 from .common import (
     check_config,
     guard_check,
+    guard_option,
     resolve_device,
     run_app,
     run_task,
@@ -115,10 +116,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     if cfg.refine:
         ckpt = Path(cfg.ckpt_path) if cfg.get("ckpt_path") else default_checkpoint()
         model = PoserNet.from_checkpoint(ckpt, map_location=device)
-    guard = bool(cfg.get("guard", False)) and model is not None
-    if guard and not getattr(model, "confidence", False):
-        raise ValueError(f"guard=true needs a checkpoint with a confidence head "
-                         f"(net.confidence=true); {ckpt} has none")
+    guard = guard_option(cfg, model, ckpt)
     backend = backend_from_config(OmegaConf.to_container(cfg.sync, resolve=True))
     frontend = ImageFrontend(
         records, instantiate(cfg.proposals), instantiate(cfg.matcher),

@@ -21,6 +21,7 @@ from . import CONFIG_DIR
 from .common import (
     check_config,
     guard_check,
+    guard_option,
     resolve_device,
     run_app,
     run_task,
@@ -56,10 +57,7 @@ def refine(cfg: DictConfig) -> dict[str, Any]:
                                strict=bool(cfg.strict), size=str(cfg.get("size", "small")),
                                log=print)
     has_conf = bool(getattr(model, "confidence", False))
-    guard = bool(cfg.get("guard", False))
-    if guard and not has_conf:
-        raise ValueError(f"guard=true needs a checkpoint with a confidence head "
-                         f"(net.confidence=true); {ckpt} has none")
+    guard = guard_option(cfg, model, ckpt)
     weighted = bool(cfg.get("confidence_weights", True)) and has_conf and backend is not None
     result = refine_graphs(model, graphs, backend=backend, batch_size=int(cfg.batch_size),
                            device=device, guard=guard, weighted=weighted)

@@ -167,22 +167,26 @@ def absolute_rows(model: torch.nn.Module, graphs: Sequence[ViewGraph],
 
 def separation_auc(score: Tensor, positive: Tensor) -> float:
     """Probability that a random positive scores higher than a random negative (ties count
-    half): the area under the ROC curve of ``score [N]`` for the booleans ``positive [N]``;
-    NaN without both classes."""
-    pos, neg = score[positive].double(), score[~positive].double()
-    if pos.numel() == 0 or neg.numel() == 0:
+    half): the area under the ROC curve of ``score [N]`` for the booleans ``positive [N]``
+    (Mann-Whitney, average ranks for ties); NaN without both classes."""
+    n1 = int(positive.sum())
+    n0 = positive.numel() - n1
+    if n1 == 0 or n0 == 0:
         return float("nan")
-    allv = torch.cat((pos, neg))
-    order = torch.argsort(allv, stable=True)
-    ranks = torch.empty_like(allv)
-    ranks[order] = torch.arange(1, allv.numel() + 1, dtype=allv.dtype)
-    # average ranks of ties
-    uniq, inv = torch.unique(allv, return_inverse=True)
-    mean_rank = torch.zeros(uniq.numel(), dtype=allv.dtype).index_add_(0, inv, ranks) / \
-        torch.bincount(inv, minlength=uniq.numel()).to(allv.dtype)
-    r = mean_rank[inv][:pos.numel()].sum()
-    n1, n0 = pos.numel(), neg.numel()
+    _, inv, counts = torch.unique(score.double(), return_inverse=True, return_counts=True)
+    group_rank = torch.cumsum(counts, 0).double() - (counts.double() - 1.0) / 2.0
+    r = group_rank[inv][positive].sum()
     return float((r - n1 * (n1 + 1) / 2) / (n1 * n0))
+
+
+def _log_corr(pred: Tensor, actual: Tensor) -> float:
+    """Correlation of the logs of predicted and actual errors (both floored at 1e-3) over the
+    finite entries; NaN with fewer than three."""
+    ok = torch.isfinite(actual) & torch.isfinite(pred)
+    if int(ok.sum()) < 3:
+        return float("nan")
+    logs = torch.stack((pred[ok], actual[ok])).clamp_min(1e-3).log()
+    return float(torch.corrcoef(logs)[0, 1])
 
 
 def confidence_rows(name: str, errs: dict[str, dict[str, Tensor]]) -> list[dict[str, Any]]:
@@ -192,23 +196,13 @@ def confidence_rows(name: str, errs: dict[str, dict[str, Tensor]]) -> list[dict[
     decision the gate must make to leave good poses alone)."""
     rows = []
     for inp, e in errs.items():
-        s = e["sigma"]
-
-        def log_corr(pred: Tensor, actual: Tensor) -> float:
-            ok = torch.isfinite(actual) & torch.isfinite(pred)
-            if int(ok.sum()) < 3:
-                return float("nan")
-            a = torch.log(pred[ok].clamp_min(1e-3))
-            b = torch.log(actual[ok].clamp_min(1e-3))
-            return float(torch.corrcoef(torch.stack((a, b)))[0, 1])
-
-        init = e["rot_init"]
+        s, init = e["sigma"], e["rot_init"]
         near = init < 10.0
         rows.append({
             "model": name, "input": inp, "edges": int(init.numel()),
-            "corr_rot_out": log_corr(s[:, 0], e["rot_ref"]),
-            "corr_tdir_out": log_corr(s[:, 1], e["tdir_ref"]),
-            "corr_rot_in": log_corr(s[:, 2], init),
+            "corr_rot_out": _log_corr(s[:, 0], e["rot_ref"]),
+            "corr_tdir_out": _log_corr(s[:, 1], e["tdir_ref"]),
+            "corr_rot_in": _log_corr(s[:, 2], init),
             "auc_in_lt3_vs_3to10": separation_auc(-s[near, 2], init[near] < 3.0),
         })
     return rows
@@ -317,12 +311,6 @@ def evaluate_models(models: dict[str, str], data: str | Path, out: str | Path,
             bin_rows += [{"model": name, "input": inp, **r} for r in rows]
         lever_rows.append(lever_row(name, m))
         if getattr(model, "confidence", False):
-            e = errs["KP"]
-            s = e["sigma"]
-            ok = ~torch.isnan(e["rot_ref"])
-            rho = float(np.corrcoef(np.log(s[ok, 0].numpy()),
-                                    np.log(e["rot_ref"][ok].clamp_min(1e-3).numpy()))[0, 1])
-            m["confidence_log_corr_rot_KP"] = rho
             m["confidence"] = confidence_rows(name, errs)
             conf_rows += m["confidence"]
             guarded = {k: edge_errors_for(model, v, guard=True) for k, v in inputs.items()}
