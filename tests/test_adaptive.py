@@ -356,6 +356,47 @@ def test_harm_term_is_the_excess_error_over_the_input_and_trains_the_gate_shut()
     assert logged["train/loss_harm"] < 0.3 * float(expected)
 
 
+def _harm_gradient(loss: dict, batch: GraphBatch, state: dict) -> dict[str, torch.Tensor]:
+    """Gradient of the hinge alone: the step's gradient with it minus the one without."""
+    grads = []
+    for lh in (loss, {**loss, "harm": 0.0}):
+        module = PoserNetModule(net=ADAPTIVE, loss=lh)
+        module.load_state_dict(state)
+        module.log = lambda *a, **k: None  # type: ignore[method-assign]
+        module._step(batch, "train").backward()
+        grads.append({n: p.grad.clone() for n, p in module.named_parameters()
+                      if p.grad is not None})
+    return {n: grads[0][n] - grads[1].get(n, torch.zeros_like(grads[0][n])) for n in grads[0]}
+
+
+def test_relative_harm_term_weighs_harm_by_the_input_error_and_trains_the_prediction() -> None:
+    torch.manual_seed(0)
+    batch = GraphBatch.from_graphs(graphs(3, rot_noise_deg=5.0))
+    loss = {"harm": 1.0, "harm_scale": 0.01}
+    module = PoserNetModule(net=ADAPTIVE, loss=loss)
+    logged: dict[str, float] = {}
+
+    def log(name: str, value: torch.Tensor, **_: object) -> None:
+        logged[name] = float(torch.as_tensor(value).detach())
+
+    module.log = log  # type: ignore[method-assign]
+    module._step(batch, "train")
+    with torch.no_grad():
+        e_in = edge_errors(batch.edge_pose, batch.edge_pose_gt)
+        e_out = edge_errors(module(batch), batch.edge_pose_gt)
+        expected = ((e_out - e_in).clamp_min(0.0) / (e_in + 0.01)).sum(-1).mean()
+    assert float(expected) > 1e-3
+    assert logged["train/loss_harm"] == pytest.approx(float(expected), rel=1e-4)
+    # relative: the hinge reaches the message-passing layers (the prediction); absolute (the
+    # default scale 0) with a gate: only the gate / confidence head
+    state = module.state_dict()
+    rel = _harm_gradient(loss, batch, state)
+    absolute = _harm_gradient({"harm": 1.0}, batch, state)
+    mp = [n for n in rel if not n.startswith("model.head.")]
+    assert mp and max(float(rel[n].abs().max()) for n in mp) > 1e-6
+    assert max(float(absolute[n].abs().max()) for n in mp) < 1e-9
+
+
 def test_separation_auc_matches_the_pairwise_definition() -> None:
     from posernet.experiments.adaptive import separation_auc
 

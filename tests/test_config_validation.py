@@ -85,6 +85,8 @@ BAD = [
     ("train", "model.net.depth=2.5", "model.net.depth: 2.5 is not an integer >= 1"),
     ("train", "model.loss.alpha=abc", "model.loss.alpha: 'abc' is not a number >= 0"),
     ("train", "model.optimizer.lr=0", "model.optimizer.lr: 0 is not a number > 0"),
+    ("train", "model.loss.harm_scale=-1", "model.loss.harm_scale: -1 is not a number >= 0"),
+    ("train", "model.loss.harm=abc", "model.loss.harm: 'abc' is not a number >= 0"),
     ("train", "model.scheduler.factor=1.5",
      r"model.scheduler.factor: 1.5 is not a number in \(0, 1\)"),
     ("train", "model.net.residual=maybe", "model.net.residual: 'maybe' is not true or false"),

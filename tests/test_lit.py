@@ -109,9 +109,9 @@ def test_checkpoint_round_trip(data, tmp_path: Path) -> None:
     assert loaded.hparams.net["depth"] == 3 and loaded.hparams.net["residual"]
     # the adaptive terms (issue 16) default to 0 and end to end (issue 17) off: the paper's
     assert loaded.hparams.loss == {"alpha": 0.3, "raw": 0.0, "confidence": 0.0,
-                                   "correction": 0.0, "harm": 0.0, "end_to_end": False,
-                                   "relative_weight": 1.0, "absolute_weight": 1.0,
-                                   "position_weight": 1.0}
+                                   "correction": 0.0, "harm": 0.0, "harm_scale": 0.0,
+                                   "end_to_end": False, "relative_weight": 1.0,
+                                   "absolute_weight": 1.0, "position_weight": 1.0}
     loaded.eval()
     torch.testing.assert_close(loaded(batch), expected)
     ours = load_posernet_checkpoint(path)

@@ -38,6 +38,7 @@ __all__ = ["SECTIONS", "PoserNetModule", "flat_name_section", "load_posernet_che
 SECTIONS: dict[str, dict[str, Any]] = {
     "net": {k: p.default for k, p in inspect.signature(PoserNet).parameters.items()},
     "loss": {"alpha": 0.1, "raw": 0.0, "confidence": 0.0, "correction": 0.0, "harm": 0.0,
+             "harm_scale": 0.0,
              "end_to_end": False, "relative_weight": 1.0, "absolute_weight": 1.0,
              "position_weight": 1.0},
     "optimizer": {"lr": 1e-3, "weight_decay": 0.0},
@@ -101,7 +102,10 @@ class PoserNetModule(SectionedModule):
             ``harm``: weight of the do-no-harm hinge, the mean excess of each edge's output
             rotation and direction errors over its input's (radians, 0 where the output is
             better), which makes the network leave an edge alone where it cannot tell that it
-            would improve it (with a gate it trains the gate only). All four default to 0
+            would improve it (with a gate it trains the gate only); ``harm_scale`` (radians,
+            default 0): when positive, each edge's excess is divided by its input error plus
+            ``harm_scale`` (a relative hinge: harm done to good inputs weighs most), and the
+            hinge trains the whole network. The weights default to 0
             (the paper's loss). ``end_to_end`` (default False) adds a loss on absolute poses
             through a differentiable synchronisation
             (:func:`posernet.sync.differentiable.differentiable_sync`, ground-truth baselines
@@ -159,10 +163,18 @@ class PoserNetModule(SectionedModule):
         if lh.get("harm", 0.0):
             # with a gate the hinge trains the decision only (the prediction is data here):
             # through the prediction it would pull every estimate towards its input
-            judged = pred if extras is None or extras.gate is None else blend_poses(
+            # absolute hinge, with a gate: it trains the decision only (the prediction is data
+            # here): through the prediction it would pull every estimate towards its input.
+            # Relative hinge (harm_scale > 0): the pull on poor inputs is negligible, so it
+            # trains the whole network to keep good inputs good (measured: better than gate-only)
+            scale = lh.get("harm_scale", 0.0)
+            judged = pred if extras is None or extras.gate is None or scale else blend_poses(
                 batch.edge_pose, extras.raw.detach(), extras.gate)
-            worse = edge_errors(judged, gt) - edge_errors(batch.edge_pose, gt).detach()
-            terms["harm"] = worse.clamp_min(0.0).sum(-1).mean()
+            e_in = edge_errors(batch.edge_pose, gt).detach()
+            worse = (edge_errors(judged, gt) - e_in).clamp_min(0.0)
+            if scale:
+                worse = worse / (e_in + scale)
+            terms["harm"] = worse.sum(-1).mean()
             total = total + lh["harm"] * terms["harm"]
         if lh.get("end_to_end", False):
             terms["abs_rot"], terms["abs_pos"] = self._absolute_loss(batch, pred)

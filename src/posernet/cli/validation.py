@@ -145,6 +145,8 @@ MODEL: Schema = {
     "net.mlp_hidden": integer(1), "net.mlp_layers": integer(1), "net.negative_slope": number(),
     "net.shared_weights": boolean(), "net.residual": boolean(), "net.unit_output": boolean(),
     "net.nested_mean": boolean(), "loss.alpha": number(0), "loss.end_to_end": boolean(),
+    "loss.raw": number(0), "loss.confidence": number(0), "loss.correction": number(0),
+    "loss.harm": number(0), "loss.harm_scale": number(0),
     "loss.relative_weight": number(0), "loss.absolute_weight": number(0),
     "loss.position_weight": number(0), "optimizer.lr": positive(),
     "optimizer.weight_decay": number(0), "scheduler.patience": integer(0),
