@@ -236,13 +236,20 @@ def write_table(out: Path, stem: str, rows: Sequence[dict[str, Any]], title: str
 
 
 def plot_binned(curves: dict[str, dict[str, Tensor]], path: Path) -> Path:
-    """Binned refined vs initial error per edge (log bins), rotation and direction panels."""
+    """Binned refined vs initial error per edge (log bins), rotation and direction panels;
+    a ``"NAME + guard"`` curve is drawn dashed in NAME's colour, without its band."""
     from matplotlib.figure import Figure
 
-    fig = Figure(figsize=(11, 4.6), dpi=110)
+    many = sum(not n.endswith(" + guard") for n in curves) > 3  # bands would hide the lines
+    fig = Figure(figsize=(11, 4.6 + (0.25 * ((len(curves) + 2) // 3) if many else 0)), dpi=110)
     for k, (what, lim) in enumerate((("rot", (0.05, 180.0)), ("tdir", (0.5, 180.0)))):
         ax = fig.add_subplot(1, 2, k + 1)
         edges = np.logspace(np.log10(lim[0]), np.log10(lim[1]), 22)
+        colors: dict[str, str] = {}
+        if many:  # more models than the default cycle's ten colours
+            from matplotlib import colormaps
+
+            ax.set_prop_cycle(color=colormaps["tab20"].colors)
         for name, err in curves.items():
             x = err[f"{what}_init"].numpy()
             y = err[f"{what}_ref"].numpy()
@@ -258,8 +265,14 @@ def plot_binned(curves: dict[str, dict[str, Tensor]], path: Path) -> Path:
                     my.append(y[sel].mean())
                     q1.append(np.quantile(y[sel], 0.25))
                     q3.append(np.quantile(y[sel], 0.75))
+            base = name.removesuffix(" + guard")
+            if base != name and base in colors:  # the guarded run: its model's colour, dashed
+                ax.plot(cx, my, ls="--", lw=1.2, color=colors[base], label=f"{name} (mean)")
+                continue
             line = ax.plot(cx, my, marker="o", ms=3, label=f"{name} (mean)")[0]
-            ax.fill_between(cx, q1, q3, color=line.get_color(), alpha=0.15)
+            colors[name] = line.get_color()
+            if not many:
+                ax.fill_between(cx, q1, q3, color=line.get_color(), alpha=0.15)
         ax.plot(lim, lim, "k--", lw=1, label="refined = initial")
         ax.set_xscale("log")
         ax.set_yscale("log")
@@ -267,12 +280,19 @@ def plot_binned(curves: dict[str, dict[str, Tensor]], path: Path) -> Path:
         ax.set_ylim(lim[0], lim[1])
         ax.set_xlabel(f"initial {'rotation' if what == 'rot' else 'direction'} error per edge "
                       "(deg)")
-        ax.set_ylabel("refined error (deg), binned mean; band: 25-75%")
+        ax.set_ylabel("refined error (deg), binned mean" + ("" if many else "; band: 25-75%"))
         ax.grid(True, which="both", alpha=0.3)
-        ax.legend(fontsize=7, loc="upper left")
+        if not many:
+            ax.legend(fontsize=7, loc="upper left")
+    if many:  # one legend under both panels
+        handles, labels = fig.axes[0].get_legend_handles_labels()
+        fig.legend(handles, labels, fontsize=7, loc="lower center", ncol=3)
     fig.suptitle("Refined vs initial relative-pose error per edge (KP, BB, GT, GT+noise "
                  "inputs pooled; exact inputs in the leftmost bin)")
-    fig.tight_layout()
+    if many:
+        fig.tight_layout(rect=(0, 0.06 * ((len(curves) + 2) // 3) / 2, 1, 1))
+    else:
+        fig.tight_layout()
     with atomic_path(path, suffix=".png") as tmp:
         fig.savefig(tmp, format="png")
     return path
