@@ -328,6 +328,17 @@ def test_evaluation_command_reports_bad_input_in_one_line(tmp_path, capsys) -> N
     assert not out.exists()
 
 
+def capture_logs(module: PoserNetModule) -> dict[str, float]:
+    """Route ``module.log`` into the returned dict (name -> last value)."""
+    logged: dict[str, float] = {}
+
+    def log(name: str, value: torch.Tensor, **_: object) -> None:
+        logged[name] = float(torch.as_tensor(value).detach())
+
+    module.log = log  # type: ignore[method-assign]
+    return logged
+
+
 def test_harm_term_is_the_excess_error_over_the_input_and_trains_the_gate_shut() -> None:
     torch.manual_seed(0)
     exact = graphs(3, rot_noise_deg=0.0)  # ground-truth input: any change does harm
@@ -336,11 +347,7 @@ def test_harm_term_is_the_excess_error_over_the_input_and_trains_the_gate_shut()
         g.edge_pose[:, 4:] = g.edge_pose[:, 4:] / g.edge_pose[:, 4:].norm(dim=-1, keepdim=True)
     batch = GraphBatch.from_graphs(exact)
     module = PoserNetModule(net=ADAPTIVE, loss={"harm": 1.0})
-    logged: dict[str, float] = {}
-    def log(name: str, value: torch.Tensor, **_: object) -> None:
-        logged[name] = float(torch.as_tensor(value).detach())
-
-    module.log = log  # type: ignore[method-assign]
+    logged = capture_logs(module)
     module._step(batch, "train")
     with torch.no_grad():
         out = module(batch)
@@ -374,12 +381,7 @@ def test_relative_harm_term_weighs_harm_by_the_input_error_and_trains_the_predic
     batch = GraphBatch.from_graphs(graphs(3, rot_noise_deg=5.0))
     loss = {"harm": 1.0, "harm_scale": 0.01}
     module = PoserNetModule(net=ADAPTIVE, loss=loss)
-    logged: dict[str, float] = {}
-
-    def log(name: str, value: torch.Tensor, **_: object) -> None:
-        logged[name] = float(torch.as_tensor(value).detach())
-
-    module.log = log  # type: ignore[method-assign]
+    logged = capture_logs(module)
     module._step(batch, "train")
     with torch.no_grad():
         e_in = edge_errors(batch.edge_pose, batch.edge_pose_gt)
