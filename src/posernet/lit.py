@@ -161,8 +161,6 @@ class PoserNetModule(SectionedModule):
             terms["correction"] = quaternion_angle(pred[:, :4], batch.edge_pose[:, :4]).mean()
             total = total + lh["correction"] * terms["correction"]
         if lh.get("harm", 0.0):
-            # with a gate the hinge trains the decision only (the prediction is data here):
-            # through the prediction it would pull every estimate towards its input
             # absolute hinge, with a gate: it trains the decision only (the prediction is data
             # here): through the prediction it would pull every estimate towards its input.
             # Relative hinge (harm_scale > 0): the pull on poor inputs is negligible, so it

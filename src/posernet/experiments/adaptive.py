@@ -241,7 +241,8 @@ def plot_binned(curves: dict[str, dict[str, Tensor]], path: Path) -> Path:
     from matplotlib.figure import Figure
 
     many = sum(not n.endswith(" + guard") for n in curves) > 3  # bands would hide the lines
-    fig = Figure(figsize=(11, 4.6 + (0.25 * ((len(curves) + 2) // 3) if many else 0)), dpi=110)
+    legend_rows = (len(curves) + 2) // 3 if many else 0  # the shared legend's rows, 3 columns
+    fig = Figure(figsize=(11, 4.6 + 0.25 * legend_rows), dpi=110)
     for k, (what, lim) in enumerate((("rot", (0.05, 180.0)), ("tdir", (0.5, 180.0)))):
         ax = fig.add_subplot(1, 2, k + 1)
         edges = np.logspace(np.log10(lim[0]), np.log10(lim[1]), 22)
@@ -289,10 +290,7 @@ def plot_binned(curves: dict[str, dict[str, Tensor]], path: Path) -> Path:
         fig.legend(handles, labels, fontsize=7, loc="lower center", ncol=3)
     fig.suptitle("Refined vs initial relative-pose error per edge (KP, BB, GT, GT+noise "
                  "inputs pooled; exact inputs in the leftmost bin)")
-    if many:
-        fig.tight_layout(rect=(0, 0.06 * ((len(curves) + 2) // 3) / 2, 1, 1))
-    else:
-        fig.tight_layout()
+    fig.tight_layout(rect=(0, 0.03 * legend_rows, 1, 1))
     with atomic_path(path, suffix=".png") as tmp:
         fig.savefig(tmp, format="png")
     return path
