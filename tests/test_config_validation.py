@@ -91,6 +91,8 @@ BAD = [
      r"model.scheduler.factor: 1.5 is not a number in \(0, 1\)"),
     ("train", "model.net.residual=maybe", "model.net.residual: 'maybe' is not true or false"),
     ("train", "data.batch_size=0", "data.batch_size: 0 is not an integer >= 1"),
+    ("train", "data.root=[]", r"data.root: \[\] is not a path or a list of paths"),
+    ("train", "data.root=[a,3.5]", "data.root: .* is not a path or a list of paths"),
     ("train", "data.estimate=xx", "data.estimate: 'xx' is not one of kp, bb"),
     ("train", "data.size=huge", "data.size: 'huge' is not one of small, large"),
     ("train", "num_threads=0", "num_threads: 0 is not an integer >= 1 or null"),

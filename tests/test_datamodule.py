@@ -156,3 +156,44 @@ def test_works_with_a_lightning_trainer(root: Path):
     )
     trainer.fit(model, datamodule=PoserDataModule(root, batch_size=4))
     assert sum(model.seen) == 6
+
+
+@pytest.fixture(scope="module")
+def second_root(tmp_path_factory) -> Path:
+    """Another dataset (other seed and keypoint noise) without a test split."""
+    d = load_preset("tiny").to_dict()
+    d["small"].update(graph_size=4, train=2, val=1, test=0)
+    d["large"].update(train=0, val=0, test=0)
+    d["keypoints"]["pixel_noise"] = 3.0
+    r = tmp_path_factory.mktemp("dm2") / "ds2"
+    generate_dataset(d, r, seed=5, workers=1, progress=False, echo=None)
+    return r
+
+
+def test_a_list_of_roots_concatenates_their_splits(root: Path, second_root: Path):
+    one, two = PoserDataModule(root), PoserDataModule(second_root)
+    both = PoserDataModule([root, second_root], leave_out_scene=None)
+    for dm in (one, two, both):
+        dm.setup("fit")
+    names = [g.name for g in both.train_graphs]
+    assert names == [g.name for g in one.train_graphs] + [g.name for g in two.train_graphs]
+    assert len(both.val_graphs) == len(one.val_graphs) + len(two.val_graphs)
+    # the second dataset has no test split: the first one's test graphs alone
+    both.setup("test")
+    one.setup("test")
+    assert [g.name for g in both.test_graphs] == [g.name for g in one.test_graphs]
+    assert both.hparams["root"] == [str(root), str(second_root)]
+    assert one.hparams["root"] == str(root)
+    # leave-one-scene-out sees the scenes of every root
+    PoserDataModule([second_root, root], leave_out_scene="chess").setup("fit")
+
+
+def test_a_bad_list_of_roots_names_the_problem(root: Path, tmp_path: Path):
+    with pytest.raises(ValueError, match="at least one"):
+        PoserDataModule([])
+    with pytest.raises(ValueError, match="twice"):
+        PoserDataModule([root, root])
+    with pytest.raises(DatasetError, match="nothing"):
+        PoserDataModule([root, tmp_path / "nothing"])
+    with pytest.raises(DatasetError, match="not a complete dataset"):
+        PoserDataModule([root, root.parent])  # a folder that is not a dataset

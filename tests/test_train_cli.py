@@ -67,6 +67,21 @@ def test_fast_dev_run(dataset: Path, tmp_path: Path) -> None:
     assert isinstance(value, float)
 
 
+def test_train_on_a_list_of_datasets(dataset: Path, tmp_path: Path) -> None:
+    """data.root=[A,B] (Hydra list syntax) trains on both datasets' training graphs."""
+    other = write_dataset(tmp_path / "other", {"train": 4, "val": 1, "test": 1}, seed=1)
+    out = tmp_path / "run"
+    proc = subprocess.run(
+        [sys.executable, "-m", "posernet.cli.train", f"data.root=[{dataset},{other}]",
+         f"hydra.run.dir={out}", "trainer.max_epochs=1", "test_after_training=false", *QUIET],
+        capture_output=True, text=True, env=env(), timeout=300)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    ckpt = torch.load(out / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=False)
+    assert ckpt["datamodule_hyper_parameters"]["root"] == [str(dataset), str(other)]
+    # 2 scenes x (8 + 4) training graphs, batch 4: 6 steps in the one epoch
+    assert ckpt["global_step"] == 6
+
+
 def test_checkpoints_and_resume(trained: Path, dataset: Path, tmp_path: Path) -> None:
     ckpts = trained / "checkpoints"
     assert (ckpts / "best.ckpt").is_file() and (ckpts / "last.ckpt").is_file()

@@ -111,6 +111,14 @@ def path(*, null: bool = False) -> Rule:
     return Rule("a path", lambda v: (isinstance(v, str) and v != "") or _is_int(v), null)
 
 
+def paths() -> Rule:
+    """A path or a non-empty list of paths (e.g. several datasets to train on)."""
+    one = path()
+    return Rule("a path or a list of paths",
+                lambda v: one.ok(v) or (isinstance(v, list) and bool(v)
+                                        and all(one.ok(x) for x in v)))
+
+
 def anything(expected: str = "a value") -> Rule:
     """Checked by the command itself (e.g. intrinsics: a string, a list or a file)."""
     return Rule(expected, lambda v: True, True)
@@ -154,7 +162,7 @@ MODEL: Schema = {
 }
 
 DATA: Schema = {
-    "root": path(), "estimate": ESTIMATE, "size": SIZE, "batch_size": integer(1),
+    "root": paths(), "estimate": ESTIMATE, "size": SIZE, "batch_size": integer(1),
     "eval_batch_size": integer(1, null=True), "num_workers": integer(0),
     "leave_out_scene": text(null=True), "test_size": choice("small", "large", null=True),
     "val_size": choice("small", "large", null=True), "shuffle": boolean(), "seed": SEED,

@@ -25,6 +25,19 @@ __all__ = ["PoserDataModule", "collate_graphs"]
 ESTIMATES = ("kp", "bb")
 
 
+def _dataset_roots(root: Any) -> list[Path]:
+    """``root`` as a non-empty list of distinct dataset directories."""
+    many = isinstance(root, Sequence) and not isinstance(root, (str, bytes))
+    items = list(root) if many else [root]
+    if not items:
+        raise ValueError("root must name at least one dataset directory, got an empty list")
+    roots = [Path(r) for r in items]
+    seen = {r.resolve() for r in roots}
+    if len(seen) != len(roots):
+        raise ValueError(f"root lists a dataset directory twice: {[str(r) for r in roots]}")
+    return roots
+
+
 def collate_graphs(graphs: Sequence[ViewGraph]) -> GraphBatch:
     """DataLoader collate: concatenate graphs into one :class:`GraphBatch`."""
     return GraphBatch.from_graphs(graphs)
@@ -34,7 +47,9 @@ class PoserDataModule(L.LightningDataModule):
     """Train / val / test loaders over ``root``.
 
     Args:
-        root: dataset directory (``manifest.json`` + ``<size>/<split>/<scene>.pt``).
+        root: dataset directory (``manifest.json`` + ``<size>/<split>/<scene>.pt``), or a list
+            of them whose splits are concatenated (e.g. datasets generated with different noise
+            settings, to train on all of them); a split may be missing from some of them.
         estimate: initial relative poses fed as ``edge_pose``: ``"kp"`` or ``"bb"``.
         size: graph size for training and validation (``"small"`` / ``"large"``).
         batch_size: graphs per batch.
@@ -60,7 +75,7 @@ class PoserDataModule(L.LightningDataModule):
 
     def __init__(
         self,
-        root: str | os.PathLike[str],
+        root: str | os.PathLike[str] | Sequence[str | os.PathLike[str]],
         estimate: str = "kp",
         size: str = "small",
         batch_size: int = 32,
@@ -91,8 +106,9 @@ class PoserDataModule(L.LightningDataModule):
                 raise ValueError(f"{name} must be an integer >= 1, got {v!r}")
         if isinstance(num_workers, bool) or not isinstance(num_workers, int) or num_workers < 0:
             raise ValueError(f"num_workers must be an integer >= 0, got {num_workers!r}")
-        self.root = Path(root)
-        self.manifest = read_manifest(self.root)  # fail early on a bad directory
+        self.roots = _dataset_roots(root)
+        # fail early on a bad directory
+        self.manifests = [read_manifest(r) for r in self.roots]
         self.estimate = estimate
         self.size = size
         self.test_size = test_size or size
@@ -108,17 +124,19 @@ class PoserDataModule(L.LightningDataModule):
         self.mix_edge_fraction = float(mix_edge_fraction)
         if leave_out_scene is not None:
             scenes = set()
-            for s in SIZES:
-                for p in ("train", "val", "test"):
-                    scenes.update(available_scenes(self.root, s, p))
+            for r in self.roots:
+                for s in SIZES:
+                    for p in ("train", "val", "test"):
+                        scenes.update(available_scenes(r, s, p))
             if leave_out_scene not in scenes:
                 raise DatasetError(
-                    f"{self.root}: leave_out_scene {leave_out_scene!r} is not in "
+                    f"{self._where}: leave_out_scene {leave_out_scene!r} is not in "
                     f"the dataset (scenes: {sorted(scenes)})"
                 )
         self.save_hyperparameters(
             {
-                "root": str(self.root),
+                "root": ([str(r) for r in self.roots] if len(self.roots) > 1
+                         else str(self.roots[0])),
                 "estimate": estimate,
                 "size": size,
                 "test_size": self.test_size,
@@ -138,8 +156,12 @@ class PoserDataModule(L.LightningDataModule):
 
     # ------------------------------------------------------------------ loading
 
-    def _scenes(self, size: str, split: str) -> list[str]:
-        have = available_scenes(self.root, size, split)
+    @property
+    def _where(self) -> str:
+        return ", ".join(str(r) for r in self.roots)
+
+    def _scenes(self, root: Path, size: str, split: str) -> list[str]:
+        have = available_scenes(root, size, split)
         if self.leave_out_scene is None:
             return have
         if split == "test":
@@ -147,12 +169,13 @@ class PoserDataModule(L.LightningDataModule):
         return [s for s in have if s != self.leave_out_scene]
 
     def _load(self, size: str, split: str) -> list[ViewGraph]:
-        graphs = open_split(self.root, size, split, self._scenes(size, split))
+        graphs = [g for r in self.roots
+                  for g in open_split(r, size, split, self._scenes(r, size, split))]
         if not graphs:
             extra = f" (leave_out_scene={self.leave_out_scene!r})" if self.leave_out_scene else ""
             hint = " or pass val_size='small'" if split == "val" and size == "large" else ""
             raise DatasetError(
-                f"{self.root}: no {size} {split} graphs{extra}; generate them "
+                f"{self._where}: no {size} {split} graphs{extra}; generate them "
                 f"(dataset.{size}.{split} > 0){hint}"
             )
         return [g.with_estimate(self.estimate) for g in graphs]
