@@ -162,3 +162,66 @@ def test_eval_cli_rejects_foreign_checkpoint(dataset: Path, tmp_path: Path) -> N
     assert "posernet-eval: error:" in res.stderr and "not a PoserNet checkpoint" in res.stderr
     assert "Traceback" not in res.stderr
     assert not (tmp_path / "eval" / "table.md").exists()
+
+
+def test_init_from_starts_a_new_run_from_the_weights(trained: Path, dataset: Path,
+                                                     tmp_path: Path) -> None:
+    """init_from=CKPT: the first step starts from CKPT's network (not a fresh init), at epoch 0
+    with a fresh optimiser; the run writes its own checkpoints."""
+    from posernet.cli.train import init_weights
+    from posernet.lit import PoserNetModule, load_posernet_checkpoint
+
+    source = trained / "checkpoints" / "last.ckpt"
+    module = PoserNetModule()
+    init_weights(module, str(source))
+    want = load_posernet_checkpoint(source).model.state_dict()
+    got = module.model.state_dict()
+    assert want.keys() == got.keys()
+    assert all(torch.equal(want[k], got[k]) for k in want)
+    cfg = compose_train([f"data.root={dataset}", f"out_dir={tmp_path}", "trainer.max_epochs=1",
+                         f"init_from={source}", *QUIET])
+    train(cfg)
+    state = torch.load(tmp_path / "checkpoints" / "last.ckpt", weights_only=True)
+    assert state["epoch"] == 0  # a new run: one epoch, not the source's third
+    # Adam's step counter restarted: one epoch of 2 scenes x 8 graphs at batch 4 = 4 steps
+    steps = {int(v["step"]) for v in state["optimizer_states"][0]["state"].values()}
+    assert steps == {4}
+
+
+def test_init_from_the_shipped_checkpoint_needs_its_network(dataset: Path,
+                                                            tmp_path: Path) -> None:
+    """init_from=shipped with the default (smaller) model.net is one error naming what
+    differs, before training; with the shipped network's settings it loads."""
+    from posernet.checkpoints import CheckpointError, default_checkpoint, read_checkpoint
+    from posernet.cli.train import init_weights
+    from posernet.lit import PoserNetModule
+
+    with pytest.raises(CheckpointError, match=r"differs from model.net in depth=3 "
+                                              r"\(configured 2\)"):
+        init_weights(PoserNetModule(), "shipped")
+    net = read_checkpoint(default_checkpoint())["hyper_parameters"]["net"]
+    module = PoserNetModule(net=dict(net))
+    assert init_weights(module, "shipped") == default_checkpoint()
+    proc = subprocess.run(
+        [sys.executable, "-m", "posernet.cli.train", f"data.root={dataset}",
+         f"hydra.run.dir={tmp_path / 'run'}", "init_from=shipped", *QUIET],
+        capture_output=True, text=True, env=env(), timeout=300)
+    assert proc.returncode == 1
+    assert proc.stderr.strip().splitlines()[-1].startswith(
+        "posernet-train: error: init_from=") and "differs from model.net" in proc.stderr
+    assert not (tmp_path / "run" / "checkpoints").exists()
+
+
+@pytest.mark.parametrize("args, message", [
+    (["init_from=/nonexistent/model.ckpt"], "/nonexistent/model.ckpt"),
+    (["init_from=shipped", "ckpt_path=/x/last.ckpt"], "give one"),
+])
+def test_init_from_bad_values(dataset: Path, tmp_path: Path, args: list[str],
+                              message: str) -> None:
+    proc = subprocess.run(
+        [sys.executable, "-m", "posernet.cli.train", f"data.root={dataset}",
+         f"hydra.run.dir={tmp_path / 'run'}", *args, *QUIET],
+        capture_output=True, text=True, env=env(), timeout=300)
+    assert proc.returncode == 1, proc.stderr[-2000:]
+    last = proc.stderr.strip().splitlines()[-1]
+    assert last.startswith("posernet-train: error:") and message in last

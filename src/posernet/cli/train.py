@@ -7,6 +7,7 @@ Config groups: ``data`` (dataset directory, KP/BB input, leave-one-scene-out), `
 
     posernet-train data.root=outputs/data/tiny
     posernet-train data.root=... ckpt_path=outputs/train/.../checkpoints/last.ckpt   # resume
+    posernet-train data.root=... model=adaptive ... init_from=shipped   # fine-tune, fresh optimiser
     posernet-train -m data.root=... model.net.depth=2,3,4,5 model.loss.alpha=0.1,0.5  # sweep
 
 Each run writes ``checkpoints/best.ckpt``, ``checkpoints/last.ckpt``, ``logs/metrics.csv`` and
@@ -19,6 +20,11 @@ Resuming (``ckpt_path=RUN/checkpoints/last.ckpt``) continues the run in its own 
 best model found before the interruption, ``metrics.json`` is rewritten there, the new epochs
 are appended to ``logs/metrics.csv`` and the resumed job's Hydra config goes to
 ``RUN/.hydra/resume_<date>_<time>`` (the original ``.hydra`` files stay).
+
+Fine-tuning (``init_from=PATH``, or ``init_from=shipped`` for the shipped checkpoint) starts a
+new run (epoch 0, a fresh optimiser and scheduler, the configured loss) from the network
+weights of a checkpoint; ``model.net`` must describe the same network (a mismatch is one error
+naming the differing values). ``ckpt_path`` and ``init_from`` exclude each other.
 """
 
 from __future__ import annotations
@@ -38,7 +44,7 @@ from omegaconf import DictConfig
 from . import CONFIG_DIR
 from .common import check_config, quiet_lightning, run_app, run_task, set_threads
 
-__all__ = ["main", "resume_overrides", "run_dir_of_checkpoint", "train"]
+__all__ = ["init_weights", "main", "resume_overrides", "run_dir_of_checkpoint", "train"]
 
 _CKPT_ARG = re.compile(r"^\+{0,2}ckpt_path=(.*)$")
 _RUN_DIR_ARGS = re.compile(r"^\+{0,2}(hydra\.run\.dir|out_dir)=")
@@ -152,6 +158,47 @@ def _merge_csv_log(path: Path, history: Path, epoch: int, global_step: int) -> N
     history.unlink()
 
 
+def init_weights(module: Any, init_from: str) -> Path:
+    """Load the network weights of checkpoint ``init_from`` (a path, or ``shipped``) into
+    ``module.model``; return the file read.
+
+    Raises :class:`posernet.checkpoints.CheckpointError` naming the file when it is not a
+    PoserNet checkpoint or when its network differs from the configured ``model.net`` (the
+    differing arguments listed), so nothing is half-loaded.
+    """
+    import inspect
+
+    from ..checkpoints import (
+        CheckpointError,
+        default_checkpoint,
+        network_hparams,
+        read_checkpoint,
+    )
+    from ..nn import PoserNet
+
+    path = default_checkpoint() if str(init_from) == "shipped" else Path(str(init_from))
+    net = getattr(module, "model", None)
+    if not isinstance(net, PoserNet):
+        raise CheckpointError(f"init_from={init_from}: this model ({type(module).__name__}) "
+                              f"has no PoserNet to initialise")
+    ckpt = read_checkpoint(path)
+    loaded = PoserNet.from_checkpoint_dict(ckpt, path)  # the one reader of the weights
+    params = inspect.signature(PoserNet).parameters
+
+    def args(hp: Any) -> dict[str, Any]:
+        hp = dict(hp or {})
+        return {n: hp.get(n, p.default) for n, p in params.items()}
+
+    want = args(getattr(module, "hparams", {}).get("net"))
+    have = args(network_hparams(ckpt))
+    differ = [f"{n}={have[n]!r} (configured {want[n]!r})" for n in params if have[n] != want[n]]
+    if differ:
+        raise CheckpointError(f"init_from={path}: its network differs from model.net in "
+                              + ", ".join(differ) + "; set model.net.* as in the checkpoint")
+    net.load_state_dict(loaded.state_dict())
+    return path
+
+
 def _instantiate_dict(cfg: DictConfig | None) -> list[Any]:
     """Instantiate every ``_target_`` entry of a mapping (e.g. the ``callbacks`` group)."""
     if not cfg:
@@ -190,6 +237,9 @@ def train(cfg: DictConfig) -> float:
     resumed: dict[str, Any] = {}
     if ckpt_path not in (None, "last"):  # a clear error before Lightning's deep one
         resumed = read_checkpoint(ckpt_path, getattr(model, "CHECKPOINT_TAG", CHECKPOINT_TAG))
+    init_from = cfg.get("init_from")
+    if init_from is not None:
+        init_path = init_weights(model, init_from)
     num_parameters = sum(p.numel() for p in model.parameters() if p.requires_grad)
     callbacks = _instantiate_dict(cfg.get("callbacks"))
     if in_place:
@@ -203,6 +253,8 @@ def train(cfg: DictConfig) -> float:
             print(f"Resuming from {ckpt_path}: continuing the run in {out_dir}")
         elif ckpt_path not in (None, "last"):
             print(f"Resuming from {ckpt_path} in a new folder {out_dir}")
+        if init_from is not None:
+            print(f"Fine-tuning the network of {init_path} (fresh optimiser, epoch 0)")
         if in_place and isinstance(logger, CSVLogger):
             # Lightning's CSV logger deletes an existing metrics.csv: keep the earlier epochs.
             log_csv = Path(logger.log_dir) / "metrics.csv"

@@ -275,6 +275,14 @@ def _sevenscenes(cfg: Any) -> bool:
     return _value(cfg, "source") == "sevenscenes"
 
 
+def _check_init(cfg: Any) -> None:
+    """Resuming a run and fine-tuning from weights are two different starts."""
+    init, resume = _value(cfg, "init_from"), _value(cfg, "ckpt_path")
+    if init not in (None, _ABSENT) and resume not in (None, _ABSENT):
+        raise ConfigValueError(f"init_from={init} and ckpt_path={resume}: give one (ckpt_path "
+                               f"resumes a run, init_from starts a new one from its weights)")
+
+
 def _check_sync(cfg: Any) -> None:
     """Build the backend: its own cross-field rules, before any work."""
     sync = _value(cfg, "sync")
@@ -301,11 +309,11 @@ def _check_dataset(cfg: Any) -> None:
 
 COMMANDS: dict[str, Command] = {
     "train": Command(
-        keys={"seed": SEED, "ckpt_path": path(null=True), "optimized_metric": text(),
-              "test_after_training": boolean(), "num_threads": THREADS, "out_dir": path()},
+        keys={"seed": SEED, "ckpt_path": path(null=True), "init_from": path(null=True),
+              "optimized_metric": text(), "test_after_training": boolean(), "num_threads": THREADS, "out_dir": path()},
         groups={"data": DATA, "model": MODEL, "trainer": TRAINER, "sync": SYNC},
         outputs=_outputs(("out_dir", "dir")), devices=("trainer.accelerator",),
-        checks=(_check_sync,)),
+        checks=(_check_sync, _check_init)),
     "eval": Command(
         keys={"seed": SEED, "ckpt_path": path(), "graphs": path(null=True),
               "estimate": ESTIMATE_IN, "batch_size": integer(1), "device": DEVICE,
