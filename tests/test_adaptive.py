@@ -438,3 +438,29 @@ def test_evaluation_command_writes_every_table_and_the_plot(tmp_path) -> None:
         # exact (ground-truth) input has no spread to correlate with: None there
         assert (r["corr_rot_in"] is None) if r["input"] == "GT" else \
             -1.0 <= r["corr_rot_in"] <= 1.0
+
+
+@pytest.mark.slow
+def test_evaluation_command_pools_the_test_graphs_of_several_datasets(tmp_path) -> None:
+    """--data A --data B: one evaluation over both test splits (the bins count every edge)."""
+    from posernet.experiments.adaptive import main
+    from posernet.testing import write_random_dataset
+
+    a = write_random_dataset(tmp_path / "a", {"test": 1})
+    b = write_random_dataset(tmp_path / "b", {"test": 2}, seed=1)
+    counts = {}
+    for name, roots in (("a", [a]), ("b", [b]), ("ab", [a, b])):
+        out = tmp_path / f"out_{name}"
+        args = [x for r in roots for x in ("--data", str(r))]
+        assert main([*args, "--out", str(out), "--model", "shipped=shipped", "--no-absolute",
+                     "--threads", "1"]) == 0
+        summary = json.loads((out / "summary.json").read_text())
+        counts[name] = (summary["graphs"], sum(r["edges"] for r in
+                                               summary["models"]["shipped"]["bins"]["all"]))
+        assert str(a if name == "a" else b) in summary["data"]
+    assert counts["ab"] == tuple(x + y for x, y in zip(counts["a"], counts["b"], strict=True))
+    # the guard report and the paper tables take one dataset: a usage error, nothing written
+    with pytest.raises(SystemExit) as exc:
+        main(["--data", str(a), "--data", str(b), "--out", str(tmp_path / "g"), "--model",
+              "shipped=shipped", "--guard"])
+    assert exc.value.code == 2 and not (tmp_path / "g").exists()

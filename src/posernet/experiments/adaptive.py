@@ -296,15 +296,20 @@ def plot_binned(curves: dict[str, dict[str, Tensor]], path: Path) -> Path:
     return path
 
 
-def evaluate_models(models: dict[str, str], data: str | Path, out: str | Path,
-                    split: str = "test", absolute: bool = True,
+def evaluate_models(models: dict[str, str], data: str | Path | Sequence[str | Path],
+                    out: str | Path, split: str = "test", absolute: bool = True,
                     max_graphs: int | None = None) -> dict[str, Any]:
-    """Run the whole evaluation (module docstring) and write its files under ``out``."""
+    """Run the whole evaluation (module docstring) and write its files under ``out``.
+
+    ``data``: a dataset root, or several whose ``split`` graphs are evaluated together."""
     from ..nn import PoserNet
     from ..pipeline import load_input_graphs
 
     out = Path(out)
-    graphs = load_input_graphs(data, split=split, estimate=None, log=lambda *_: None)
+    roots = [data] if isinstance(data, (str, Path)) else list(data)
+    graphs = [g for root in roots
+              for g in load_input_graphs(root, split=split, estimate=None, log=lambda *_: None)]
+    data = ", ".join(str(r) for r in roots)
     if max_graphs:
         graphs = graphs[:max_graphs]
     out.mkdir(parents=True, exist_ok=True)  # after the input loaded: bad input writes nothing
@@ -499,7 +504,9 @@ def paper_tables(ckpt: str | Path, data: str | Path, out: str | Path, label: str
 def main(argv: Sequence[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m posernet.experiments.adaptive",
                                 description=__doc__.split("\n\n")[0])
-    p.add_argument("--data", required=True, help="dataset root (posernet-make-data output)")
+    p.add_argument("--data", action="append", required=True,
+                   help="dataset root (posernet-make-data output); repeat it to evaluate the "
+                        "test graphs of several datasets together")
     p.add_argument("--model", action="append", required=True,
                    help="NAME=CHECKPOINT (repeatable); NAME=shipped for the shipped one")
     p.add_argument("--out", required=True, help="output folder (e.g. results/adaptive)")
@@ -526,9 +533,12 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 def _run(p: argparse.ArgumentParser, a: argparse.Namespace) -> int:
-    if not Path(a.data).exists():
-        raise FileNotFoundError(f"--data {a.data}: no such dataset folder (posernet-make-data "
-                                "writes one)")
+    for root in a.data:
+        if not Path(root).exists():
+            raise FileNotFoundError(f"--data {root}: no such dataset folder (posernet-make-data "
+                                    "writes one)")
+    if (a.guard or a.paper_tables) and len(a.data) != 1:
+        p.error("--guard and --paper-tables take one --data (--guard-set adds more to --guard)")
     torch.set_num_threads(a.threads)
     models = {}
     for spec in a.model:
@@ -548,7 +558,7 @@ def _run(p: argparse.ArgumentParser, a: argparse.Namespace) -> int:
         from ..pipeline import load_input_graphs
 
         sets: dict[str, Sequence[ViewGraph]] = {}
-        for spec in [f"{Path(a.data).name}={a.data}", *(a.guard_set or [])]:
+        for spec in [f"{Path(a.data[0]).name}={a.data[0]}", *(a.guard_set or [])]:
             set_name, root = spec.split("=", 1)
             sets[f"{set_name} KP"] = load_input_graphs(root, split=a.split, estimate="kp",
                                                        size="all", log=lambda *_: None)
@@ -558,7 +568,7 @@ def _run(p: argparse.ArgumentParser, a: argparse.Namespace) -> int:
     if a.paper_tables:
         if len(models) != 1:
             p.error("--paper-tables takes exactly one --model")
-        paper_tables(next(iter(models.values())), a.data, a.out, a.paper_tables, a.paper_dir)
+        paper_tables(next(iter(models.values())), a.data[0], a.out, a.paper_tables, a.paper_dir)
         return 0
     evaluate_models(models, a.data, a.out, a.split, not a.no_absolute, a.max_graphs)
     return 0
