@@ -310,7 +310,8 @@ def _check_dataset(cfg: Any) -> None:
 COMMANDS: dict[str, Command] = {
     "train": Command(
         keys={"seed": SEED, "ckpt_path": path(null=True), "init_from": path(null=True),
-              "optimized_metric": text(), "test_after_training": boolean(), "num_threads": THREADS, "out_dir": path()},
+              "optimized_metric": text(), "test_after_training": boolean(),
+              "num_threads": THREADS, "out_dir": path()},
         groups={"data": DATA, "model": MODEL, "trainer": TRAINER, "sync": SYNC},
         outputs=_outputs(("out_dir", "dir")), devices=("trainer.accelerator",),
         checks=(_check_sync, _check_init)),
