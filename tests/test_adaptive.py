@@ -417,6 +417,31 @@ def test_separation_auc_matches_the_pairwise_definition() -> None:
     assert separation_auc(s, s > 2) == 1.0 and separation_auc(-s, s > 2) == 0.0
 
 
+def test_mean_change_ci_resamples_whole_graphs() -> None:
+    from posernet.experiments.adaptive import mean_change_ci
+
+    graph = torch.arange(6).repeat_interleave(4)  # 6 graphs, 4 edges each
+    # the same change everywhere: no spread, whatever graphs are drawn
+    lo, hi = mean_change_ci(torch.full((24,), 0.25), graph, 6)
+    assert lo == pytest.approx(0.25) and hi == pytest.approx(0.25)
+    # the vectorised draws equal a loop over the same draws
+    gen = torch.Generator().manual_seed(3)
+    delta = torch.randn(24, generator=gen, dtype=torch.float64)
+    draws = torch.randint(6, (50, 6), generator=torch.Generator().manual_seed(0))
+    loop = torch.stack([torch.cat([delta[graph == k] for k in row]).mean() for row in draws])
+    want = torch.quantile(loop, torch.tensor([0.025, 0.975], dtype=torch.float64))
+    got = mean_change_ci(delta, graph, 6, reps=50, seed=0)
+    assert got == pytest.approx(want.tolist(), abs=1e-12)
+    assert got[0] <= float(delta.mean()) <= got[1]
+    # one graph that changed a lot: the interval spans "no change" to "worse"
+    delta = torch.zeros(24)
+    delta[graph == 0] = 5.0
+    lo, hi = mean_change_ci(delta, graph, 6)
+    assert lo == 0.0 and hi > 1.0
+    nan = mean_change_ci(torch.full((4,), float("nan")), torch.zeros(4, dtype=torch.long), 1)
+    assert all(math.isnan(v) for v in nan)
+
+
 @pytest.mark.slow
 def test_evaluation_command_writes_every_table_and_the_plot(tmp_path) -> None:
     from posernet.experiments.adaptive import main
@@ -428,6 +453,7 @@ def test_evaluation_command_writes_every_table_and_the_plot(tmp_path) -> None:
                  "--no-absolute", "--threads", "1"]) == 0
     for stem in ("graphs", "bins", "levers", "confidence"):
         assert (out / f"{stem}.md").is_file() and (out / f"{stem}.csv").is_file()
+    assert "rot < 3: change, 95% CI" in (out / "levers.md").read_text()
     assert (out / "refined_vs_initial.png").stat().st_size > 10_000
     summary = json.loads((out / "summary.json").read_text())
     conf = summary["models"]["shipped"]["confidence"]

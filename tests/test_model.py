@@ -410,19 +410,20 @@ def test_shipped_checkpoint_gives_the_recorded_output(tiny_graph: ViewGraph) -> 
 
 # The shipped checkpoint since issue 16 (input-adaptive: gates, confidence head, cycle
 # feature; depth 3, 64-wide MLPs and node state; fine-tuned with the relative do-no-harm
-# hinge), recorded on the same graph when it was shipped: final pose, gates (rotation,
-# direction) and error scales (radians: rot_out, tdir_out, rot_in, tdir_in).
+# hinge, then on the paper preset plus three generator variants), recorded on the same graph
+# when it was shipped: final pose, gates (rotation, direction) and error scales (radians:
+# rot_out, tdir_out, rot_in, tdir_in).
 ADAPTIVE_SHIPPED = ROOT / "src" / "posernet" / "checkpoints" / "posernet_synthetic_kp.ckpt"
 ADAPTIVE_OUTPUT = [
-    [0.96133208, -0.098815382, -0.21850882, -0.13538846, -0.068083793, -0.78797644, 0.6119296],
-    [0.99905419, -0.024465438, 0.032969963, 0.014326078, 0.10989988, -0.71380574, 0.69166714],
-    [0.99653655, 0.082247443, -0.0011499856, 0.012204636, -0.32262456, 0.11122876, -0.93996894],
+    [0.96133667, -0.098801374, -0.21850425, -0.13537347, -0.068084091, -0.78797626, 0.61192983],
+    [0.99905467, -0.024450608, 0.032970749, 0.014314531, 0.10990068, -0.71380585, 0.6916669],
+    [0.99653965, 0.082206108, -0.0011764506, 0.012226144, -0.32262692, 0.11122994, -0.93996799],
 ]
-ADAPTIVE_GATE = [[0.00014526545, 3.008241e-07], [0.00087642757, 5.3667563e-06],
-                 [0.0020592336, 2.1566977e-05]]
-ADAPTIVE_SIGMA = [[0.028753528, 0.10628513, 0.026687341, 0.10641302],
-                  [0.0175175, 0.093934804, 0.016408576, 0.098912962],
-                  [0.039512355, 0.21113388, 0.036695085, 0.213035]]
+ADAPTIVE_GATE = [[0.00053378619, 4.4914495e-06], [0.00064433808, 5.3007325e-06],
+                 [0.00034337415, 4.5006036e-06]]
+ADAPTIVE_SIGMA = [[0.10717236, 0.3008289, 0.10880914, 0.29985806],
+                  [0.036387052, 0.24563317, 0.03641222, 0.2529934],
+                  [0.035058416, 0.293594, 0.032811314, 0.29436287]]
 
 
 def test_adaptive_shipped_checkpoint_gives_the_recorded_output(tiny_graph: ViewGraph) -> None:
@@ -437,8 +438,14 @@ def test_adaptive_shipped_checkpoint_gives_the_recorded_output(tiny_graph: ViewG
     torch.testing.assert_close(out.gate, torch.tensor(ADAPTIVE_GATE), atol=1e-5, rtol=0)
     torch.testing.assert_close(out.sigma, torch.tensor(ADAPTIVE_SIGMA), atol=1e-5, rtol=0)
     module = PoserNetModule.load_from_checkpoint(ADAPTIVE_SHIPPED, map_location="cpu").eval()
-    # its last training stage: the relative do-no-harm hinge (README "Shipped checkpoint")
+    # its last training stage: the relative do-no-harm hinge on the paper preset and three
+    # generator variants, from the previous shipped weights (README "Shipped checkpoint")
     assert module.hparams.loss["harm"] == 0.2 and module.hparams.loss["harm_scale"] == 0.0175
+    assert module.hparams.optimizer["lr"] == 3e-4
+    ckpt = torch.load(ADAPTIVE_SHIPPED, map_location="cpu", weights_only=True)
+    assert [Path(r).name for r in ckpt["datamodule_hyper_parameters"]["root"]] == [
+        "paper_half", "vary_sharp", "vary_blurry", "vary_objects"]
+    assert "optimizer_states" not in ckpt  # weights only: 280 KB
     with torch.no_grad():
         torch.testing.assert_close(module(GraphBatch.from_graphs([tiny_graph])), out.pose,
                                    atol=1e-6, rtol=0)

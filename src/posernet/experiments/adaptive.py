@@ -12,7 +12,8 @@ For every model, on the ``test`` graphs of a dataset (the held-out generator var
   bins).
 * ``bins.md|csv``: per-edge errors pooled over the inputs (``all``: KP, BB, GT and GT+noise)
   and per input, binned by initial rotation error (< 3, 3-10, 10-30, > 30 degrees): mean and
-  median initial vs refined rotation and direction errors.
+  median initial vs refined rotation and direction errors, and the 95 % bootstrap interval
+  (resampling graphs) of the change of the mean rotation error.
 * ``absolute.md|csv`` (``--absolute``): KP input averaged with EIG-SE3 and
   ``rotation_translation``, uniform vs confidence-weighted IRLS start (and the guard).
 * ``confidence.md|csv`` (models with a confidence head): per input, the correlation of the
@@ -40,7 +41,7 @@ from ..graph import ViewGraph
 from ..io import atomic_path, atomic_write_json, atomic_write_text
 from ..metrics import per_graph_mean, relative_pose_errors
 
-__all__ = ["BINS", "bin_table", "edge_errors_for", "evaluate_models", "main"]
+__all__ = ["BINS", "bin_table", "edge_errors_for", "evaluate_models", "main", "mean_change_ci"]
 
 #: initial rotation error bins (degrees)
 BINS: tuple[tuple[float, float], ...] = ((0.0, 3.0), (3.0, 10.0), (10.0, 30.0),
@@ -98,9 +99,37 @@ def per_graph_medians(err: dict[str, Tensor], num_graphs: int) -> dict[str, floa
             for k in ("rot_init", "rot_ref", "tdir_init", "tdir_ref")}
 
 
+def mean_change_ci(delta: Tensor, graph: Tensor, num_graphs: int, reps: int = 2000,
+                   level: float = 0.95, seed: int = 0) -> tuple[float, float]:
+    """Bootstrap confidence interval of ``delta.mean()`` resampling whole graphs.
+
+    The edges of one graph (and of every input made from it) are not independent, so graphs
+    are the resampled unit: ``reps`` draws of ``num_graphs`` graphs with replacement, each
+    draw's mean over its edges. ``delta [E]``, ``graph [E]`` (ids in ``[0, num_graphs)``);
+    NaN entries are left out. Returns the ``level`` percentile interval (NaN without edges)."""
+    ok = ~torch.isnan(delta)
+    if not bool(ok.any()):
+        return float("nan"), float("nan")
+    d, g = delta[ok].double(), graph[ok]
+    total = torch.zeros(num_graphs, dtype=torch.float64).index_add_(0, g, d)
+    count = torch.bincount(g, minlength=num_graphs).double()
+    gen = torch.Generator().manual_seed(seed)
+    draws = torch.randint(num_graphs, (reps, num_graphs), generator=gen)
+    w = torch.zeros(reps, num_graphs, dtype=torch.float64).scatter_add_(
+        1, draws, torch.ones(reps, num_graphs, dtype=torch.float64))
+    means = (w @ total) / (w @ count).clamp_min(1.0)
+    means = means[(w @ count) > 0]
+    tail = (1.0 - level) / 2.0
+    lo, hi = torch.quantile(means, torch.tensor([tail, 1.0 - tail], dtype=torch.float64))
+    return float(lo), float(hi)
+
+
 def bin_table(err: dict[str, Tensor]) -> list[dict[str, Any]]:
-    """Rows per initial-rotation-error bin: edge count, mean/median initial and refined errors."""
+    """Rows per initial-rotation-error bin: edge count, mean/median initial and refined errors;
+    with ``err["graph"]`` also the 95 % bootstrap interval (over graphs) of the change of the
+    mean rotation error, ``rot_change_lo`` / ``rot_change_hi`` (refined minus initial)."""
     rows = []
+    graph = err.get("graph")
     for lo, hi in BINS:
         sel = (err["rot_init"] >= lo) & (err["rot_init"] < hi)
         row: dict[str, Any] = {"bin": bin_label(lo, hi), "edges": int(sel.sum())}
@@ -109,12 +138,18 @@ def bin_table(err: dict[str, Tensor]) -> list[dict[str, Any]]:
             v = v[~torch.isnan(v)]
             row[f"{k}_mean"] = float(v.mean()) if v.numel() else float("nan")
             row[f"{k}_median"] = float(v.median()) if v.numel() else float("nan")
+        if graph is not None:
+            row["rot_change_lo"], row["rot_change_hi"] = mean_change_ci(
+                (err["rot_ref"] - err["rot_init"])[sel], graph[sel], int(graph.max()) + 1)
         rows.append(row)
     return rows
 
 
 def _cat(errs: Sequence[dict[str, Tensor]]) -> dict[str, Tensor]:
-    keys = [k for k in ("rot_init", "rot_ref", "tdir_init", "tdir_ref") if k in errs[0]]
+    """Pool the per-edge errors of several inputs (the same graphs: ``graph`` ids are kept, so
+    one graph's edges under every input resample together)."""
+    keys = [k for k in ("rot_init", "rot_ref", "tdir_init", "tdir_ref", "graph")
+            if k in errs[0]]
     return {k: torch.cat([e[k] for e in errs]) for k in keys}
 
 
@@ -130,6 +165,9 @@ def lever_row(name: str, m: dict[str, Any]) -> dict[str, Any]:
         row[f"rot {b['bin']}"] = b["rot_ref_mean"]
     for b in bins:
         row[f"tdir {b['bin']}"] = b["tdir_ref_mean"]
+    if "rot_change_lo" in bins[0]:
+        row[f"rot {bins[0]['bin']}: change, 95% CI"] = \
+            f"{bins[0]['rot_change_lo']:+.3f} .. {bins[0]['rot_change_hi']:+.3f}"
     row["worse rot"] = sum(b["rot_ref_mean"] > b["rot_init_mean"] for b in bins)
     row["worse tdir"] = sum(b["tdir_ref_mean"] > b["tdir_init_mean"] for b in bins)
     return row
