@@ -278,14 +278,15 @@ def plot_binned(curves: dict[str, dict[str, Tensor]], path: Path) -> Path:
     a ``"NAME + guard"`` curve is drawn dashed in NAME's colour, without its band."""
     from matplotlib.figure import Figure
 
-    many = sum(not n.endswith(" + guard") for n in curves) > 3  # bands would hide the lines
+    n_models = sum(not n.endswith(" + guard") for n in curves)
+    many = n_models > 3  # bands would hide the lines
     legend_rows = (len(curves) + 2) // 3 if many else 0  # the shared legend's rows, 3 columns
     fig = Figure(figsize=(11, 4.6 + 0.25 * legend_rows), dpi=110)
     for k, (what, lim) in enumerate((("rot", (0.05, 180.0)), ("tdir", (0.5, 180.0)))):
         ax = fig.add_subplot(1, 2, k + 1)
         edges = np.logspace(np.log10(lim[0]), np.log10(lim[1]), 22)
         colors: dict[str, str] = {}
-        if many:  # more models than the default cycle's ten colours
+        if n_models > 10:  # more models than the default cycle's ten distinct colours
             from matplotlib import colormaps
 
             ax.set_prop_cycle(color=colormaps["tab20"].colors)
