@@ -169,6 +169,16 @@ def test_commands_run_from_the_installed_wheel(wheel, tmp_path):
     assert Path(refined["checkpoint"]).resolve().is_relative_to(site.resolve())
     assert (out / "table.md").is_file()
 
+    # fine-tune the shipped checkpoint inside the wheel on the generated data (one epoch)
+    run_dir = tmp_path / "ft"
+    log = run("posernet.cli.train", f"data.root={data}", "model=adaptive", "model.net.depth=3",
+              "model.net.node_hidden=64", "model.net.mlp_hidden=64", "init_from=shipped",
+              "trainer.max_epochs=1", "trainer.enable_progress_bar=false", "data.batch_size=2",
+              f"hydra.run.dir={run_dir}")
+    (line,) = [ln for ln in log.splitlines() if ln.startswith("Fine-tuning the network of ")]
+    assert Path(line.split(" of ", 1)[1].split(" (")[0]).resolve().is_relative_to(site.resolve())
+    assert (run_dir / "checkpoints" / "last.ckpt").is_file()
+
 
 # ------------------------------------------------------------------------------ fast checks
 
