@@ -197,9 +197,13 @@ def test_init_from_the_shipped_checkpoint_needs_its_network(dataset: Path,
     from posernet.lit import PoserNetModule
 
     with pytest.raises(CheckpointError, match=r"differs from model.net in depth=3 "
-                                              r"\(configured 2\)"):
+                                              r"\(configured 2\)") as exc:
         init_weights(PoserNetModule(), "shipped")
+    # the message ends with the overrides that make it fit: pasted, they load
+    hint = str(exc.value).split("; add ", 1)[1].split()
+    fixed = {k.removeprefix("model.net."): v for k, v in (h.split("=") for h in hint)}
     net = read_checkpoint(default_checkpoint())["hyper_parameters"]["net"]
+    assert {k: str(net[k]) for k in fixed} == fixed
     module = PoserNetModule(net=dict(net))
     assert init_weights(module, "shipped") == default_checkpoint()
     proc = subprocess.run(
@@ -213,7 +217,7 @@ def test_init_from_the_shipped_checkpoint_needs_its_network(dataset: Path,
 
 
 @pytest.mark.parametrize("args, message", [
-    (["init_from=/nonexistent/model.ckpt"], "/nonexistent/model.ckpt"),
+    (["init_from=/nonexistent/model.ckpt"], "init_from=/nonexistent/model.ckpt: checkpoint not"),
     (["init_from=shipped", "ckpt_path=/x/last.ckpt"], "give one"),
 ])
 def test_init_from_bad_values(dataset: Path, tmp_path: Path, args: list[str],

@@ -181,8 +181,11 @@ def init_weights(module: Any, init_from: str) -> Path:
     if not isinstance(net, PoserNet):
         raise CheckpointError(f"init_from={init_from}: this model ({type(module).__name__}) "
                               f"has no PoserNet to initialise")
-    ckpt = read_checkpoint(path)
-    loaded = PoserNet.from_checkpoint_dict(ckpt, path)  # the one reader of the weights
+    try:
+        ckpt = read_checkpoint(path)
+        loaded = PoserNet.from_checkpoint_dict(ckpt, path)  # the one reader of the weights
+    except (CheckpointError, FileNotFoundError) as exc:  # name the option, then the cause
+        raise type(exc)(f"init_from={init_from}: {exc}") from None
     params = inspect.signature(PoserNet).parameters
 
     def args(hp: Any) -> dict[str, Any]:
@@ -191,10 +194,12 @@ def init_weights(module: Any, init_from: str) -> Path:
 
     want = args(getattr(module, "hparams", {}).get("net"))
     have = args(network_hparams(ckpt))
-    differ = [f"{n}={have[n]!r} (configured {want[n]!r})" for n in params if have[n] != want[n]]
+    differ = [n for n in params if have[n] != want[n]]
     if differ:
-        raise CheckpointError(f"init_from={path}: its network differs from model.net in "
-                              + ", ".join(differ) + "; set model.net.* as in the checkpoint")
+        raise CheckpointError(
+            f"init_from={path}: its network differs from model.net in "
+            + ", ".join(f"{n}={have[n]!r} (configured {want[n]!r})" for n in differ)
+            + "; add " + " ".join(f"model.net.{n}={have[n]}" for n in differ))
     net.load_state_dict(loaded.state_dict())
     return path
 
