@@ -183,7 +183,6 @@ def init_weights(module: Any, init_from: str) -> Path:
                               f"has no PoserNet to initialise")
     try:
         ckpt = read_checkpoint(path)
-        loaded = PoserNet.from_checkpoint_dict(ckpt, path)  # the one reader of the weights
     except (CheckpointError, FileNotFoundError) as exc:  # name the option, then the cause
         raise type(exc)(f"init_from={init_from}: {exc}") from None
     params = inspect.signature(PoserNet).parameters
@@ -200,6 +199,10 @@ def init_weights(module: Any, init_from: str) -> Path:
             f"init_from={path}: its network differs from model.net in "
             + ", ".join(f"{n}={have[n]!r} (configured {want[n]!r})" for n in differ)
             + "; add " + " ".join(f"model.net.{n}={have[n]}" for n in differ))
+    try:  # the one reader of the weights (drops a legacy layout's unused ones)
+        loaded = PoserNet.from_checkpoint_dict(ckpt, path)
+    except CheckpointError as exc:
+        raise CheckpointError(f"init_from={init_from}: {exc}") from None
     net.load_state_dict(loaded.state_dict())
     return path
 
