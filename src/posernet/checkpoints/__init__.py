@@ -9,7 +9,8 @@ module.
 ``posernet_synthetic_kp.ckpt`` is a small input-adaptive PoserNet (``model=adaptive``: gate,
 confidence head, cycle-consistency feature) trained on the *synthetic* ``paper`` preset with a
 mixture of initial-pose qualities, then fine-tuned with the relative do-no-harm hinge
-(``loss.harm``, ``loss.harm_scale``) -- not on 7-Scenes. It exists so that ``posernet-refine`` and
+(``loss.harm``, ``loss.harm_scale``), then on the ``paper`` preset plus generator variants
+(``conf/dataset/vary_*.yaml``: three, then nine) -- not on 7-Scenes. It exists so that ``posernet-refine`` and
 ``make demo`` work out of the box; train your own for real data. ``posernet_synthetic_kp_v1.ckpt``
 is the checkpoint shipped before it (residual PoserNet trained on KP input only, which regresses
 every input towards its error floor). ``README.md`` (section "Shipped checkpoint") gives the
