@@ -4,6 +4,7 @@ refined neighbours' two-edge paths."""
 import sys
 
 import torch
+from sets import SETS
 
 from posernet.experiments.adaptive import BINS, make_inputs
 from posernet.geometry import quaternion_conjugate, quaternion_multiply, quaternion_normalize
@@ -52,14 +53,6 @@ def disc(qc_views, qpath_views, a, b, c, E):
 
 if __name__ == "__main__":  # feas.py / feas2.py import the helpers above
     ckpt = sys.argv[1]
-    SETS = {
-        "s1": ["paper_20th"],
-        "s2": ["vary_sharp", "vary_blurry", "vary_objects"],
-        "s3": ["vary_wide", "vary_dense", "vary_noisy"],
-        "s4": ["vary_few", "vary_heavy", "vary_mid"],
-        "s5": ["vary_loose", "vary_tight", "vary_mixed"],
-        "s6": ["vary_sparse", "vary_busy", "vary_calm"],
-    }
     if len(sys.argv) > 2:
         SETS = {n: [n] for n in sys.argv[2].split(",")}
     MARGINS = [0.0, 0.5, 1.0, 2.0]

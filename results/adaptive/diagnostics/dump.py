@@ -4,6 +4,7 @@ import sys
 
 import numpy as np
 import torch
+from sets import SETS
 
 from posernet.experiments.adaptive import make_inputs
 from posernet.graph import GraphBatch
@@ -12,14 +13,6 @@ from posernet.nn import PoserNet
 from posernet.pipeline import load_input_graphs
 
 ckpt, out = sys.argv[1], sys.argv[2]
-SETS = {
-    "s1": ["paper_20th"],
-    "s2": ["vary_sharp", "vary_blurry", "vary_objects"],
-    "s3": ["vary_wide", "vary_dense", "vary_noisy"],
-    "s4": ["vary_few", "vary_heavy", "vary_mid"],
-    "s5": ["vary_loose", "vary_tight", "vary_mixed"],
-    "s6": ["vary_sparse", "vary_busy", "vary_calm"],
-}
 if len(sys.argv) > 3:
     SETS = {n: [n] for n in sys.argv[3].split(",")}
 model = PoserNet.from_checkpoint(ckpt).eval()

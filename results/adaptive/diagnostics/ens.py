@@ -3,6 +3,7 @@
 import sys
 
 import torch
+from sets import SETS
 
 from posernet.experiments.adaptive import make_inputs
 from posernet.geometry import quaternion_angle
@@ -12,14 +13,6 @@ from posernet.nn import PoserNet
 from posernet.nn.adaptive import blend_poses
 from posernet.pipeline import load_input_graphs
 
-SETS = {
-    "s1": ["paper_20th"],
-    "s2": ["vary_sharp", "vary_blurry", "vary_objects"],
-    "s3": ["vary_wide", "vary_dense", "vary_noisy"],
-    "s4": ["vary_few", "vary_heavy", "vary_mid"],
-    "s5": ["vary_loose", "vary_tight", "vary_mixed"],
-    "s6": ["vary_sparse", "vary_busy", "vary_calm"],
-}
 main = PoserNet.from_checkpoint("src/posernet/checkpoints/posernet_synthetic_kp.ckpt").eval()
 others = [PoserNet.from_checkpoint(p).eval() for p in sys.argv[1:]]
 out = []

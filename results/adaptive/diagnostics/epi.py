@@ -1,6 +1,7 @@
 """Do the edge's own matched box centres tell a good input from a poor raw prediction?"""
 
 import torch
+from sets import SETS
 
 from posernet.experiments.adaptive import make_inputs
 from posernet.geometry import quaternion_to_rotation_matrix
@@ -9,14 +10,6 @@ from posernet.metrics import relative_pose_errors
 from posernet.nn import PoserNet
 from posernet.pipeline import load_input_graphs
 
-SETS = {
-    "s1": ["paper_20th"],
-    "s2": ["vary_sharp", "vary_blurry", "vary_objects"],
-    "s3": ["vary_wide", "vary_dense", "vary_noisy"],
-    "s4": ["vary_few", "vary_heavy", "vary_mid"],
-    "s5": ["vary_loose", "vary_tight", "vary_mixed"],
-    "s6": ["vary_sparse", "vary_busy", "vary_calm"],
-}
 model = PoserNet.from_checkpoint("src/posernet/checkpoints/posernet_synthetic_kp.ckpt").eval()
 
 

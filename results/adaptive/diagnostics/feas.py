@@ -2,6 +2,7 @@ import sys
 
 import torch
 from arb import disc, triangles, views
+from sets import SETS
 
 from posernet.experiments.adaptive import make_inputs
 from posernet.geometry import quaternion_normalize
@@ -13,16 +14,21 @@ from posernet.nn.conv import graph_inputs
 from posernet.nn.scatter import scatter_mean
 from posernet.pipeline import load_input_graphs
 
-ckpt = sys.argv[1]
-SETS = {
-    "s1": ["paper_20th"],
-    "s2": ["vary_sharp", "vary_blurry", "vary_objects"],
-    "s3": ["vary_wide", "vary_dense", "vary_noisy"],
-    "s4": ["vary_few", "vary_heavy", "vary_mid"],
-    "s5": ["vary_loose", "vary_tight", "vary_mixed"],
-    "s6": ["vary_sparse", "vary_busy", "vary_calm"],
-}
+# usage: feas.py CKPT OUT.pt [--embeddings]; --embeddings adds the last layer's node embeddings
+# of both end points (and its edge state) to the features
+ckpt, out = sys.argv[1], sys.argv[2]
+EMBED = "--embeddings" in sys.argv[3:]
 model = PoserNet.from_checkpoint(ckpt).eval()
+REC = {}
+for conv in model.convs if EMBED else []:
+    orig = conv.propagate
+
+    def wrapped(x, edge_index, *a, _o=orig, **k):
+        REC["h"], REC["ei"] = x, edge_index
+        REC["state"] = a[5] if len(a) > 5 else k.get("edge_state")
+        return _o(x, edge_index, *a, **k)
+
+    conv.propagate = wrapped
 F, Y = [], []
 with torch.no_grad():
     for si, (_s, roots) in enumerate(SETS.items()):
@@ -70,6 +76,13 @@ with torch.no_grad():
                 )
                 e_in = relative_pose_errors(pin, gt)[0]
                 e_fin = relative_pose_errors(fin, gt)[0]
+                if EMBED:
+                    h = REC["h"].double()
+                    ei = REC["ei"]
+                    stt = REC["state"]
+                    hs = torch.cat((h[ei[0]] + h[ei[1]], (h[ei[0]] - h[ei[1]]).abs()), -1)
+                    extra = [hs] + ([stt.double().reshape(E, -1)] if stt is not None else [])
+                    feat = torch.cat([feat, *extra], -1)
                 F.append(feat.float())
                 Y.append(
                     torch.stack(
@@ -83,5 +96,5 @@ with torch.no_grad():
                     )
                 )
 F, Y = torch.cat(F), torch.cat(Y)
-torch.save({"F": F, "Y": Y}, "outputs/diag/feas.pt")
+torch.save({"F": F, "Y": Y}, out)
 print(F.shape)

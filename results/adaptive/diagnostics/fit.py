@@ -2,18 +2,19 @@ import sys
 
 import torch
 
-d = torch.load("outputs/diag/feas.pt")
+# usage: fit.py FEATURES.pt [all | COLS] [SCALE] (FEATURES.pt written by feas.py)
+d = torch.load(sys.argv[1])
 F, Y = d["F"], d["Y"].float()
 cols = (
     slice(None)
-    if len(sys.argv) < 2 or sys.argv[1] == "all"
-    else [int(c) for c in sys.argv[1].split(",")]
+    if len(sys.argv) < 3 or sys.argv[2] == "all"
+    else [int(c) for c in sys.argv[2].split(",")]
 )
 F = F[:, cols]
 e_in, e_fin, st = Y[:, 0], Y[:, 1], Y[:, 2].long()
 mu, sd = F.mean(0), F.std(0).clamp_min(1e-6)
 X = (F - mu) / sd
-SC = float(sys.argv[2]) if len(sys.argv) > 2 else 1.0
+SC = float(sys.argv[3]) if len(sys.argv) > 3 else 1.0
 BINS = [(0, 3), (3, 10), (10, 30), (30, 1e9)]
 
 

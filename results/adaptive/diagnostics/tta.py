@@ -6,6 +6,7 @@ import dataclasses
 import sys
 
 import torch
+from sets import SETS
 
 from posernet.data.mixture import perturb_poses
 from posernet.experiments.adaptive import make_inputs
@@ -19,14 +20,6 @@ from posernet.pipeline import load_input_graphs
 MODE = sys.argv[1]
 K = int(sys.argv[2])
 P = float(sys.argv[3])
-SETS = {
-    "s1": ["paper_20th"],
-    "s2": ["vary_sharp", "vary_blurry", "vary_objects"],
-    "s3": ["vary_wide", "vary_dense", "vary_noisy"],
-    "s4": ["vary_few", "vary_heavy", "vary_mid"],
-    "s5": ["vary_loose", "vary_tight", "vary_mixed"],
-    "s6": ["vary_sparse", "vary_busy", "vary_calm"],
-}
 main = PoserNet.from_checkpoint("src/posernet/checkpoints/posernet_synthetic_kp.ckpt").eval()
 gen = torch.Generator().manual_seed(1)
 

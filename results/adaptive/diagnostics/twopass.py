@@ -1,6 +1,7 @@
 import sys
 
 import torch
+from sets import SETS
 
 from posernet.experiments.adaptive import BINS, make_inputs
 from posernet.graph import GraphBatch
@@ -8,14 +9,6 @@ from posernet.metrics import relative_pose_errors
 from posernet.nn import PoserNet
 from posernet.pipeline import load_input_graphs
 
-SETS = {
-    "s1": ["paper_20th"],
-    "s2": ["vary_sharp", "vary_blurry", "vary_objects"],
-    "s3": ["vary_wide", "vary_dense", "vary_noisy"],
-    "s4": ["vary_few", "vary_heavy", "vary_mid"],
-    "s5": ["vary_loose", "vary_tight", "vary_mixed"],
-    "s6": ["vary_sparse", "vary_busy", "vary_calm"],
-}
 model = PoserNet.from_checkpoint(sys.argv[1]).eval()
 with torch.no_grad():
     for s, roots in SETS.items():
