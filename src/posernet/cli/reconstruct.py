@@ -121,6 +121,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     frontend = ImageFrontend(
         records, instantiate(cfg.proposals), instantiate(cfg.matcher),
         rules=instantiate(cfg.box_matching), pose=instantiate(cfg.relpose),
+        verify=instantiate(cfg.verify), estimate=str(cfg.estimate),
         kp_top_pairs=int(cfg.kp_top_pairs), seed=int(cfg.seed), workers=int(cfg.workers))
     has_gt = all(r.c2w is not None for r in records)
     print(f"[1/3] {len(records)} images from {cfg.images} "

@@ -226,6 +226,13 @@ RELPOSE: Schema = {
 FRONTEND = {"proposals": PROPOSALS, "matcher": MATCHER, "box_matching": BOX_MATCHING,
             "relpose": RELPOSE}
 
+VERIFY: Schema = {
+    "_target_": text(), "min_inliers": integer(5), "min_inlier_ratio": number(0, 1),
+    "min_front": number(0, 1), "max_rotation_ratio": number(0, 1), "min_tri_angle": number(0),
+    "static_px": number(0), "max_static_ratio": number(0, 1), "min_contrast": number(0),
+    "contrast_radius": integer(1),
+}
+
 
 def _matcher_configs() -> tuple[str, ...]:
     from . import CONFIG_DIR
@@ -342,7 +349,8 @@ COMMANDS: dict[str, Command] = {
               "ckpt_path": path(null=True), "estimate": ESTIMATE, "kp_top_pairs": integer(0),
               "seed": SEED, "workers": integer(1), "pictures": integer(0), "device": DEVICE,
               "num_threads": THREADS, "progress": boolean(), "digits": DIGITS},
-        groups={**FRONTEND, "sync": SYNC}, outputs=_outputs(("out_dir", "dir")),
+        groups={**FRONTEND, "verify": VERIFY, "sync": SYNC},
+        outputs=_outputs(("out_dir", "dir")),
         devices=("device", "matcher.device"), checks=(_check_sync,)),
     "make_data": Command(
         keys={"source": choice("synthetic", "sevenscenes"), "out_dir": path(null=True),

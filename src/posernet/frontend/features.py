@@ -112,18 +112,30 @@ class Matches:
         uv_a, uv_b: (M, 2) float64 pixel coordinates (x, y).
         score: (M,) float64, higher is better (SIFT: 1 - distance ratio; XFeat: cosine similarity;
             LighterGlue: match confidence).
+        idx_a, idx_b: (M,) int64 indices of the matched keypoints in each image's
+            :class:`Features` (what keypoint tracks across images are built from), or ``None``
+            when the matches were made without features.
     """
 
     uv_a: np.ndarray
     uv_b: np.ndarray
     score: np.ndarray
+    idx_a: np.ndarray | None = None
+    idx_b: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.uv_a.shape[0])
 
     @classmethod
     def empty(cls) -> Matches:
-        return cls(np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0))
+        none = np.zeros(0, np.int64)
+        return cls(np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0), none, none.copy())
+
+    def subset(self, keep: np.ndarray) -> Matches:
+        """The matches selected by a boolean mask or index array ``keep``."""
+        ia = None if self.idx_a is None else self.idx_a[keep]
+        ib = None if self.idx_b is None else self.idx_b[keep]
+        return Matches(self.uv_a[keep], self.uv_b[keep], self.score[keep], ia, ib)
 
 
 # --------------------------------------------------------------------------------------------
@@ -305,7 +317,8 @@ class SiftMatcher:
             keep &= (i_ba[i_ab] == np.arange(len(a))) & (r_ba[i_ab] < self.ratio)
         ia = np.flatnonzero(keep)
         ib = i_ab[ia]
-        return Matches(a.uv[ia].copy(), b.uv[ib].copy(), 1.0 - ratio[ia])
+        return Matches(a.uv[ia].copy(), b.uv[ib].copy(), 1.0 - ratio[ia],
+                       ia.astype(np.int64), ib.astype(np.int64))
 
 
 # --------------------------------------------------------------------------------------------
@@ -487,7 +500,8 @@ class XFeatMatcher:
                 score = (da[ia] * db[ib]).sum(1)
             ia, ib = ia.cpu().numpy(), ib.cpu().numpy()
             score = score.double().cpu().numpy()
-        return Matches(a.uv[ia].copy(), b.uv[ib].copy(), score)
+        return Matches(a.uv[ia].copy(), b.uv[ib].copy(), score, ia.astype(np.int64),
+                       ib.astype(np.int64))
 
 
 # --------------------------------------------------------------------------------------------

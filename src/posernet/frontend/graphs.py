@@ -41,6 +41,14 @@ class PairResult:
     pairs known to be wrong (simulator only). ``status``: ``"edge"``, ``"unmatched"`` (fewer than
     ``min_boxes`` matched boxes), ``"kp_failed"`` or ``"bb_failed"`` (a 5-point estimate failed:
     no edge). ``n_kp`` keypoints fed the KP 5-point (``n_kp_outliers`` of them known wrong).
+
+    The image front end may make an edge from one estimate alone (the one the graph is built
+    for): the other is then ``None`` and the graph stores the available one in its place
+    (``meta["substituted"]`` counts them). It also records the two-view verification:
+    ``reason`` (why a pair is not an edge, or ``""``), ``rotation_only`` (the translation
+    direction is meaningless: pure rotation or too small a baseline), ``inliers (I, 2)``
+    keypoint index pairs the verified pose explains (for tracks), ``info`` the verification's
+    counts and angles.
     """
 
     a: int
@@ -53,6 +61,10 @@ class PairResult:
     kp: tuple[np.ndarray, np.ndarray] | None
     bb: tuple[np.ndarray, np.ndarray] | None
     status: str
+    reason: str = ""
+    rotation_only: bool = False
+    inliers: np.ndarray | None = None
+    info: dict = field(default_factory=dict)
 
     @property
     def is_edge(self) -> bool:
@@ -144,8 +156,8 @@ def _pose_vecs(poses: list[tuple[np.ndarray, np.ndarray]], forward: list[bool]) 
     edge is stored the other way round (``forward`` False)."""
     if not poses:
         return torch.zeros(0, 7, dtype=torch.float64)
-    R = torch.from_numpy(np.stack([r for r, _ in poses]))
-    t = torch.from_numpy(np.stack([t for _, t in poses]))
+    R = torch.from_numpy(np.stack([np.asarray(r, np.float64) for r, _ in poses]))
+    t = torch.from_numpy(np.stack([np.asarray(t, np.float64).reshape(3) for _, t in poses]))
     p = matrix_to_pose_vec(make_se3(R, t))
     fwd = torch.tensor(forward)
     return torch.where(fwd[:, None], p, invert_pose_vec(p))
@@ -210,15 +222,20 @@ def assemble_view_graph(
         stats.kp_outliers += r.n_kp_outliers
 
     ei = torch.tensor([src, dst], dtype=torch.long).reshape(2, -1)
-    est_kp = _pose_vecs([r.kp for r in results], forward)
-    est_bb = _pose_vecs([r.bb for r in results], forward)
+    # an edge made from one estimate alone carries it in the other's place too
+    has = {"kp": [r.kp is not None for r in results], "bb": [r.bb is not None for r in results]}
+    est_kp = _pose_vecs([r.kp if r.kp is not None else r.bb for r in results], forward)
+    est_bb = _pose_vecs([r.bb if r.bb is not None else r.kp for r in results], forward)
     pose_gt = gt = None
     if w2c is not None:
         pose_gt = torch.from_numpy(np.asarray(w2c, dtype=np.float64))  # (N, 4, 4)
         gt = matrix_to_pose_vec(relative_pose(pose_gt[ei[0]], pose_gt[ei[1]]))
         if est_kp.shape[0]:
             for name, est in (("kp", est_kp), ("bb", est_bb)):
-                rot, tdir = relative_pose_errors(est, gt)
+                own = torch.tensor(has[name], dtype=torch.bool)
+                if not bool(own.any()):
+                    continue
+                rot, tdir = relative_pose_errors(est[own], gt[own])
                 stats.errors[f"{name}_rot"] = float(rot.mean())
                 stats.errors[f"{name}_tdir"] = float(tdir.mean())
     Kt = torch.from_numpy(np.asarray(K, dtype=np.float64))
@@ -235,6 +252,9 @@ def assemble_view_graph(
     det_box = normalize_boxes(torch.from_numpy(all_boxes), det_size)
     meta = dict(meta or {})
     meta.update(num_dropped_kp=stats.dropped_kp, num_dropped_bb=stats.dropped_bb)
+    missing = {k: len(v) - sum(v) for k, v in has.items() if len(v) - sum(v)}
+    if missing:
+        meta["substituted"] = missing
     k1t = torch.as_tensor(np.asarray(k1, dtype=np.float64)) if np.ndim(k1) else float(k1)
     g = ViewGraph(
         node_attr=node_attributes(Kt, sizes, k1t),

@@ -22,6 +22,7 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any
 
+import cv2
 import numpy as np
 from tqdm.auto import tqdm
 
@@ -30,6 +31,7 @@ from .boxmatch import BoxMatchRules, box_centres, keypoints_in_matched_boxes, ma
 from .graphs import GraphStats, PairResult, assemble_view_graph
 from .images import ImageRecord, read_image
 from .relpose import PoseOptions, five_point
+from .verify import VerifyRules, epipolar_consistent, keypoint_contrast, verify_two_view
 
 __all__ = ["FrontendSummary", "ImageFrontend", "pair_seed"]
 
@@ -50,6 +52,9 @@ class FrontendSummary:
     images_without_boxes: int = 0
     pairs: Counter = field(default_factory=Counter)  # status -> count, plus "too_few_matches"
     seconds: Counter = field(default_factory=Counter)  # stage -> wall time
+    rejected: Counter = field(default_factory=Counter)  # "kp:<reason>" / "bb:<reason>" -> count
+    rotation_only: int = 0  # edges whose translation direction is meaningless
+    flat_keypoints: int = 0  # keypoints dropped on uniform patches
 
     def lines(self) -> list[str]:
         """Human-readable summary lines (counts, then time per image / per pair)."""
@@ -60,9 +65,14 @@ class FrontendSummary:
             f"pairs: {n_pairs} checked, {self.pairs['edge']} edges; skipped: "
             f"{self.pairs['too_few_matches']} with too few keypoint matches, "
             f"{self.pairs['unmatched'] - self.pairs['too_few_matches']} with too few matched "
-            f"boxes, {self.pairs['kp_failed']} KP and {self.pairs['bb_failed']} BB 5-point "
-            "failures",
+            f"boxes, {self.pairs['kp_failed']} KP and {self.pairs['bb_failed']} BB two-view "
+            "rejections",
         ]
+        if self.rejected or self.rotation_only:
+            why = ", ".join(f"{k} {v}" for k, v in sorted(self.rejected.items()))
+            out.append(f"verification: {self.rotation_only} rotation-only edges"
+                       + (f"; rejected: {why}" if why else "")
+                       + f"; {self.flat_keypoints} keypoints on flat patches dropped")
         if self.images:
             per = ", ".join(f"{k} {1000 * s[k] / self.images:.0f} ms"
                             for k in ("read", "proposals", "features") if k in s)
@@ -75,8 +85,9 @@ class FrontendSummary:
 
     def to_dict(self) -> dict[str, Any]:
         return {"images": self.images, "images_without_boxes": self.images_without_boxes,
-                "pairs": dict(self.pairs), "seconds": {k: round(v, 3)
-                                                       for k, v in self.seconds.items()}}
+                "pairs": dict(self.pairs), "rejected": dict(self.rejected),
+                "rotation_only": self.rotation_only, "flat_keypoints": self.flat_keypoints,
+                "seconds": {k: round(v, 3) for k, v in self.seconds.items()}}
 
 
 @dataclass
@@ -84,6 +95,7 @@ class _ImageData:
     boxes: np.ndarray  # (B, 4) pixel xyxy
     scores: np.ndarray  # (B,)
     features: Any
+    textured: np.ndarray  # (K,) bool: keypoint on a patch with contrast (not a flat region)
 
 
 class ImageFrontend:
@@ -96,6 +108,9 @@ class ImageFrontend:
             (:mod:`posernet.frontend.features`).
         rules: the box-matching rules (paper defaults, one-to-one).
         pose: 5-point + RANSAC options.
+        verify: two-view verification rules (:mod:`posernet.frontend.verify`).
+        estimate: which initial estimate an edge needs (``kp`` or ``bb``); the other is
+            computed too and may be missing.
         kp_top_pairs: KP input from the keypoints of the ``kp_top_pairs`` box pairs sharing the
             most matches (0: every matched box pair, the paper's rule).
         seed: RANSAC seed base (per pair: :func:`pair_seed`).
@@ -110,6 +125,8 @@ class ImageFrontend:
         matcher: Any,
         rules: BoxMatchRules | None = None,
         pose: PoseOptions | None = None,
+        verify: VerifyRules | None = None,
+        estimate: str = "kp",
         kp_top_pairs: int = 0,
         seed: int = 0,
         workers: int = 1,
@@ -122,6 +139,10 @@ class ImageFrontend:
         self.matcher = matcher
         self.rules = rules or BoxMatchRules()
         self.pose = pose or PoseOptions()
+        self.verify = verify or VerifyRules()
+        if estimate not in ("kp", "bb"):
+            raise ValueError(f"estimate must be 'kp' or 'bb', got {estimate!r}")
+        self.estimate = estimate
         self.kp_top_pairs = int(kp_top_pairs)
         self.seed = int(seed)
         self.workers = max(1, int(workers))
@@ -142,10 +163,13 @@ class ImageFrontend:
         props = self.proposals(img, r.key)
         t2 = time.perf_counter()
         feats = self.matcher.extract(img)
+        grey = img if img.ndim == 2 else cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+        contrast = keypoint_contrast(grey, feats.uv, self.verify.contrast_radius)
         t3 = time.perf_counter()
         r.size = (int(w), int(h))
         data = _ImageData(np.asarray(props.boxes, np.float64).reshape(-1, 4),
-                          np.asarray(props.scores, np.float64).reshape(-1), feats)
+                          np.asarray(props.scores, np.float64).reshape(-1), feats,
+                          contrast >= self.verify.min_contrast)
         return i, data, {"read": t1 - t0, "proposals": t2 - t1, "features": t3 - t2}
 
     def prepare(self, ids: Iterable[int] | None = None, progress: bool = True) -> None:
@@ -170,6 +194,7 @@ class ImageFrontend:
     def _store(self, i: int, data: _ImageData, secs: dict[str, float]) -> None:
         self._images[i] = data
         self.summary.seconds.update(secs)
+        self.summary.flat_keypoints += int((~data.textured).sum())
         if data.boxes.shape[0] == 0:
             self.summary.images_without_boxes += 1
             log.warning("image %s: no ROI proposal survived the filters; it cannot join a "
@@ -204,6 +229,8 @@ class ImageFrontend:
         sec = self.summary.seconds
         t0 = time.perf_counter()
         m = self.matcher.match(A.features, B.features)
+        if m.idx_a is not None and m.idx_b is not None:
+            m = m.subset(A.textured[m.idx_a] & B.textured[m.idx_b])
         t1 = time.perf_counter()
         sec["matching"] += t1 - t0
         if self.keep_matches:
@@ -212,27 +239,50 @@ class ImageFrontend:
         rules = self.rules
         if m.uv_a.shape[0] < rules.min_keypoints:  # cannot match a single box pair
             self.summary.pairs["too_few_matches"] += 1
-            return PairResult(a, b, none, none, np.zeros(0, bool), 0, 0, None, None, "unmatched")
+            return PairResult(a, b, none, none, np.zeros(0, bool), 0, 0, None, None, "unmatched",
+                              reason="too_few_matches")
         ia, ib, _ = match_boxes(m.uv_a, m.uv_b, A.boxes, B.boxes, rules.min_keypoints,
                                 rules.min_span, one_to_one=rules.one_to_one)
         t2 = time.perf_counter()
         sec["box_matching"] += t2 - t1
         wrong = np.zeros(ia.size, bool)
         if ia.size < rules.min_boxes:
-            return PairResult(a, b, ia, ib, wrong, 0, 0, None, None, "unmatched")
+            return PairResult(a, b, ia, ib, wrong, 0, 0, None, None, "unmatched",
+                              reason="too_few_matched_boxes")
         inside = keypoints_in_matched_boxes(m.uv_a, m.uv_b, A.boxes, B.boxes, ia, ib,
                                             self.kp_top_pairs)
         p1, p2 = m.uv_a[inside], m.uv_b[inside]
         q, s = self.pose, pair_seed(self.seed, a, b)
-        common = {"prob": q.ransac_prob, "max_iters": q.max_iters, "seed": s, "method": q.method,
-                  "K2": rb.K, "dist1": ra.dist, "dist2": rb.dist}
-        kp = five_point(p1, p2, ra.K, q.kp_threshold, **common)
+        common = {"prob": q.ransac_prob, "max_iters": q.max_iters, "seed": s, "method": q.method}
+        geo = {"K2": rb.K, "dist1": ra.dist, "dist2": rb.dist}
+        kp = verify_two_view(p1, p2, ra.K, rules=self.verify, threshold=q.kp_threshold,
+                             **geo, **common)
         bb = five_point(box_centres(A.boxes[ia]), box_centres(B.boxes[ib]), ra.K,
-                        q.bb_threshold, **common)
+                        q.bb_threshold, **geo, **common)
         sec["five_point"] += time.perf_counter() - t2
-        status = "edge" if kp is not None and bb is not None else (
-            "kp_failed" if kp is None else "bb_failed")
-        return PairResult(a, b, ia, ib, wrong, int(p1.shape[0]), 0, kp, bb, status)
+        if not kp.accepted:
+            self.summary.rejected[f"kp:{kp.status}"] += 1
+        if bb is None:
+            self.summary.rejected["bb:five_point"] += 1
+        need = kp.pose if self.estimate == "kp" else bb
+        if need is None:
+            status = f"{self.estimate}_failed"
+            reason = kp.status if self.estimate == "kp" else "five_point"
+            return PairResult(a, b, ia, ib, wrong, int(p1.shape[0]), 0, kp.pose, bb, status,
+                              reason=reason, info=kp.info)
+        inliers = None
+        if kp.accepted and m.idx_a is not None and m.idx_b is not None:
+            # every match the verified pose explains, in boxes or not, feeds the tracks
+            if kp.rotation_only:  # no depth to check against: the fitted inliers only
+                keep = np.zeros(len(m), bool)
+                keep[np.flatnonzero(inside)[kp.inliers]] = True
+            else:
+                keep = epipolar_consistent(m.uv_a, m.uv_b, kp.R, kp.t, ra.K, **geo,
+                                           threshold=2.0 * q.kp_threshold)
+            inliers = np.stack([m.idx_a[keep], m.idx_b[keep]], axis=1)
+        self.summary.rotation_only += bool(kp.rotation_only)
+        return PairResult(a, b, ia, ib, wrong, int(p1.shape[0]), 0, kp.pose, bb, "edge",
+                          rotation_only=kp.rotation_only, inliers=inliers, info=kp.info)
 
     def evaluate_pairs(self, pairs: Sequence[tuple[int, int]],
                        progress: bool = True) -> list[PairResult]:

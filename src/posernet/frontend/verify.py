@@ -1,0 +1,346 @@
+"""Two-view geometric verification: accept an image pair's relative pose only when the matches
+support it, as structure-from-motion systems do.
+
+:func:`verify_two_view` fits an essential matrix (OpenCV's 5-point inside RANSAC / USAC) to the
+pair's correspondences and then checks, in this order (the first failing rule names the
+rejection, ``TwoView.status``):
+
+* ``too_few_matches``: fewer correspondences than ``min_inliers``.
+* ``static``: most matches do not move between the two images (``max_static_ratio`` of them
+  within ``static_px``): a watermark, a time stamp, sensor dust or a uniform background matched
+  to itself. No real camera motion keeps the scene still in the image, except none at all.
+* ``no_model``: RANSAC found no essential matrix / pose.
+* ``cheirality``: fewer than ``min_front`` of the essential-matrix inliers triangulate in front
+  of both cameras (a wrong or degenerate solution).
+* ``too_few_inliers`` / ``low_inlier_ratio``: fewer than ``min_inliers`` pose inliers, or fewer
+  than ``min_inlier_ratio`` of all correspondences.
+
+A pair that passes is either a full edge (``status="ok"``) or a **rotation-only** edge
+(``status="rotation"``): when a pure rotation explains at least ``max_rotation_ratio`` of the
+pose inliers (the camera turned in place, or moved too little to see depth) or the median
+triangulation angle of the inliers is below ``min_tri_angle``, the translation direction is
+meaningless and must not reach translation averaging; the rotation is kept (the pure-rotation
+fit when that model dominates). ``planar`` is reported when a homography explains at least
+``max_rotation_ratio`` of the inliers but parallax remains (the 5-point solution is kept: it
+handles planar scenes, up to its known two-fold ambiguity, which cheirality resolves).
+
+Keypoints on uniform regions are removed before matching ever sees them
+(:func:`keypoint_contrast`): on an object photographed on black, learned matchers otherwise pair
+up background noise between views from opposite sides.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import cv2
+import numpy as np
+
+from .relpose import METHODS
+
+__all__ = ["TwoView", "VerifyRules", "epipolar_consistent", "keypoint_contrast", "verify_two_view"]
+
+
+@dataclass(frozen=True)
+class VerifyRules:
+    """Thresholds of two-view verification (see the module docstring)."""
+
+    min_inliers: int = 15  # pose inliers (COLMAP's default minimum as well)
+    min_inlier_ratio: float = 0.2  # pose inliers / correspondences
+    min_front: float = 0.9  # share of essential-matrix inliers in front of both cameras
+    max_rotation_ratio: float = 0.9  # pure rotation (or homography) explains this share
+    min_tri_angle: float = 1.0  # degrees: median triangulation angle of a full edge
+    static_px: float = 1.0  # a match moving less than this (pixels) is static ...
+    max_static_ratio: float = 0.5  # ... and a pair with more static matches is rejected
+    min_contrast: float = 3.0  # grey levels: keypoints on flatter patches are dropped
+    contrast_radius: int = 4  # patch half-size (pixels) of the contrast measure
+
+    def __post_init__(self) -> None:
+        if int(self.min_inliers) < 5:
+            raise ValueError(f"min_inliers must be >= 5 (the 5-point minimum), got "
+                             f"{self.min_inliers}")
+        for name in ("min_inlier_ratio", "min_front", "max_rotation_ratio", "max_static_ratio"):
+            v = float(getattr(self, name))
+            if not 0.0 <= v <= 1.0:
+                raise ValueError(f"{name} must be in [0, 1], got {v}")
+        for name in ("min_tri_angle", "static_px", "min_contrast"):
+            v = float(getattr(self, name))
+            if not (np.isfinite(v) and v >= 0):
+                raise ValueError(f"{name} must be a finite number >= 0, got {v}")
+        if int(self.contrast_radius) < 1:
+            raise ValueError(f"contrast_radius must be >= 1, got {self.contrast_radius}")
+
+
+@dataclass
+class TwoView:
+    """The verified geometry of one image pair (poses map camera 1 to camera 2).
+
+    ``R (3, 3)``, unit ``t (3,)`` or ``None`` when rejected; ``inliers (M,)`` bool over the
+    given correspondences; ``status`` ``"ok"``, ``"rotation"`` (rotation-only edge) or the
+    rejection reason; ``info`` the measured quantities (counts, ratios, angles).
+    """
+
+    R: np.ndarray | None
+    t: np.ndarray | None
+    inliers: np.ndarray
+    status: str
+    info: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def accepted(self) -> bool:
+        return self.status in ("ok", "rotation")
+
+    @property
+    def rotation_only(self) -> bool:
+        return self.status == "rotation"
+
+    @property
+    def pose(self) -> tuple[np.ndarray, np.ndarray] | None:
+        return (self.R, self.t) if self.accepted else None
+
+
+def keypoint_contrast(grey: np.ndarray, uv: np.ndarray, radius: int = 4) -> np.ndarray:
+    """Standard deviation of the grey levels in the ``(2r+1)^2`` patch around each keypoint.
+
+    ``grey (H, W)`` uint8 or float image, ``uv (K, 2)`` pixel (x, y); returns ``(K,)``.
+    """
+    if uv.shape[0] == 0:
+        return np.zeros(0)
+    g = grey.astype(np.float32)
+    k = (2 * int(radius) + 1,) * 2
+    mean = cv2.boxFilter(g, -1, k, borderType=cv2.BORDER_REFLECT)
+    sq = cv2.boxFilter(g * g, -1, k, borderType=cv2.BORDER_REFLECT)
+    std = np.sqrt(np.maximum(sq - mean * mean, 0.0))
+    h, w = g.shape[:2]
+    x = np.clip(np.rint(uv[:, 0]).astype(np.int64), 0, w - 1)
+    y = np.clip(np.rint(uv[:, 1]).astype(np.int64), 0, h - 1)
+    return std[y, x].astype(np.float64)
+
+
+def _bearings(x: np.ndarray) -> np.ndarray:
+    """Normalised image coordinates ``(M, 2)`` -> unit bearing vectors ``(M, 3)``."""
+    b = np.concatenate([x, np.ones((x.shape[0], 1))], axis=1)
+    return b / np.linalg.norm(b, axis=1, keepdims=True)
+
+
+def _fit_rotation(b1: np.ndarray, b2: np.ndarray) -> np.ndarray:
+    """Least-squares rotation with ``b2 ~ R b1`` (Kabsch on unit bearings ``(M, 3)``)."""
+    U, _, Vt = np.linalg.svd(b2.T @ b1)
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
+    return U @ D @ Vt
+
+
+def _rotation_support(b1: np.ndarray, b2: np.ndarray,
+                      tol: float) -> tuple[np.ndarray, np.ndarray]:
+    """Best pure rotation of the bearings (two refits on its own inliers) and its inliers."""
+    R = _fit_rotation(b1, b2)
+    for _ in range(2):
+        ok = np.linalg.norm(b2 - b1 @ R.T, axis=1) < tol
+        if ok.sum() < 3:
+            break
+        R = _fit_rotation(b1[ok], b2[ok])
+    return R, np.linalg.norm(b2 - b1 @ R.T, axis=1) < tol
+
+
+def _triangulation_angles(x1: np.ndarray, x2: np.ndarray, R: np.ndarray,
+                          t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per correspondence (normalised coords ``(M, 2)``): the angle (degrees) between the two
+    viewing rays at the triangulated point, and whether it lies in front of both cameras."""
+    P1 = np.hstack([np.eye(3), np.zeros((3, 1))])
+    P2 = np.hstack([R, t.reshape(3, 1)])
+    Xh = cv2.triangulatePoints(P1, P2, x1.T.astype(np.float64), x2.T.astype(np.float64))
+    w = Xh[3]
+    X = (Xh[:3] / np.where(np.abs(w) > 1e-12, w, 1e-12)).T  # (M, 3) in camera 1
+    c2 = -R.T @ t
+    r1, r2 = X, X - c2
+    cos = (r1 * r2).sum(1) / np.maximum(np.linalg.norm(r1, axis=1) * np.linalg.norm(r2, axis=1),
+                                        1e-300)
+    ang = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+    front = (X[:, 2] > 0) & ((X @ R.T + t)[:, 2] > 0) & np.isfinite(X).all(1)
+    return ang, front
+
+
+def _normalised(p: np.ndarray, K: np.ndarray, dist: np.ndarray | None) -> np.ndarray:
+    d = None if dist is None else np.asarray(dist, dtype=np.float64).reshape(-1)
+    return cv2.undistortPoints(p.reshape(-1, 1, 2).astype(np.float64), K, d).reshape(-1, 2)
+
+
+def verify_two_view(
+    p1: np.ndarray,
+    p2: np.ndarray,
+    K1: np.ndarray,
+    K2: np.ndarray | None = None,
+    dist1: np.ndarray | None = None,
+    dist2: np.ndarray | None = None,
+    rules: VerifyRules | None = None,
+    threshold: float = 1.0,
+    prob: float = 0.999,
+    max_iters: int = 1000,
+    seed: int = 0,
+    method: str = "usac",
+) -> TwoView:
+    """Verified relative pose from pixel correspondences ``p1, p2 (M, 2)``.
+
+    ``K1``/``K2 (3, 3)`` intrinsics (``K2`` defaults to ``K1``), ``dist1``/``dist2`` OpenCV
+    distortion coefficients or ``None``; ``threshold`` the RANSAC threshold in pixels (on the
+    undistorted, normalised points it is divided by the mean focal length). Never raises on
+    degenerate input: the returned :class:`TwoView` says why it was rejected.
+    """
+    rules = rules or VerifyRules()
+    if method not in METHODS:
+        raise ValueError(f"unknown 5-point method {method!r}; choose from {sorted(METHODS)}")
+    p1 = np.asarray(p1, dtype=np.float64).reshape(-1, 2)
+    p2 = np.asarray(p2, dtype=np.float64).reshape(-1, 2)
+    if p1.shape != p2.shape:
+        raise ValueError(f"correspondences differ in shape: {p1.shape} vs {p2.shape}")
+    M = p1.shape[0]
+    none = np.zeros(M, bool)
+    info: dict[str, Any] = {"matches": M}
+
+    def reject(status: str, inliers: np.ndarray = none) -> TwoView:
+        return TwoView(None, None, inliers, status, info)
+
+    if M < max(5, int(rules.min_inliers)):
+        return reject("too_few_matches")
+    static = float((np.linalg.norm(p2 - p1, axis=1) < rules.static_px).mean())
+    info["static_ratio"] = round(static, 4)
+    if static > rules.max_static_ratio:
+        return reject("static")
+    K1 = np.asarray(K1, dtype=np.float64)
+    K2 = K1 if K2 is None else np.asarray(K2, dtype=np.float64)
+    x1, x2 = _normalised(p1, K1, dist1), _normalised(p2, K2, dist2)
+    if not (np.isfinite(x1).all() and np.isfinite(x2).all()):
+        return reject("no_model")
+    f = 0.25 * (K1[0, 0] + K1[1, 1] + K2[0, 0] + K2[1, 1])
+    thr = threshold / f
+    cv2.setRNGSeed(int(seed) & 0x7FFFFFFF)
+    try:
+        E, mask = cv2.findEssentialMat(x1, x2, np.eye(3), method=METHODS[method], prob=prob,
+                                       threshold=thr, maxIters=max_iters)
+        if E is None or E.shape[0] < 3 or E.shape[1] != 3 or not np.isfinite(E[:3]).all():
+            return reject("no_model")
+        E = np.ascontiguousarray(E[:3])
+        e_in = mask.reshape(-1).astype(bool)
+        _, R, t, pmask = cv2.recoverPose(E, x1, x2, np.eye(3), mask=mask.copy())
+    except cv2.error:
+        return reject("no_model")
+    if R is None or t is None or not (np.isfinite(R).all() and np.isfinite(t).all()):
+        return reject("no_model")
+    t = t.reshape(3)
+    if np.linalg.norm(t) < 1e-9 or abs(np.linalg.det(R) - 1.0) > 1e-3:
+        return reject("no_model")
+    t = t / np.linalg.norm(t)
+    n_e = int(e_in.sum())
+    info["essential_inliers"] = n_e
+    if n_e < 5:
+        return reject("too_few_inliers", e_in)
+
+    def enough(inl: np.ndarray) -> str | None:
+        """The count / ratio rule on a final inlier set (``None``: passes)."""
+        info.update(inliers=int(inl.sum()), inlier_ratio=round(float(inl.sum()) / M, 4))
+        if inl.sum() < rules.min_inliers:
+            return "too_few_inliers"
+        if inl.sum() / M < rules.min_inlier_ratio:
+            return "low_inlier_ratio"
+        return None
+
+    # Degeneracies first: under a pure rotation or on a plane the essential matrix is not
+    # unique, and its cheirality test fails for reasons that say nothing about the pair.
+    b1, b2 = _bearings(x1), _bearings(x2)
+    R_rot, rot_ok = _rotation_support(b1[e_in], b2[e_in], 2.0 * thr)
+    rot_ratio = float(rot_ok.mean())
+    info["rotation_ratio"] = round(rot_ratio, 4)
+    if rot_ratio >= rules.max_rotation_ratio:
+        inl = np.zeros(M, bool)
+        inl[np.flatnonzero(e_in)[rot_ok]] = True
+        why = enough(inl)
+        return reject(why, inl) if why else TwoView(R_rot, t, inl, "rotation", info)
+    H_sol = _homography_pose(x1[e_in], x2[e_in], 2.0 * thr)
+    h_ratio = H_sol[3] if H_sol is not None else 0.0
+    info["homography_ratio"] = round(h_ratio, 4)
+    planar = h_ratio >= rules.max_rotation_ratio
+    info["planar"] = planar
+    inl = pmask.reshape(-1).astype(bool) & e_in
+    if planar and H_sol is not None and H_sol[2] > inl.sum():
+        # the plane's decomposition puts more points in front than the essential matrix did
+        R, t = H_sol[0], H_sol[1]
+        inl = np.zeros(M, bool)
+        inl[np.flatnonzero(e_in)[H_sol[4]]] = True
+    front = float(inl.sum()) / n_e
+    info["front_ratio"] = round(front, 4)
+    if front < rules.min_front:
+        info.update(inliers=int(inl.sum()), inlier_ratio=round(float(inl.sum()) / M, 4))
+        return reject("cheirality", inl)
+    why = enough(inl)
+    if why:
+        return reject(why, inl)
+    ang, _ = _triangulation_angles(x1[inl], x2[inl], R, t)
+    tri = float(np.median(ang))
+    info["tri_angle"] = round(tri, 3)
+    if tri < rules.min_tri_angle:
+        return TwoView(R, t, inl, "rotation", info)
+    return TwoView(R, t, inl, "ok", info)
+
+
+def _homography_pose(x1: np.ndarray, x2: np.ndarray, thr: float) -> tuple | None:
+    """For normalised correspondences ``(M, 2)``: the homography's best decomposition
+    ``(R, unit t, points in front, support ratio, front mask)``, or ``None``."""
+    if x1.shape[0] < 4:
+        return None
+    try:
+        # a plane that matters explains >= 90 % of the points: a few hundred draws find it
+        H, hmask = cv2.findHomography(x1, x2, cv2.RANSAC, thr, maxIters=300, confidence=0.99)
+    except cv2.error:
+        return None
+    if H is None or hmask is None or not np.isfinite(H).all():
+        return None
+    ratio = float(hmask.mean())
+    try:
+        _, Rs, ts, _ = cv2.decomposeHomographyMat(H, np.eye(3))
+    except cv2.error:
+        return None
+    best = None
+    for Rk, tk in zip(Rs, ts, strict=True):
+        tk = tk.reshape(3)
+        nt = float(np.linalg.norm(tk))
+        if nt < 1e-9 or not np.isfinite(Rk).all():
+            continue
+        _, front = _triangulation_angles(x1, x2, Rk, tk / nt)
+        if best is None or front.sum() > best[2]:
+            best = (Rk, tk / nt, int(front.sum()), ratio, front)
+    return best
+
+
+def epipolar_consistent(
+    p1: np.ndarray,
+    p2: np.ndarray,
+    R: np.ndarray,
+    t: np.ndarray,
+    K1: np.ndarray,
+    K2: np.ndarray | None = None,
+    dist1: np.ndarray | None = None,
+    dist2: np.ndarray | None = None,
+    threshold: float = 1.0,
+) -> np.ndarray:
+    """``(M,)`` mask of correspondences ``p1, p2 (M, 2)`` (pixels) that agree with the verified
+    pose ``R, t``: Sampson distance below ``threshold`` pixels and in front of both cameras.
+
+    Used to collect every match a verified pose explains (not only those it was fitted on) for
+    keypoint tracks."""
+    if p1.shape[0] == 0:
+        return np.zeros(0, bool)
+    K1 = np.asarray(K1, dtype=np.float64)
+    K2 = K1 if K2 is None else np.asarray(K2, dtype=np.float64)
+    x1, x2 = _normalised(p1, K1, dist1), _normalised(p2, K2, dist2)
+    tx = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
+    E = tx @ R
+    h1 = np.concatenate([x1, np.ones((x1.shape[0], 1))], 1)
+    h2 = np.concatenate([x2, np.ones((x2.shape[0], 1))], 1)
+    Ex1, Etx2 = h1 @ E.T, h2 @ E
+    num = (h2 * Ex1).sum(1) ** 2
+    den = Ex1[:, 0] ** 2 + Ex1[:, 1] ** 2 + Etx2[:, 0] ** 2 + Etx2[:, 1] ** 2
+    f = 0.25 * (K1[0, 0] + K1[1, 1] + K2[0, 0] + K2[1, 1])
+    sampson = np.sqrt(num / np.maximum(den, 1e-300)) * f
+    _, front = _triangulation_angles(x1, x2, R, t)
+    return (sampson < threshold) & front
