@@ -195,6 +195,10 @@ SYNC: Schema = {
     "solver": choice("auto", "dense", "krylov"), "dense_max_nodes": integer(1),
     "krylov_tol": positive(), "krylov_max_cycles": integer(1), "seed": integer(),
     "refine_iters": integer(0), "translation_iters": integer(1),
+    "weight_mode": choice("start", "prior"), "translation": choice("bata", "lud", "linear"),
+    "triangle_weights": boolean(), "linear_fallback": boolean(),
+    "max_rotation_residual_deg": number(0, null=True),
+    "max_direction_residual_deg": number(0, null=True), "outlier_mad": positive(),
     "rotation_sigma": positive(), "direction_sigma": positive(), "p_min": integer(3),
     "p_max": integer(3), "huber": boolean(), "lm_tol": positive(), "max_iterations": integer(1),
     "ckpt_path": path(), "device": DEVICE,  # the learned backend's
@@ -231,6 +235,15 @@ VERIFY: Schema = {
     "min_front": number(0, 1), "max_rotation_ratio": number(0, 1), "min_tri_angle": number(0),
     "static_px": number(0), "max_static_ratio": number(0, 1), "min_contrast": number(0),
     "contrast_radius": integer(1),
+}
+
+BUNDLE: Schema = {
+    "_target_": text(), "loss": choice("cauchy", "huber", "soft_l1", "linear", "arctan"),
+    "f_scale": positive(), "max_nfev": integer(1), "ftol": positive(), "xtol": positive(),
+    "gtol": positive(), "refine_focal": choice("none", "shared", "per_camera"),
+    "gauge": choice("max_degree", "first"), "accept_unconverged": boolean(),
+    "anneal_factor": number(0), "max_reproj_px": positive(), "initial_reproj_factor": positive(),
+    "min_angle_deg": number(0), "rounds": integer(1), "min_points_per_camera": integer(0),
 }
 
 
@@ -344,12 +357,12 @@ COMMANDS: dict[str, Command] = {
         checks=(_check_sync, _check_dataset)),
     "reconstruct": Command(
         keys={"images": path(), "pattern": text(null=True), "intrinsics": anything(INTRINSICS),
-              "gt_poses": path(null=True), "out_dir": path(), "refine": boolean(),
+              "gt_poses": path(null=True), "out_dir": path(), "refine": boolean(), "ba": boolean(),
               "guard": boolean(), "check_inputs": boolean(),
               "ckpt_path": path(null=True), "estimate": ESTIMATE, "kp_top_pairs": integer(0),
               "seed": SEED, "workers": integer(1), "pictures": integer(0), "device": DEVICE,
               "num_threads": THREADS, "progress": boolean(), "digits": DIGITS},
-        groups={**FRONTEND, "verify": VERIFY, "sync": SYNC},
+        groups={**FRONTEND, "verify": VERIFY, "bundle": BUNDLE, "sync": SYNC},
         outputs=_outputs(("out_dir", "dir")),
         devices=("device", "matcher.device"), checks=(_check_sync,)),
     "make_data": Command(

@@ -29,6 +29,8 @@ Modules: :mod:`~posernet.sync.backend` (interface, result, input checks, scale p
 :mod:`~posernet.sync.components` (connected components), :mod:`~posernet.sync.padding` (the
 padded per-component layout), :mod:`~posernet.sync.robust` (IRLS weights),
 :mod:`~posernet.sync.spectral` (spectral rotation synchronisation shared by the backends),
+:mod:`~posernet.sync.translation` (robust scale-free position solvers and the edge pruning of
+``rotation_translation``),
 :mod:`~posernet.sync.differentiable` (a differentiable spectral synchronisation and the aligned
 absolute-pose loss, for end-to-end training), :mod:`~posernet.sync.learned` (the learned
 synchronisation backend, imported on first use).

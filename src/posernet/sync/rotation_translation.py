@@ -14,6 +14,15 @@ convention ``t_e = t_j - R_j R_i^T t_i = -R_j (c_j - c_i)``, edge ``e`` says
 ``c_j - c_i = u_e := -R_j^T t_e`` (world frame).
 
 * ``scale="free"`` (default; scale-free, only the directions ``d_e = u_e / |u_e|`` are used):
+  the translation stage (:func:`translation_stage`) drops edges without a usable direction
+  (zero translation, or a translation weight of 0) and rotation outliers (residual above
+  ``max_rotation_residual_deg``), solves the positions with ``translation`` = ``bata``
+  (default) / ``lud`` (:mod:`posernet.sync.translation`; started from triangle-consistency
+  weights) or ``linear`` (below), keeps the linear solution per component where it fits the
+  kept directions better in summed angle, then drops edges whose baseline is more than
+  ``max_direction_residual_deg`` off their direction and re-solves. Prunings that would cost a
+  component its parallel rigidity are skipped there; ``SyncResult.info`` reports all of it.
+  The ``linear`` solver:
   minimise ``sum_e a_e |P_e (c_j - c_i)|^2`` with ``P_e = I - d_e d_e^T`` (the component of
   the baseline orthogonal to its measured direction) subject to the gauge ``sum_i c_i = 0``
   and ``sum_e a_e d_e . (c_j - c_i) = sum_e a_e`` (fixes scale *and* sign: baselines point
@@ -48,22 +57,68 @@ from .components import Components
 from .padding import PaddedProblem, assemble, build_padded, edge_rotations
 from .robust import mad_cauchy_weights, mad_huber_weights
 from .spectral import SpectralOptions, rotation_irls, split_by_size
+from .translation import (
+    direction_residual_deg,
+    gather,
+    incidence_rhs,
+    laplacian_solve,
+    mad_threshold,
+    parallel_rigid,
+    rotation_residual_deg,
+    translations_bata,
+    translations_lud,
+    triangle_weights,
+)
 from .weighted import WEIGHT_MODES, padded_weights, weighted_rotation_irls
 
-__all__ = ["RotationTranslation", "RotationTranslationOptions", "refine_rotations",
+__all__ = ["TRANSLATION_METHODS", "RotationTranslation", "RotationTranslationOptions",
+           "TranslationStage", "refine_rotations", "translation_stage",
            "translations_from_directions", "translations_metric"]
+
+TRANSLATION_METHODS: tuple[str, ...] = ("bata", "lud", "linear")
+#: largest component (cameras) that gets triangle-consistency start weights (dense n^3 work)
+TRIANGLE_MAX_NODES = 96
 
 
 @dataclass(frozen=True)
 class RotationTranslationOptions(SpectralOptions):
     """:class:`~posernet.sync.spectral.SpectralOptions` for the spectral rotation IRLS (as
-    EIG-SE3), plus ``refine_iters``: geodesic refinement steps (0 = off) and
-    ``translation_iters``: IRLS steps of the translation stage; default scale ``free``."""
+    EIG-SE3), plus
+
+    * ``refine_iters``: geodesic refinement steps (0 = off);
+    * ``translation``: the scale-free position solver, ``bata`` (default), ``lud`` or
+      ``linear`` (the bearing least squares with Huber IRLS used before ``bata``);
+    * ``translation_iters``: IRLS steps of the translation stage (``lud`` runs 5x as many: its
+      alternation converges more slowly);
+    * ``max_rotation_residual_deg``: edges whose residual ``|log(R_j^T R_e R_i)|`` after the
+      rotation solve exceeds ``max(this, median + outlier_mad * 1.4826 * MAD)`` are left out of
+      the translation stage (``None`` or 0 = keep all);
+    * ``max_direction_residual_deg``: after the position solve, edges whose baseline is more
+      than ``max(this, median + outlier_mad * 1.4826 * MAD)`` degrees from their direction are
+      dropped and the positions re-solved (``None`` or 0 = off);
+    * ``outlier_mad``: the MAD multiplier of both thresholds (noisy graphs raise them);
+    * ``triangle_weights``: start the position solve from triangle-consistency weights
+      (:func:`~posernet.sync.translation.triangle_weights`; components of up to
+      :data:`TRIANGLE_MAX_NODES` cameras) -- the robust solvers only reach the right basin
+      when wrong directions are already down-weighted at the start;
+    * ``linear_fallback``: per component, keep the ``linear`` solution instead of the
+      ``bata``/``lud`` one where it has the smaller summed angle between baselines and kept
+      directions (guards sparse graphs against a redescending loss switching off needed edges);
+
+    default scale ``free``. Both prunings are undone for a component where they would cost
+    parallel rigidity (the positions would no longer be determined).
+    """
 
     scale: str = "free"
     refine_iters: int = 20
     translation_iters: int = 20
     weight_mode: str = "start"  # per-edge weights given to solve(): start | prior (weighted.py)
+    translation: str = "bata"
+    max_rotation_residual_deg: float | None = 5.0
+    max_direction_residual_deg: float | None = 30.0
+    outlier_mad: float = 3.0
+    triangle_weights: bool = True
+    linear_fallback: bool = True
 
     def check(self) -> None:
         super().check()
@@ -73,6 +128,21 @@ class RotationTranslationOptions(SpectralOptions):
         check_positive("translation_iters", self.translation_iters, integer=True)
         if not isinstance(self.refine_iters, int) or self.refine_iters < 0:
             raise ValueError(f"refine_iters must be an integer >= 0, got {self.refine_iters!r}")
+        if self.translation not in TRANSLATION_METHODS:
+            raise ValueError(f"translation={self.translation!r}; choose one of "
+                             f"{list(TRANSLATION_METHODS)}")
+        for name in ("max_rotation_residual_deg", "max_direction_residual_deg"):
+            v = getattr(self, name)
+            if v is not None and (isinstance(v, bool) or not isinstance(v, (int, float))
+                                  or not 0 <= v <= 180):
+                raise ValueError(f"{name} must be null or a number of degrees in [0, 180], "
+                                 f"got {v!r}")
+        for name in ("triangle_weights", "linear_fallback"):
+            if not isinstance(getattr(self, name), bool):
+                raise ValueError(f"{name} must be true/false, got {getattr(self, name)!r}")
+        if isinstance(self.outlier_mad, bool) or not isinstance(self.outlier_mad, (int, float)) \
+                or not self.outlier_mad >= 0:
+            raise ValueError(f"outlier_mad must be a number >= 0, got {self.outlier_mad!r}")
 
 
 # Robust weights are floored at this value on real edges: a Cauchy weight can underflow to 0
@@ -96,21 +166,9 @@ def _laplacian(prob: PaddedProblem, w: Tensor) -> Tensor:
     return L + torch.diag_embed(1.0 - vm)
 
 
-def _incidence_rhs(prob: PaddedProblem, w: Tensor, v: Tensor) -> Tensor:
-    """``B^T W v``: for each edge ``e = i -> j`` add ``w v`` at ``j`` and subtract at ``i``."""
-    G, n = prob.G, prob.n
-    out = torch.zeros(G * n, v.shape[-1], dtype=v.dtype, device=v.device)
-    base = torch.arange(G, device=v.device)[:, None] * n
-    wv = (w[..., None] * v).reshape(-1, v.shape[-1])
-    out.index_add_(0, (base + prob.dst).flatten(), wv)
-    out.index_add_(0, (base + prob.src).flatten(), -wv)
-    return out.view(G, n, -1)
-
-
-def _gather(x: Tensor, idx: Tensor) -> Tensor:
-    """``x[g, idx[g, e]]`` for ``x [G, n, ...]``, ``idx [G, m]``."""
-    gi = torch.arange(x.shape[0], device=x.device)[:, None].expand_as(idx)
-    return x[gi, idx]
+# shared with the robust translation solvers (:mod:`posernet.sync.translation`)
+_incidence_rhs = incidence_rhs
+_gather = gather
 
 
 def refine_rotations(prob: PaddedProblem, R: Tensor, iters: int, robust: bool,
@@ -140,21 +198,29 @@ def _world_baselines(prob: PaddedProblem, R: Tensor) -> Tensor:
 
 
 def translations_metric(prob: PaddedProblem, R: Tensor, iters: int, robust: bool,
-                        theta: float) -> Tensor:
-    """Camera centres ``[G, n, 3]`` (mean 0) from metric world baselines; Cauchy IRLS."""
+                        theta: float, keep: Tensor | None = None) -> Tensor:
+    """Camera centres ``[G, n, 3]`` (mean 0) from metric world baselines; Cauchy IRLS.
+
+    ``keep [G, m]``: edges to use (all when omitted); the others have no influence at all (a
+    graph they split gets the tiny ridge of :func:`~posernet.sync.translation.laplacian_solve`).
+    """
     u = _world_baselines(prob, R)
-    w = prob.edge_mask.to(R.dtype)
+    mask = prob.edge_mask if keep is None else prob.edge_mask & keep
+    w = mask.to(R.dtype)
     c = torch.zeros(prob.G, prob.n, 3, dtype=R.dtype, device=R.device)
     for _ in range(iters if robust else 1):
-        c_new = torch.linalg.solve(_laplacian(prob, w), _incidence_rhs(prob, w, u))
+        if keep is None:
+            c_new = torch.linalg.solve(_laplacian(prob, w), _incidence_rhs(prob, w, u))
+        else:
+            c_new = laplacian_solve(prob, w, u)
         c_new = c_new * prob.node_mask[..., None]
         change = float((c_new - c).abs().max())
         c = c_new
         if not robust:
             break
         r = (_gather(c, prob.dst) - _gather(c, prob.src) - u).norm(dim=-1)
-        w = mad_cauchy_weights(r, prob.edge_mask, theta)
-        w = torch.maximum(w, WEIGHT_FLOOR * prob.edge_mask.to(w.dtype))
+        w = mad_cauchy_weights(r, mask, theta)
+        w = torch.maximum(w, WEIGHT_FLOOR * mask.to(w.dtype))
         if change < 1e-12 * max(1.0, float(c.abs().max())):
             break
     return c
@@ -166,7 +232,9 @@ def translations_from_directions(prob: PaddedProblem, R: Tensor, iters: int, rob
     """Scale-free camera centres ``[G, n, 3]`` (centroid 0, RMS radius 1) from directions.
 
     See the module docstring for the objective, constraints and reweighting. ``w0 [G, m]``:
-    optional starting edge weights (per-edge confidence; uniform when omitted).
+    optional starting edge weights (per-edge confidence; uniform when omitted); an edge with
+    ``w0 = 0`` is left out entirely (it has no usable direction or was pruned). A component left
+    without any edge gets all its centres at 0.
     """
     G, n, m = prob.G, prob.n, prob.m
     dt, dev = R.dtype, R.device
@@ -174,6 +242,9 @@ def translations_from_directions(prob: PaddedProblem, R: Tensor, iters: int, rob
     un = u.norm(dim=-1, keepdim=True)
     d = torch.where(un > 0, u / un.clamp_min(1e-300), torch.zeros_like(u))
     emask = prob.edge_mask & (un.squeeze(-1) > 0)
+    if w0 is not None:
+        emask = emask & (w0 > 0)
+    empty = ~emask.any(1)
     P = torch.eye(3, dtype=dt, device=dev) - d[..., :, None] * d[..., None, :]
     gi = torch.arange(G, device=dev)[:, None].expand(G, m)
     vm = prob.node_mask.to(dt)
@@ -188,7 +259,8 @@ def translations_from_directions(prob: PaddedProblem, R: Tensor, iters: int, rob
         K.index_put_((gi, prob.src, prob.dst), -aP, accumulate=True)
         K.index_put_((gi, prob.dst, prob.src), -aP, accumulate=True)
         K = K.permute(0, 1, 3, 2, 4).reshape(G, 3 * n, 3 * n)
-        scale = K.diagonal(dim1=-2, dim2=-1).mean(-1).clamp_min(1e-300)
+        scale = K.diagonal(dim1=-2, dim2=-1).mean(-1)
+        scale = torch.where(empty, torch.ones_like(scale), scale.clamp_min(1e-300))
         A = torch.zeros(G, size, size, dtype=dt, device=dev)
         A[:, :3 * n, :3 * n] = 2.0 * K
         # Constraint rows: sum_i c_i = 0 (3 rows), sum_e a_e d_e . (c_j - c_i) = sum_e a_e.
@@ -199,6 +271,8 @@ def translations_from_directions(prob: PaddedProblem, R: Tensor, iters: int, rob
         C = C.reshape(G, 4, 3 * n)
         A[:, 3 * n:, :3 * n] = C
         A[:, :3 * n, 3 * n:] = C.mT
+        # No edge at all: the scale row is empty; a unit multiplier keeps the system regular.
+        A[:, -1, -1] = empty.to(dt)
         # Padded unknowns: identity rows keep them at 0.
         A[:, :3 * n, :3 * n] += torch.diag_embed(1.0 - vm.repeat_interleave(3, dim=1))
         rhs = torch.zeros(G, size, 1, dtype=dt, device=dev)
@@ -232,8 +306,139 @@ def translations_from_directions(prob: PaddedProblem, R: Tensor, iters: int, rob
     return c / rms.sqrt().clamp_min(1e-300)[:, None, None]
 
 
+@dataclass
+class TranslationStage:
+    """What the scale-free translation stage did, per padded edge ``[G, m]`` / component
+    ``[G]``: ``c [G, n, 3]`` centres (centroid 0, RMS 1); ``usable`` edges with a direction
+    (non-zero translation and translation weight); ``rotation_outlier`` / ``direction_outlier``
+    edges the prunings dropped; ``used`` the edges of the final solve; ``weight`` their final
+    translation weights (0 elsewhere); ``rotation_residual`` / ``direction_residual`` in degrees;
+    ``rigid`` whether the used edges make the component parallel rigid (if not, some relative
+    positions are undetermined and the answer is only one finite choice among many);
+    ``fallback [G]`` the linear solution was kept (``linear_fallback``)."""
+
+    c: Tensor
+    usable: Tensor
+    rotation_outlier: Tensor
+    direction_outlier: Tensor
+    used: Tensor
+    weight: Tensor
+    rotation_residual: Tensor
+    direction_residual: Tensor
+    rigid: Tensor
+    fallback: Tensor
+
+
+def _solve_positions(prob: PaddedProblem, R: Tensor, d: Tensor, keep: Tensor, w_start: Tensor,
+                     w_prior: Tensor, c0: Tensor | None, o: RotationTranslationOptions
+                     ) -> tuple[Tensor, Tensor]:
+    """Centres ``[G, n, 3]`` and final weights ``[G, m]`` from the edges ``keep`` with the
+    chosen method; ``c0`` a start (``None``: the linear solution)."""
+    km = keep.to(R.dtype)
+    if o.translation == "linear":
+        c = translations_from_directions(prob, R, o.translation_iters, o.robust, o.theta,
+                                         w0=w_start * km)
+        return c, km
+    if c0 is None:
+        # One weighted bearing solve, no re-weighting: the Huber IRLS of the linear method
+        # forgets the start weights and lets edges collapse onto wrong directions (its 1 / l^2
+        # factor rewards short baselines), a worse start than the plain weighted solution.
+        c0 = translations_from_directions(prob, R, 1, False, o.theta, w0=w_start * km)
+    if o.translation == "bata":
+        return translations_bata(prob, d, keep, w_prior * km, c0, o.translation_iters, o.theta)
+    return translations_lud(prob, d, keep, w_prior * km, c0, 5 * o.translation_iters)
+
+
+def translation_stage(prob: PaddedProblem, R: Tensor, o: RotationTranslationOptions,
+                      w_t: Tensor | None = None) -> TranslationStage:
+    """Scale-free positions from the edge directions and the averaged rotations ``R``.
+
+    1. usable edges: a non-zero translation and, when given, a translation weight ``w_t > 0``
+       (``w_t [G, m]`` from :func:`~posernet.sync.weighted.padded_weights` with zeros kept);
+    2. rotation outliers (residual above ``max_rotation_residual_deg``, MAD-aware) are dropped:
+       a bad relative rotation usually comes with a bad direction, and the IRLS of the rotation
+       stage has already named them;
+    3. positions by ``o.translation`` (``bata``/``lud`` start from the one-shot weighted linear
+       solution, weighted by triangle consistency when ``o.triangle_weights``), or the linear
+       IRLS solution where that fits better in summed angle (``o.linear_fallback``);
+    4. direction outliers (angle between ``c_j - c_i`` and ``d_e`` above
+       ``max_direction_residual_deg``, MAD-aware) are dropped and the positions re-solved.
+
+    A pruning that would cost a component its parallel rigidity is not applied there.
+    """
+    u = _world_baselines(prob, R)
+    un = u.norm(dim=-1)
+    d = u / un.clamp_min(1e-300)[..., None]
+    usable = prob.edge_mask & (un > 0)
+    if w_t is not None:
+        usable = usable & (w_t > 0)
+    ones = prob.edge_mask.to(R.dtype)
+    w_start = w_user = ones if w_t is None else w_t
+    w_prior = w_start if o.weight_mode == "prior" else ones
+    rot_res = rotation_residual_deg(prob, R)
+    none = torch.zeros_like(usable)
+    keep, rot_out = usable, none
+    if o.max_rotation_residual_deg:
+        th = mad_threshold(rot_res, prob.edge_mask, float(o.max_rotation_residual_deg),
+                           o.outlier_mad)
+        rot_out = usable & (rot_res > th[:, None])
+        if bool(rot_out.any()):
+            ok = parallel_rigid(prob, usable & ~rot_out) | ~parallel_rigid(prob, usable)
+            rot_out = rot_out & ok[:, None]
+            keep = usable & ~rot_out
+    if o.triangle_weights and prob.n <= TRIANGLE_MAX_NODES:
+        w_start = w_start * triangle_weights(prob, d, keep, 3.0, 2.0)
+    c, w = _solve_positions(prob, R, d, keep, w_start, w_prior, None, o)
+    fallback = torch.zeros(prob.G, dtype=torch.bool, device=R.device)
+    if o.linear_fallback and o.translation != "linear":
+        # A redescending loss can switch off edges a sparse graph needs, and a bad start can
+        # leave the robust solvers in a wrong basin; where the linear solution fits the kept
+        # directions better in summed angle (an L1 criterion neither solver minimises), it is
+        # kept. Measured: removes the regression on sparse, outlier-free 8-camera graphs and
+        # keeps the gains on graphs with wrong directions.
+        c_lin = translations_from_directions(prob, R, o.translation_iters, o.robust, o.theta,
+                                             w0=w_user * keep.to(R.dtype))
+        km = keep.to(R.dtype)
+        l1_lin = (direction_residual_deg(prob, c_lin, d) * km).sum(1)
+        l1_rob = (direction_residual_deg(prob, c, d) * km).sum(1)
+        fallback = l1_lin < l1_rob
+        c = torch.where(fallback[:, None, None], c_lin, c)
+        w = torch.where(fallback[:, None], km, w)
+    dir_out = none
+    if o.max_direction_residual_deg:
+        ang = direction_residual_deg(prob, c, d)
+        th = mad_threshold(ang, keep, float(o.max_direction_residual_deg), o.outlier_mad)
+        cand = keep & (ang > th[:, None])
+        if bool(cand.any()):
+            # only where the rest still fixes the positions (or never did)
+            ok = cand.any(1) & (parallel_rigid(prob, keep & ~cand)
+                                | ~parallel_rigid(prob, keep))
+            if bool(ok.any()):
+                dir_out = cand & ok[:, None]
+                keep2 = keep & ~dir_out
+                c2, w2 = _solve_positions(prob, R, d, keep2, w_start, w_prior, c, o)
+                c = torch.where(ok[:, None, None], c2, c)
+                w = torch.where(ok[:, None], w2, w)
+                keep = keep2
+    return TranslationStage(
+        c=c, usable=usable, rotation_outlier=rot_out, direction_outlier=dir_out, used=keep,
+        weight=torch.where(keep, w, torch.zeros_like(w)), rotation_residual=rot_res,
+        direction_residual=direction_residual_deg(prob, c, d), rigid=parallel_rigid(prob, keep),
+        fallback=fallback)
+
+
 class RotationTranslation(SyncBackend):
-    """Robust rotation averaging, then translation averaging (scale-free by default)."""
+    """Robust rotation averaging, then translation averaging (scale-free by default).
+
+    With ``scale="free"``, ``SyncResult.info`` holds the translation stage's report: per edge
+    ``[E]`` ``rotation_residual_deg``, ``direction_residual_deg``, ``rotation_outlier`` and
+    ``direction_outlier`` (dropped by the prunings), ``translation_usable`` (has a direction),
+    ``translation_used`` (in the final position solve) and ``translation_weight`` (its final
+    weight, 0 where not used); per graph ``[B]`` ``parallel_rigid`` (False: the used edges leave
+    some relative positions undetermined, the positions returned are one finite choice) and
+    ``linear_fallback`` (some component kept the linear solution).
+    ``SyncResult.edge_weight`` stays the rotation stage's robust weights.
+    """
 
     name = "rotation_translation"
     Options = RotationTranslationOptions
@@ -266,15 +471,48 @@ class RotationTranslation(SyncBackend):
             w_edge[idx, :sub.m] = sol.w_edge
             iters[idx], conv[idx] = sol.iterations, sol.converged
         R = refine_rotations(prob, R, o.refine_iters, o.robust, o.theta)
+        info: dict[str, Any] = {}
+        w_t = None if w is None else padded_weights(prob, w[:, 1], keep_zero=True)
         if o.scale == "free":
-            c = translations_from_directions(
-                prob, R, o.translation_iters, o.robust, o.theta,
-                w0=None if w is None else padded_weights(prob, w[:, 1]))
+            st = translation_stage(prob, R, o, w_t)
+            c = st.c
+            info = self._stage_info(struct, comps, prob, st)
         else:
-            c = translations_metric(prob, R, o.translation_iters, o.robust, o.theta)
+            keep = None if w_t is None else w_t > 0
+            c = translations_metric(prob, R, o.translation_iters, o.robust, o.theta, keep)
         t = -(R @ c[..., None]).squeeze(-1)
         poses, solved, w, it, cv = assemble(struct, comps, prob, R, t, w_edge, iters, conv,
                                             edge_pose.dtype, edge_pose.device)
         return SyncResult(poses=poses, component=comps.comp, solved=solved, edge_weight=w,
                           iterations=it, converged=cv, scale=o.scale, metric=self.metric,
-                          backend=self.name)
+                          backend=self.name, info=info)
+
+    @staticmethod
+    def _stage_info(struct: dict[str, Any], comps: Components, prob: PaddedProblem,
+                    st: TranslationStage) -> dict[str, Any]:
+        """The translation stage's per-edge ``[E]`` and per-graph ``[B]`` report (see
+        :class:`RotationTranslation`)."""
+        E, B = struct["edge_index"].shape[1], struct["num_graphs"]
+        dev = struct["edge_index"].device
+        sel, ids = prob.edge_mask, prob.edge[prob.edge_mask]
+
+        def per_edge(x: Tensor, fill: float | bool) -> Tensor:
+            out = torch.full((E,), fill, dtype=x.dtype, device=dev)
+            out[ids] = x[sel]
+            return out
+
+        rigid = torch.ones(B, dtype=torch.bool, device=dev)
+        rigid.scatter_reduce_(0, comps.graph[prob.comp_id], st.rigid, reduce="amin")
+        fallback = torch.zeros(B, dtype=torch.bool, device=dev)
+        fallback.scatter_reduce_(0, comps.graph[prob.comp_id], st.fallback, reduce="amax")
+        return {
+            "rotation_residual_deg": per_edge(st.rotation_residual, 0.0),
+            "direction_residual_deg": per_edge(st.direction_residual, 0.0),
+            "rotation_outlier": per_edge(st.rotation_outlier, False),
+            "direction_outlier": per_edge(st.direction_outlier, False),
+            "translation_usable": per_edge(st.usable, False),
+            "translation_used": per_edge(st.used, False),
+            "translation_weight": per_edge(st.weight, 0.0),
+            "parallel_rigid": rigid,
+            "linear_fallback": fallback,
+        }

@@ -1,4 +1,4 @@
-"""Confidence-weighted start of the spectral rotation IRLS (issue 16).
+"""Confidence-weighted start of the spectral rotation IRLS, and the per-edge weight rule.
 
 PoserNet's confidence head predicts, per edge, how far its refined pose is likely to be from
 the truth. Motion averaging can use it: the IRLS of EIG-SE3 (and of ``rotation_translation``)
@@ -15,7 +15,20 @@ With uniform weights both modes are exactly the published IRLS (:func:`weighted_
 then gives bit-identical results to :func:`posernet.sync.spectral.rotation_irls` with the
 dense solver; tested). Weighted problems always use the dense eigen-solver (components of a
 few hundred nodes at most in this project).
+
+**Weight rule** (``edge_weight`` given to :meth:`~posernet.sync.backend.SyncBackend.solve`):
+``[E]`` (one weight for both parts) or ``[E, 2]`` (rotation, translation), finite. Weights are
+relative confidences (e.g. ``sigma^-2`` of the error head; only ratios within a component
+matter, and the smallest positive one is floored at :data:`MIN_PRIOR` times the largest).
+
+* rotation weight: ``> 0``; an edge always takes part in rotation averaging (remove it from
+  the graph to ignore it);
+* translation weight: ``>= 0``; exactly ``0`` means "this edge has no usable direction" (e.g. a
+  pair with a tiny baseline, near pure rotation): ``rotation_translation`` leaves it out of the
+  translation stage entirely (it cannot influence any position) but still uses its rotation.
+  EIG-SE3 reads only the rotation column.
 """
+
 
 from __future__ import annotations
 
@@ -44,19 +57,27 @@ def check_edge_weight(edge_weight: Tensor, num_edges: int) -> Tensor:
     if w.ndim != 2 or w.shape != (num_edges, 2):
         raise ValueError(f"edge_weight must be [E] or [E, 2] with E = {num_edges}, got "
                          f"{tuple(edge_weight.shape)}")
-    if not bool(torch.isfinite(w).all()) or bool((w <= 0).any()):
-        raise ValueError("edge_weight must be finite and > 0 on every edge")
+    if not bool(torch.isfinite(w).all()):
+        raise ValueError("edge_weight must be finite on every edge")
+    if bool((w[:, 0] <= 0).any()):
+        raise ValueError("edge_weight: the rotation weight (column 0, or the only column) must "
+                         "be > 0 on every edge; a translation weight (column 1 of an [E, 2] "
+                         "tensor) may be 0 to mark an edge without a usable direction")
+    if bool((w[:, 1] < 0).any()):
+        raise ValueError("edge_weight: translation weights (column 1) must be >= 0")
     return w
 
 
-def padded_weights(prob: PaddedProblem, w: Tensor) -> Tensor:
+def padded_weights(prob: PaddedProblem, w: Tensor, keep_zero: bool = False) -> Tensor:
     """Per-edge weights ``w [E]`` laid out as the problem's ``[G, m]`` (0 on pads), scaled so
-    each component's largest weight is 1 and floored at :data:`MIN_PRIOR`."""
+    each component's largest weight is 1 and floored at :data:`MIN_PRIOR`; with ``keep_zero``
+    a weight of exactly 0 stays 0 (translation weights: "no usable direction")."""
     wp = torch.where(prob.edge_mask, w.to(prob.R.dtype)[prob.edge.clamp_min(0)],
                      torch.zeros((), dtype=prob.R.dtype, device=prob.R.device))
     top = wp.amax(dim=1, keepdim=True).clamp_min(torch.finfo(wp.dtype).tiny)
+    keep = prob.edge_mask & (wp > 0) if keep_zero else prob.edge_mask
     wp = (wp / top).clamp_min(MIN_PRIOR)
-    return torch.where(prob.edge_mask, wp, torch.zeros_like(wp))
+    return torch.where(keep, wp, torch.zeros_like(wp))
 
 
 def weighted_rotation_irls(prob: PaddedProblem, w0: Tensor, robust: bool, max_iters: int,
