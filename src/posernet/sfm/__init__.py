@@ -1,0 +1,51 @@
+"""Structure from motion back end: verified matches + initial absolute poses -> refined poses
+and 3D points.
+
+Stages (each usable on its own):
+
+* :mod:`~posernet.sfm.tracks` -- :func:`build_tracks`: pairwise matches -> multi-view tracks
+  (connected components over ``(image, keypoint)``; inconsistent and one-view tracks dropped);
+* :mod:`~posernet.sfm.triangulation` -- :func:`triangulate_tracks`: batched DLT with
+  cheirality, triangulation-angle and reprojection filters; :func:`undistort_keypoints`;
+* :mod:`~posernet.sfm.bundle` -- :func:`bundle_adjust`: robust bundle adjustment on
+  ``scipy.optimize.least_squares`` with an analytic sparse Jacobian;
+* :mod:`~posernet.sfm.refine` -- :func:`bundle_adjust_reconstruction`: the orchestrator
+  (tracks, triangulation, BA, filter, BA) used as the last stage of a reconstruction;
+* :mod:`~posernet.sfm.synthetic` -- synthetic scenes for tests and benchmarks.
+
+Conventions: world-to-camera ``w2c (N, 4, 4)``, ``x_cam = R X + t``, pixels ``K x_cam / z``
+(OpenCV axes); observations are undistorted pixels. Camera positions after bundle adjustment
+are defined up to one global scale (the gauge fixes one camera per component, not the scale).
+"""
+
+from __future__ import annotations
+
+from .bundle import LOSSES, BundleOptions, BundleResult, bundle_adjust, gauge_cameras
+from .refine import SfmResult, bundle_adjust_reconstruction
+from .tracks import Tracks, build_tracks
+from .triangulation import (
+    REASONS,
+    Triangulation,
+    project,
+    reprojection_errors,
+    triangulate_tracks,
+    undistort_keypoints,
+)
+
+__all__ = [
+    "LOSSES",
+    "REASONS",
+    "BundleOptions",
+    "BundleResult",
+    "SfmResult",
+    "Tracks",
+    "Triangulation",
+    "build_tracks",
+    "bundle_adjust",
+    "bundle_adjust_reconstruction",
+    "gauge_cameras",
+    "project",
+    "reprojection_errors",
+    "triangulate_tracks",
+    "undistort_keypoints",
+]

@@ -1,0 +1,533 @@
+"""Robust bundle adjustment on :func:`scipy.optimize.least_squares` with an analytic sparse
+Jacobian.
+
+Unknowns: per camera a rotation increment ``w`` (angle-axis, ``R = exp(w) R_0``: starts at 0,
+stays far from the pi wrap of a rotation vector) and translation ``t``; per point ``X``;
+optionally a log focal scale (one shared or one per camera, ``fx, fy, skew`` scaled by
+``exp(s)``). Residuals: undistorted pixel minus projection, 2 per observation, in pixels; the
+robust loss (scipy's, applied per residual component) uses ``f_scale`` in pixels.
+
+Gauge: one camera per connected component (cameras linked by shared points) keeps its pose;
+the global scale is left free (the Jacobian has one null direction that the trust region
+damps), so camera positions are only defined up to one global scale per component.
+
+Failure policy: the input poses are never lost. ``BundleResult.w2c`` is the BA output only
+when it converged (or ``accept_unconverged``), is finite and did not raise the robust cost;
+otherwise it is the input, and ``accepted`` is False with the reason in ``message``.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+from scipy.optimize import least_squares
+from scipy.sparse import coo_matrix, csr_matrix
+from scipy.sparse.csgraph import connected_components
+
+from ..geometry import axis_angle_to_rotation_matrix
+
+__all__ = ["LOSSES", "BundleOptions", "BundleResult", "bundle_adjust", "gauge_cameras"]
+
+LOSSES: tuple[str, ...] = ("linear", "huber", "soft_l1", "cauchy", "arctan")
+FOCAL_MODES: tuple[str, ...] = ("none", "shared", "per_camera")
+GAUGES: tuple[str, ...] = ("max_degree", "first")
+
+
+@dataclass
+class BundleOptions:
+    """Options of :func:`bundle_adjust` and of the orchestrator
+    :func:`posernet.sfm.refine.bundle_adjust_reconstruction`.
+
+    Solver: ``loss`` (one of :data:`LOSSES`), ``f_scale`` (px: residuals beyond it are
+    down-weighted), ``max_nfev`` (function evaluations; reaching it is a failure), tolerances,
+    ``refine_focal`` (``"none"``, ``"shared"``, ``"per_camera"``), ``gauge`` (which camera per
+    component stays fixed: ``"max_degree"`` most observations, or ``"first"``),
+    ``accept_unconverged`` (keep an improved but unconverged result instead of the input),
+    ``anneal_factor`` (robust losses start with ``f_scale`` at this many times the median
+    error and shrink it to ``f_scale`` in stages, divided by ``anneal_step`` per stage; 0 turns
+    this off), ``robust`` (``"irls"``:
+    reweighted least squares with a per-observation loss, ``max_outer`` passes of at most
+    ``inner_nfev`` trf evaluations; ``"scipy"``: scipy's per-coordinate robust loss).
+
+    Orchestrator: ``max_reproj_px`` (observations above it after a BA are dropped; also the
+    triangulation filter of later rounds), ``initial_reproj_factor`` (first triangulation, from
+    motion-averaging poses that may be degrees off: a track is kept when its largest error is
+    below ``max(max_reproj_px, factor * median track error)``), ``min_angle_deg`` (smallest
+    triangulation angle), ``rounds`` (BA passes: BA, filter, BA, ...), ``min_points_per_camera``
+    (cameras seeing fewer triangulated points keep their input pose and are flagged).
+    """
+
+    loss: str = "cauchy"
+    f_scale: float = 2.0
+    max_nfev: int = 200
+    ftol: float = 1e-6
+    xtol: float = 1e-10
+    gtol: float = 1e-10
+    refine_focal: str = "none"
+    gauge: str = "max_degree"
+    accept_unconverged: bool = False
+    anneal_factor: float = 3.0
+    anneal_step: float = 4.0
+    robust: str = "irls"
+    max_outer: int = 30
+    inner_nfev: int = 10
+    max_reproj_px: float = 4.0
+    initial_reproj_factor: float = 3.0
+    min_angle_deg: float = 1.0
+    rounds: int = 2
+    min_points_per_camera: int = 15
+
+    def __post_init__(self) -> None:
+        if self.loss not in LOSSES:
+            raise ValueError(f"loss={self.loss!r}; choose one of {list(LOSSES)}")
+        if self.refine_focal not in FOCAL_MODES:
+            raise ValueError(f"refine_focal={self.refine_focal!r}; choose one of "
+                             f"{list(FOCAL_MODES)}")
+        if self.robust not in ("irls", "scipy"):
+            raise ValueError(f"robust={self.robust!r}; choose 'irls' or 'scipy'")
+        if self.gauge not in GAUGES:
+            raise ValueError(f"gauge={self.gauge!r}; choose one of {list(GAUGES)}")
+        if not self.anneal_factor >= 0:
+            raise ValueError(f"anneal_factor must be >= 0, got {self.anneal_factor}")
+        if not self.anneal_step > 1:
+            raise ValueError(f"anneal_step must be > 1, got {self.anneal_step}")
+        for name in ("f_scale", "max_reproj_px", "initial_reproj_factor"):
+            if not float(getattr(self, name)) > 0:
+                raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
+        if self.max_nfev < 1 or self.rounds < 1 or self.min_points_per_camera < 0:
+            raise ValueError("max_nfev and rounds must be >= 1, min_points_per_camera >= 0")
+
+
+@dataclass
+class BundleResult:
+    """Outcome of :func:`bundle_adjust`.
+
+    ``w2c (N, 4, 4)``, ``points (P, 3)``, ``K (N, 3, 3)``: the BA output when ``accepted``,
+    else the input unchanged. ``errors (O,)``: reprojection error (px) of every observation
+    under the returned solution. Costs are the robust costs (scipy's ``0.5 * sum rho``).
+    ``fixed_cameras``: the gauge cameras. Positions are up to one global scale per component.
+    """
+
+    w2c: np.ndarray
+    points: np.ndarray
+    K: np.ndarray
+    converged: bool
+    accepted: bool
+    iterations: int
+    initial_cost: float
+    final_cost: float
+    median_error_before: float
+    mean_error_before: float
+    median_error_after: float
+    mean_error_after: float
+    message: str
+    errors: np.ndarray
+    fixed_cameras: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    num_observations: int = 0
+    seconds: float = 0.0
+
+    def lines(self) -> list[str]:
+        """Human-readable summary."""
+        state = "converged" if self.converged else "NOT converged"
+        kept = "output kept" if self.accepted else "input poses kept"
+        return [
+            f"bundle adjustment: {state}, {kept} ({self.message}); {self.iterations} "
+            f"evaluations, {self.seconds:.2f} s, {self.num_observations} observations",
+            f"reprojection error median/mean: {self.median_error_before:.3f}/"
+            f"{self.mean_error_before:.3f} px -> {self.median_error_after:.3f}/"
+            f"{self.mean_error_after:.3f} px; robust cost {self.initial_cost:.4g} -> "
+            f"{self.final_cost:.4g}",
+            "positions are up to one global scale (gauge: cameras "
+            f"{self.fixed_cameras.tolist()} fixed, scale free)",
+        ]
+
+
+def _rho(z: np.ndarray, loss: str) -> tuple[np.ndarray, np.ndarray]:
+    """Robust loss ``rho(z)`` and its derivative at ``z = (e / f_scale)^2`` (scipy's forms)."""
+    if loss == "linear":
+        return z, np.ones_like(z)
+    if loss == "huber":
+        big = z > 1
+        sz = np.sqrt(np.where(big, z, 1.0))
+        return np.where(big, 2 * sz - 1, z), np.where(big, 1 / sz, 1.0)
+    if loss == "soft_l1":
+        s = np.sqrt(1 + z)
+        return 2 * (s - 1), 1 / s
+    if loss == "cauchy":
+        return np.log1p(z), 1 / (1 + z)
+    return np.arctan(z), 1 / (1 + z**2)
+
+
+def _robust_cost(r: np.ndarray, loss: str, f_scale: float) -> float:
+    """``0.5 * f_scale^2 * sum_o rho(|e_o|^2 / f_scale^2)`` over observations ``o``; ``r`` is
+    the flat residual vector (2 per observation). The loss acts on the 2D error of an
+    observation (one outlier = one observation, not two independent coordinates)."""
+    e2 = (r.reshape(-1, 2) ** 2).sum(1)
+    return float(0.5 * f_scale**2 * _rho(e2 / f_scale**2, loss)[0].sum())
+
+
+def _rotvec_to_matrix(w: np.ndarray) -> np.ndarray:
+    """``(N, 3)`` rotation vectors -> ``(N, 3, 3)`` (the package's Rodrigues, float64)."""
+    return axis_angle_to_rotation_matrix(torch.from_numpy(np.ascontiguousarray(w))).numpy()
+
+
+def _hat(v: np.ndarray) -> np.ndarray:
+    """``(M, 3)`` -> skew matrices ``(M, 3, 3)`` with ``hat(a) b = a x b``."""
+    z = np.zeros(v.shape[0])
+    return np.stack((np.stack((z, -v[:, 2], v[:, 1]), 1),
+                     np.stack((v[:, 2], z, -v[:, 0]), 1),
+                     np.stack((-v[:, 1], v[:, 0], z), 1)), 1)
+
+
+def _left_jacobian(w: np.ndarray) -> np.ndarray:
+    """SO(3) left Jacobian ``(N, 3, 3)``: ``exp(w + d) ~ exp(J_l(w) d) exp(w)``."""
+    th = np.linalg.norm(w, axis=1)
+    small = th < 1e-5
+    ths = np.where(small, 1.0, th)
+    a = np.where(small, 0.5 - th**2 / 24, (1 - np.cos(ths)) / ths**2)
+    b = np.where(small, 1.0 / 6 - th**2 / 120, (ths - np.sin(ths)) / ths**3)
+    W = _hat(w)
+    return np.eye(3) + a[:, None, None] * W + b[:, None, None] * (W @ W)
+
+
+def gauge_cameras(obs_image: np.ndarray, obs_point: np.ndarray, num_cameras: int,
+                  num_points: int, mode: str = "max_degree") -> np.ndarray:
+    """One gauge camera per connected component of the camera-point graph, ``(C,)`` indices.
+
+    ``mode="max_degree"``: the camera with the most observations of its component (its pose is
+    the best constrained); ``"first"``: the smallest index. Cameras without observations are
+    not part of any component.
+    """
+    if obs_image.size == 0:
+        return np.zeros(0, np.int64)
+    n = num_cameras + num_points
+    g = coo_matrix((np.ones(obs_image.size, np.int8), (obs_image, num_cameras + obs_point)),
+                   shape=(n, n))
+    _, label = connected_components(g, directed=False)
+    deg = np.bincount(obs_image, minlength=num_cameras)
+    cams = np.flatnonzero(deg > 0)
+    score = -deg[cams] if mode == "max_degree" else np.zeros(cams.size)
+    order = np.lexsort((cams, score, label[cams]))
+    lab = label[cams][order]
+    first = np.ones(lab.size, bool)
+    first[1:] = lab[1:] != lab[:-1]
+    return np.sort(cams[order][first]).astype(np.int64)
+
+
+class _Problem:
+    """Residuals and analytic sparse Jacobian of one BA problem (see the module docstring)."""
+
+    def __init__(self, w2c: np.ndarray, points: np.ndarray, K: np.ndarray, xy: np.ndarray,
+                 cam: np.ndarray, pt: np.ndarray, fixed: np.ndarray, focal: str) -> None:
+        N, P = w2c.shape[0], points.shape[0]
+        self.R0, self.t0, self.X0, self.K = w2c[:, :3, :3], w2c[:, :3, 3], points, K
+        # Observations sorted by camera: per-camera products become plain (n, 3) @ (3, 3)
+        # BLAS calls instead of slow batched 3x3 products. Residuals are in this order;
+        # ``unsort`` maps per-observation values back to the caller's order.
+        self.order = np.argsort(cam, kind="stable")
+        self.xy, self.cam, self.pt = xy[self.order], cam[self.order], pt[self.order]
+        cam, pt = self.cam, self.pt
+        counts = np.bincount(cam, minlength=N)
+        ends = np.cumsum(counts)
+        self.segs = [(int(c), int(ends[c] - counts[c]), int(ends[c]))
+                     for c in np.flatnonzero(counts)]
+        seen_cam = counts > 0
+        var_cam = seen_cam.copy()
+        var_cam[fixed] = False
+        self.var_cam = np.flatnonzero(var_cam)
+        self.var_pt = np.flatnonzero(np.bincount(pt, minlength=P) > 0)
+        self.cam_col = np.full(N, -1, np.int64)
+        self.cam_col[self.var_cam] = 6 * np.arange(self.var_cam.size)
+        off = 6 * self.var_cam.size
+        self.pt_col = np.full(P, -1, np.int64)
+        self.pt_col[self.var_pt] = off + 3 * np.arange(self.var_pt.size)
+        off += 3 * self.var_pt.size
+        # Focal groups: -1 = not refined.
+        self.f_group = np.full(N, -1, np.int64)
+        if focal == "shared":
+            self.f_group[seen_cam] = 0
+        elif focal == "per_camera":
+            self.f_group[seen_cam] = np.arange(int(seen_cam.sum()))
+        self.n_focal = int(self.f_group.max()) + 1 if (self.f_group >= 0).any() else 0
+        self.f_off = off
+        self.n_params = off + self.n_focal
+        self._build_structure()
+
+    def x0(self) -> np.ndarray:
+        x = np.zeros(self.n_params)
+        cams = self.cam_col[self.var_cam]
+        x[cams[:, None] + np.arange(3, 6)] = self.t0[self.var_cam]
+        x[self.pt_col[self.var_pt][:, None] + np.arange(3)] = self.X0[self.var_pt]
+        return x
+
+    def unpack(self, x: np.ndarray) -> tuple[np.ndarray, ...]:
+        """``x`` -> rotation increments, ``R, t (N, ...)``, ``X (P, 3)``, ``K (N, 3, 3)``."""
+        N = self.R0.shape[0]
+        w = np.zeros((N, 3))
+        t = self.t0.copy()
+        cols = self.cam_col[self.var_cam][:, None]
+        w[self.var_cam] = x[cols + np.arange(3)]
+        t[self.var_cam] = x[cols + np.arange(3, 6)]
+        R = _rotvec_to_matrix(w) @ self.R0
+        X = self.X0.copy()
+        X[self.var_pt] = x[self.pt_col[self.var_pt][:, None] + np.arange(3)]
+        K = self.K.copy()
+        if self.n_focal:
+            has = self.f_group >= 0
+            s = np.exp(x[self.f_off + self.f_group[has]])
+            K[has, :2, :2] *= s[:, None, None]
+        return w, R, t, X, K
+
+    def unsort(self, values: np.ndarray) -> np.ndarray:
+        """Per-observation ``values (O, ...)`` from the internal order to the caller's."""
+        out = np.empty_like(values)
+        out[self.order] = values
+        return out
+
+    def _project(self, x: np.ndarray) -> tuple[np.ndarray, ...]:
+        w, R, t, X, K = self.unpack(x)
+        c = self.cam
+        Xo = X[self.pt]
+        RX = np.empty_like(Xo)
+        for ci, a, b in self.segs:
+            RX[a:b] = Xo[a:b] @ R[ci].T
+        p = RX + t[c]
+        z = p[:, 2]
+        n = p[:, :2] / z[:, None]
+        fx, sk, fy = K[c, 0, 0], K[c, 0, 1], K[c, 1, 1]
+        q = np.stack((fx * n[:, 0] + sk * n[:, 1], fy * n[:, 1]), 1)  # uv - principal point
+        uv = q + K[c, :2, 2]
+        return w, R, RX, z, q, uv, fx, sk, fy
+
+    def residuals(self, x: np.ndarray) -> np.ndarray:
+        uv = self._project(x)[5]
+        return (uv - self.xy).ravel()
+
+    def _build_structure(self) -> None:
+        """Fixed CSR layout of the Jacobian; each call only fills the values."""
+        O = self.cam.size
+        obs = np.arange(O)
+        rows, cols = [], []
+        self.cam_obs = obs[self.cam_col[self.cam] >= 0]
+        self.f_obs = obs[self.f_group[self.cam] >= 0]
+        self.pt_obs = obs[self.pt_col[self.pt] >= 0]
+        blocks = ((self.cam_obs, self.cam_col[self.cam[self.cam_obs]], 6),
+                  (self.pt_obs, self.pt_col[self.pt[self.pt_obs]], 3),
+                  (self.f_obs, self.f_off + self.f_group[self.cam[self.f_obs]], 1))
+        for o, c0, width in blocks:
+            # data order of a block: (obs, row 0/1, column 0..width-1)
+            r = 2 * o[:, None, None] + np.arange(2)[None, :, None]
+            cc = c0[:, None, None] + np.arange(width)[None, None, :]
+            r, cc = np.broadcast_arrays(r, cc)
+            rows.append(r.ravel())
+            cols.append(cc.ravel())
+        rows_a, cols_a = np.concatenate(rows), np.concatenate(cols)
+        order = np.lexsort((cols_a, rows_a))
+        self.perm = order
+        self.indices = cols_a[order]
+        self.indptr = np.concatenate(([0], np.cumsum(np.bincount(rows_a, minlength=2 * O))))
+        self.shape = (2 * O, self.n_params)
+
+    def jacobian(self, x: np.ndarray, row_weight: np.ndarray | None = None) -> csr_matrix:
+        """Sparse ``(2 O, n_params)`` Jacobian, rows scaled by ``row_weight (2 O,)`` if given."""
+        w, R, RX, z, q, _, fx, sk, fy = self._project(x)
+        O = z.size
+        inv_z = 1.0 / z
+        # d uv / d p with p = R X + t: [[fx, sk, -q0], [0, fy, -q1]] / z.
+        duv_dp = np.zeros((O, 2, 3))
+        duv_dp[:, 0, 0] = fx * inv_z
+        duv_dp[:, 0, 1] = sk * inv_z
+        duv_dp[:, 1, 1] = fy * inv_z
+        duv_dp[:, :, 2] = -q * inv_z[:, None]
+        # d p / d w = -[R X]_x J_l(w), and a^T (-[v]_x) = (v x a)^T for each row a.
+        cross = np.cross(RX[:, None, :], duv_dp)
+        Jl = _left_jacobian(w)
+        d_rot = np.empty_like(duv_dp)
+        d_pt = np.empty_like(duv_dp)
+        for ci, a, b in self.segs:
+            d_rot[a:b] = (cross[a:b].reshape(-1, 3) @ Jl[ci]).reshape(-1, 2, 3)
+            d_pt[a:b] = (duv_dp[a:b].reshape(-1, 3) @ R[ci]).reshape(-1, 2, 3)
+        data = []
+        if self.cam_obs.size:
+            o = self.cam_obs
+            data.append(np.concatenate((d_rot[o], duv_dp[o]), axis=2).ravel())
+        if self.pt_obs.size:
+            data.append(d_pt[self.pt_obs].ravel())
+        if self.f_obs.size:
+            data.append(q[self.f_obs].ravel())  # d uv / d log f = A n
+        vals = np.concatenate(data)[self.perm]
+        if row_weight is not None:
+            vals *= np.repeat(row_weight, np.diff(self.indptr))
+        return csr_matrix((vals, self.indices, self.indptr), shape=self.shape)
+
+
+def _pose_matrices(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    T = np.tile(np.eye(4), (R.shape[0], 1, 1))
+    T[:, :3, :3], T[:, :3, 3] = R, t
+    return T
+
+
+def _stats(err: np.ndarray) -> tuple[float, float]:
+    if err.size == 0:
+        return float("nan"), float("nan")
+    return float(np.median(err)), float(np.mean(err))
+
+
+def _solve_irls(prob: _Problem, x0: np.ndarray, med0: float, opt: BundleOptions
+                ) -> tuple[np.ndarray, np.ndarray, int, bool, str]:
+    """Iteratively reweighted least squares around scipy's trf (linear loss, sparse lsmr).
+
+    Each outer pass fixes per-observation weights ``rho'(|e|^2 / f^2)`` and runs a few trf
+    iterations on the weighted residuals; for the losses here this never raises the robust
+    cost (majorise-minimise). Graduated robustness: ``f`` starts at ``anneal_factor`` times the
+    median error (from poses degrees off, every residual would sit on the flat tail of the
+    loss and the solver would stop at once) and shrinks by ``anneal_step`` each pass down to
+    ``f_scale``.
+    Returns ``x``, unweighted residuals, evaluations used, converged flag, message.
+    """
+    x = x0
+    r = prob.residuals(x)
+    fs = opt.f_scale
+    if opt.anneal_factor > 0 and opt.loss != "linear":
+        fs = max(opt.f_scale, opt.anneal_factor * med0)
+    nfev, prev = 1, np.inf
+    for _ in range(opt.max_outer):
+        e2 = (r.reshape(-1, 2) ** 2).sum(1)
+        sw = np.repeat(np.sqrt(_rho(e2 / fs**2, opt.loss)[1]), 2)
+
+        def fun(x: np.ndarray, sw: np.ndarray = sw) -> np.ndarray:
+            return sw * prob.residuals(x)
+
+        def jac(x: np.ndarray, sw: np.ndarray = sw) -> csr_matrix:
+            return prob.jacobian(x, sw)
+
+        budget = opt.max_nfev - nfev
+        if budget < 1:
+            return x, r, nfev, False, "evaluation budget used up"
+        res = least_squares(fun, x, jac=jac, method="trf", x_scale="jac", ftol=opt.ftol,
+                            xtol=opt.xtol, gtol=opt.gtol, tr_solver="lsmr",
+                            max_nfev=min(budget, opt.inner_nfev))
+        nfev += int(res.nfev)
+        x = res.x
+        r = prob.residuals(x)
+        cost = _robust_cost(r, opt.loss, opt.f_scale)
+        if fs <= opt.f_scale and (prev - cost) <= opt.ftol * max(cost, 1e-300):
+            return x, r, nfev, True, "robust cost converged (IRLS)"
+        prev = cost if fs <= opt.f_scale else np.inf
+        fs = max(opt.f_scale, fs / opt.anneal_step)
+    return x, r, nfev, False, f"max_outer={opt.max_outer} IRLS passes reached"
+
+
+def _solve_scipy_loss(prob: _Problem, x0: np.ndarray, med0: float, opt: BundleOptions
+                      ) -> tuple[np.ndarray, np.ndarray, int, bool, str]:
+    """scipy's own robust loss (applied per residual coordinate), with the same graduated
+    ``f_scale``. Kept for comparison: slower and less accurate than IRLS in
+    ``benchmarks/bench_ba.py``."""
+    x = x0
+    fs = opt.f_scale
+    if opt.anneal_factor > 0 and opt.loss != "linear":
+        fs = max(opt.f_scale, opt.anneal_factor * med0)
+    nfev = 0
+    while True:
+        res = least_squares(prob.residuals, x, jac=prob.jacobian, method="trf", loss=opt.loss,
+                            f_scale=fs, x_scale="jac", max_nfev=max(1, opt.max_nfev - nfev),
+                            ftol=opt.ftol, xtol=opt.xtol, gtol=opt.gtol, tr_solver="lsmr")
+        nfev += int(res.nfev)
+        x = res.x
+        if fs <= opt.f_scale or res.status <= 0 or nfev >= opt.max_nfev:
+            break
+        fs = max(opt.f_scale, fs / opt.anneal_step)
+    converged = bool(res.status > 0) and fs <= opt.f_scale
+    return x, res.fun, nfev, converged, str(res.message)
+
+
+def bundle_adjust(w2c: np.ndarray, points: np.ndarray, K: np.ndarray, xy: np.ndarray,
+                  obs_image: np.ndarray, obs_point: np.ndarray,
+                  options: BundleOptions | None = None,
+                  fixed_cameras: np.ndarray | None = None) -> BundleResult:
+    """Robust bundle adjustment of cameras and points; never raises on bad numbers.
+
+    ``w2c (N, 4, 4)``, ``points (P, 3)``, ``K (N, 3, 3)``; observations: undistorted pixels
+    ``xy (O, 2)`` of point ``obs_point (O,)`` in image ``obs_image (O,)``. Cameras and points
+    without observations are left as they are. ``fixed_cameras``: poses to hold fixed
+    (default: :func:`gauge_cameras`). Shape errors raise ValueError; empty or non-finite input
+    and solver failures come back as ``accepted=False`` with the input unchanged.
+    """
+    opt = options or BundleOptions()
+    t_start = time.perf_counter()
+    w2c = np.asarray(w2c, np.float64)
+    points = np.asarray(points, np.float64).reshape(-1, 3)
+    K = np.asarray(K, np.float64)
+    xy = np.asarray(xy, np.float64).reshape(-1, 2)
+    obs_image = np.asarray(obs_image, np.int64).reshape(-1)
+    obs_point = np.asarray(obs_point, np.int64).reshape(-1)
+    N, P, O = w2c.shape[0], points.shape[0], xy.shape[0]
+    if w2c.shape != (N, 4, 4) or K.shape != (N, 3, 3):
+        raise ValueError(f"w2c must be (N, 4, 4) and K (N, 3, 3), got {w2c.shape}, {K.shape}")
+    if obs_image.shape != (O,) or obs_point.shape != (O,):
+        raise ValueError(f"obs_image and obs_point must be ({O},), got {obs_image.shape}, "
+                         f"{obs_point.shape}")
+    if O and (obs_image.min() < 0 or obs_image.max() >= N or obs_point.min() < 0
+              or obs_point.max() >= P):
+        raise ValueError("obs_image / obs_point index out of range")
+
+    def fail(msg: str, err: np.ndarray | None = None, cost: float = float("nan"),
+             fixed: np.ndarray | None = None, nfev: int = 0) -> BundleResult:
+        e = err if err is not None else np.full(O, np.nan)
+        med, mean = _stats(e[np.isfinite(e)])
+        return BundleResult(w2c=w2c.copy(), points=points.copy(), K=K.copy(), converged=False,
+                            accepted=False, iterations=nfev, initial_cost=cost,
+                            final_cost=cost, median_error_before=med, mean_error_before=mean,
+                            median_error_after=med, mean_error_after=mean, message=msg,
+                            errors=e, fixed_cameras=(fixed if fixed is not None
+                                                     else np.zeros(0, np.int64)),
+                            num_observations=O, seconds=time.perf_counter() - t_start)
+
+    if O == 0:
+        return fail("no observations")
+    cams = np.unique(obs_image)
+    used_pts = np.unique(obs_point)
+    if not (np.isfinite(w2c[cams]).all() and np.isfinite(K[cams]).all()
+            and np.isfinite(points[used_pts]).all() and np.isfinite(xy).all()):
+        return fail("non-finite input (NaN/inf in poses, intrinsics, points or observations)")
+    fixed = (gauge_cameras(obs_image, obs_point, N, P, opt.gauge) if fixed_cameras is None
+             else np.unique(np.asarray(fixed_cameras, np.int64)))
+    prob = _Problem(w2c, points, K, xy, obs_image, obs_point, fixed, opt.refine_focal)
+    x0 = prob.x0()
+    r0 = prob.residuals(x0)
+    err0 = prob.unsort(np.linalg.norm(r0.reshape(-1, 2), axis=1))
+    if not np.isfinite(r0).all():
+        return fail("non-finite residuals at the start (a point at depth 0?)", err0,
+                    fixed=fixed)
+    cost0 = _robust_cost(r0, opt.loss, opt.f_scale)
+    med0, mean0 = _stats(err0)
+    if prob.n_params == 0:
+        return fail("nothing to optimise (all cameras fixed, no points)", err0, cost0, fixed)
+    try:
+        solve = _solve_irls if opt.robust == "irls" else _solve_scipy_loss
+        x, r1, nfev, converged, msg = solve(prob, x0, med0, opt)
+    except (ValueError, np.linalg.LinAlgError, FloatingPointError) as exc:
+        return fail(f"solver error: {exc}", err0, cost0, fixed)
+    _, R, t, X, K_new = prob.unpack(x)
+    cost1 = _robust_cost(r1, opt.loss, opt.f_scale)
+    err1 = prob.unsort(np.linalg.norm(r1.reshape(-1, 2), axis=1))
+    finite = bool(np.isfinite(x).all() and np.isfinite(r1).all())
+    if not finite:
+        return fail("solver returned non-finite values", err0, cost0, fixed, nfev)
+    if not converged and not opt.accept_unconverged:
+        r = fail(f"not converged within max_nfev={opt.max_nfev} ({msg})", err0, cost0,
+                 fixed, nfev)
+        r.final_cost = cost1  # what the unconverged solution reached (not returned)
+        return r
+    if cost1 > cost0:
+        return fail(f"robust cost rose {cost0:.4g} -> {cost1:.4g}", err0, cost0, fixed, nfev)
+    med1, mean1 = _stats(err1)
+    return BundleResult(w2c=_pose_matrices(R, t), points=X, K=K_new, converged=converged,
+                        accepted=True, iterations=nfev, initial_cost=cost0,
+                        final_cost=cost1, median_error_before=med0, mean_error_before=mean0,
+                        median_error_after=med1, mean_error_after=mean1,
+                        message=msg, errors=err1, fixed_cameras=fixed,
+                        num_observations=O, seconds=time.perf_counter() - t_start)

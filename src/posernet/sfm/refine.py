@@ -1,0 +1,264 @@
+"""Orchestrator: verified matches + motion-averaging poses -> refined poses and 3D points.
+
+Global-SfM style: tracks on the placed images, triangulation at the input poses (loose error
+threshold: those poses may be degrees off), robust bundle adjustment, then per round: drop the
+observations whose error is still above ``max_reproj_px``, triangulate the tracks that were not
+yet in the problem with the refined poses (strict filters), bundle-adjust again.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import torch
+
+from ..metrics import umeyama_alignment
+from .bundle import BundleOptions, BundleResult, bundle_adjust
+from .tracks import Tracks, build_tracks
+from .triangulation import reprojection_errors, triangulate_tracks, undistort_keypoints
+
+__all__ = ["SfmResult", "bundle_adjust_reconstruction"]
+
+
+@dataclass
+class SfmResult:
+    """Output of :func:`bundle_adjust_reconstruction` for ``N`` images.
+
+    ``w2c (N, 4, 4)`` refined world-to-camera poses (input poses where not refined; positions
+    up to one global scale, see ``stats``), ``K (N, 3, 3)`` (refined focal when asked),
+    ``points (P, 3)`` kept 3D points and ``point_track (P,)`` their track ids in ``tracks``;
+    final observations ``obs_image, obs_keypoint, obs_point (O,)`` (keypoint index into
+    ``uv[image]``, point index into ``points``); ``observations_per_image (N,)``; masks
+    ``placed`` (input), ``refined`` (pose from the bundle adjustment) and ``weak`` (placed but
+    under ``min_points_per_camera`` points: input pose kept, moved by the similarity that
+    maps the input frame to the adjusted one); ``bundles`` every BA run; ``stats`` numbers
+    for a summary (see :meth:`lines`).
+    """
+
+    w2c: np.ndarray
+    K: np.ndarray
+    points: np.ndarray
+    point_track: np.ndarray
+    obs_image: np.ndarray
+    obs_keypoint: np.ndarray
+    obs_point: np.ndarray
+    observations_per_image: np.ndarray
+    placed: np.ndarray
+    refined: np.ndarray
+    weak: np.ndarray
+    tracks: Tracks
+    bundles: list[BundleResult] = field(default_factory=list)
+    stats: dict[str, Any] = field(default_factory=dict)
+    message: str = ""
+
+    def lines(self) -> list[str]:
+        """Human-readable summary, one fact per line."""
+        s = self.stats
+        out = [*self.tracks.lines()]
+        if "triangulation" in s:
+            out.append("initial triangulation: " + ", ".join(
+                f"{k} {v}" for k, v in s["triangulation"].items()))
+        out.append(f"points kept: {self.points.shape[0]} with {self.obs_image.size} "
+                   f"observations; cameras refined {int(self.refined.sum())}/"
+                   f"{int(self.placed.sum())} placed, weak (input pose kept) "
+                   f"{int(self.weak.sum())}")
+        if self.bundles:
+            out.append(f"reprojection error median/mean: {s['median_error_before']:.3f}/"
+                       f"{s['mean_error_before']:.3f} px -> {s['median_error_after']:.3f}/"
+                       f"{s['mean_error_after']:.3f} px over {len(self.bundles)} BA run(s)")
+        out.append("seconds: " + ", ".join(f"{k} {v:.2f}" for k, v in s["seconds"].items()))
+        out.append(self.message)
+        return out
+
+
+def _similarity_np(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    """Umeyama ``dst ~ s R src + t`` for ``(K, 3)`` arrays (the package's implementation)."""
+    s, R, t = umeyama_alignment(torch.from_numpy(src), torch.from_numpy(dst))
+    return float(s), R.numpy(), t.numpy()
+
+
+def _move_poses(w2c: np.ndarray, s: float, Q: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """World-to-camera poses ``(M, 4, 4)`` after the world moves by ``X' = s Q X + t``."""
+    out = w2c.copy()
+    R, tr = w2c[:, :3, :3], w2c[:, :3, 3]
+    c = -np.einsum("mji,mj->mi", R, tr)
+    c2 = s * c @ Q.T + t
+    R2 = R @ Q.T
+    out[:, :3, :3] = R2
+    out[:, :3, 3] = -np.einsum("mij,mj->mi", R2, c2)
+    return out
+
+
+def _check_inputs(uv: Sequence[np.ndarray], K: np.ndarray, dist: Sequence[Any] | None,
+                  w2c: np.ndarray, placed: np.ndarray) -> int:
+    N = len(uv)
+    if K.shape != (N, 3, 3):
+        raise ValueError(f"K must be (N, 3, 3) with N = len(uv) = {N}, got {K.shape}")
+    if w2c.shape != (N, 4, 4):
+        raise ValueError(f"w2c must be (N, 4, 4) with N = {N}, got {w2c.shape}")
+    if placed.shape != (N,):
+        raise ValueError(f"placed must be ({N},), got {placed.shape}")
+    if dist is not None and len(dist) != N:
+        raise ValueError(f"dist must be None or have one entry per image ({N}), got {len(dist)}")
+    for i, u in enumerate(uv):
+        a = np.asarray(u)
+        if a.size and (a.ndim != 2 or a.shape[1] != 2):
+            raise ValueError(f"uv[{i}] must be (K_i, 2) pixels, got {a.shape}")
+    return N
+
+
+def bundle_adjust_reconstruction(uv: Sequence[np.ndarray],
+                                 pair_matches: Mapping[tuple[int, int], np.ndarray],
+                                 K: np.ndarray, dist: Sequence[np.ndarray | None] | None,
+                                 w2c: np.ndarray, placed: np.ndarray,
+                                 options: BundleOptions | None = None) -> SfmResult:
+    """Tracks, triangulation and robust bundle adjustment of the placed images.
+
+    ``uv[i] (K_i, 2)`` keypoint pixels of image i (distorted as detected), ``pair_matches``
+    verified ``(M, 2)`` keypoint index pairs per image pair ``(a, b)``, ``K (N, 3, 3)``,
+    ``dist``: per image OpenCV distortion coefficients or None, ``w2c (N, 4, 4)`` initial
+    poses (motion averaging), ``placed (N,)`` which of them are meaningful. Placed cameras
+    with a non-finite pose are treated as not placed. Malformed shapes raise ValueError; a
+    failed bundle adjustment keeps the previous (ultimately the input) poses.
+    """
+    opt = options or BundleOptions()
+    t_all = time.perf_counter()
+    seconds: dict[str, float] = {}
+    K = np.asarray(K, np.float64)
+    w2c = np.asarray(w2c, np.float64)
+    placed_in = np.asarray(placed, bool).reshape(-1)
+    N = _check_inputs(uv, K, dist, w2c, placed_in)
+    placed = placed_in & np.isfinite(w2c).all((1, 2)) & np.isfinite(K).all((1, 2))
+    n_bad = int((placed_in & ~placed).sum())
+
+    t0 = time.perf_counter()
+    und = undistort_keypoints(uv, K, dist)
+    seconds["undistort"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    sub = {k: m for k, m in pair_matches.items() if placed[int(k[0])] and placed[int(k[1])]}
+    tracks = build_tracks(sub, [len(u) for u in und])
+    seconds["tracks"] = time.perf_counter() - t0
+    T = tracks.num_tracks
+    track, image, kp = tracks.track, tracks.image, tracks.keypoint
+    offs = np.concatenate(([0], np.cumsum([len(u) for u in und]))).astype(np.int64)
+    flat = np.concatenate([u.reshape(-1, 2) for u in und]) if N else np.zeros((0, 2))
+    xy = flat[offs[image] + kp] if T else np.zeros((0, 2))
+
+    def result(out_w2c: np.ndarray, out_K: np.ndarray, pts: np.ndarray, in_ba: np.ndarray,
+               active: np.ndarray, refined: np.ndarray, weak: np.ndarray,
+               bundles: list[BundleResult], stats: dict[str, Any], msg: str) -> SfmResult:
+        keep_tr = np.flatnonzero(in_ba)
+        remap = np.full(T, -1, np.int64)
+        remap[keep_tr] = np.arange(keep_tr.size)
+        sel = active & in_ba[track] if T else np.zeros(0, bool)
+        seconds["total"] = time.perf_counter() - t_all
+        stats["seconds"] = seconds
+        stats["invalid_placed_poses"] = n_bad
+        return SfmResult(w2c=out_w2c, K=out_K, points=pts[keep_tr], point_track=keep_tr,
+                         obs_image=image[sel], obs_keypoint=kp[sel],
+                         obs_point=remap[track[sel]],
+                         observations_per_image=np.bincount(image[sel], minlength=N),
+                         placed=placed, refined=refined, weak=weak, tracks=tracks,
+                         bundles=bundles, stats=stats, message=msg)
+
+    no = np.zeros(N, bool)
+    if T == 0:
+        return result(w2c.copy(), K.copy(), np.zeros((0, 3)), np.zeros(0, bool),
+                      np.zeros(0, bool), no, placed.copy(), [], {},
+                      "no tracks between placed images: input poses kept")
+
+    # 1. Triangulate at the input poses; adaptive error threshold.
+    t0 = time.perf_counter()
+    tri = triangulate_tracks(xy, track, image, T, K, w2c, max_reproj_px=np.inf,
+                             min_angle_deg=opt.min_angle_deg)
+    in_ba = tri.valid.copy()
+    thr0 = opt.max_reproj_px
+    if in_ba.any():
+        thr0 = max(thr0, opt.initial_reproj_factor * float(np.median(tri.max_error[in_ba])))
+    over = in_ba & (tri.max_error > thr0)
+    in_ba &= ~over
+    counts = dict(tri.counts)
+    counts["reprojection"] += int(over.sum())
+    counts["valid"] = int(in_ba.sum())
+    seconds["triangulate"] = time.perf_counter() - t0
+    pts = tri.points
+    active = np.ones(track.size, bool)
+    # Weak cameras: too few points to pin their pose; leave them out of the problem.
+    n_pts = np.bincount(image[in_ba[track]], minlength=N)
+    weak = placed & (n_pts < opt.min_points_per_camera)
+    active &= ~weak[image]
+    in_ba &= np.bincount(track[active], minlength=T) >= 2
+    stats: dict[str, Any] = {"tracks": T, "triangulation": counts,
+                             "initial_threshold_px": thr0}
+
+    cur_w2c, cur_K = w2c.copy(), K.copy()
+    bundles: list[BundleResult] = []
+    for r in range(opt.rounds):
+        t0 = time.perf_counter()
+        sel = active & in_ba[track]
+        ba = bundle_adjust(cur_w2c, np.nan_to_num(pts), cur_K, xy[sel], image[sel], track[sel],
+                           opt)
+        bundles.append(ba)
+        seconds[f"bundle_{r + 1}"] = time.perf_counter() - t0
+        if not ba.accepted:
+            break
+        cur_w2c, cur_K = ba.w2c, ba.K
+        pts = np.where(in_ba[:, None], ba.points, pts)
+        if r == opt.rounds - 1:
+            break
+        # Filter: drop observations the adjusted model still misses; a track that keeps
+        # fewer than 2 of them leaves the problem.
+        t0 = time.perf_counter()
+        err = reprojection_errors(np.nan_to_num(pts), xy, track, image, cur_K, cur_w2c)
+        active &= ~(in_ba[track] & ~(err <= opt.max_reproj_px))
+        in_ba &= np.bincount(track[active], minlength=T) >= 2
+        # Tracks not yet in the problem: triangulate with the refined poses, strict filters.
+        out_tr = ~in_ba[track] & active & ~weak[image]
+        tri2 = triangulate_tracks(xy[out_tr], track[out_tr], image[out_tr], T, cur_K, cur_w2c,
+                                  max_reproj_px=opt.max_reproj_px,
+                                  min_angle_deg=opt.min_angle_deg)
+        new = tri2.valid & ~in_ba
+        pts = np.where(new[:, None], tri2.points, pts)
+        in_ba |= new
+        seconds[f"filter_{r + 1}"] = time.perf_counter() - t0
+
+    accepted = [b for b in bundles if b.accepted]
+    stats["bundle_runs"] = len(bundles)
+    if not accepted:
+        msg = ("bundle adjustment failed: " + bundles[0].message if bundles else
+               "nothing to adjust") + "; input poses kept"
+        return result(w2c.copy(), K.copy(), pts, in_ba, active, no, placed.copy(), bundles,
+                      stats, msg)
+    stats["median_error_before"] = accepted[0].median_error_before
+    stats["mean_error_before"] = accepted[0].mean_error_before
+    stats["median_error_after"] = accepted[-1].median_error_after
+    stats["mean_error_after"] = accepted[-1].mean_error_after
+    # Cameras left with too few observations after filtering are weak too.
+    sel = active & in_ba[track]
+    per_img = np.bincount(image[sel], minlength=N)
+    weak = placed & (weak | (per_img < opt.min_points_per_camera))
+    refined = placed & ~weak
+    out = cur_w2c.copy()
+    out_K = cur_K.copy()
+    out_K[~refined] = K[~refined]
+    if weak.any():
+        # Keep the weak cameras' input poses, expressed in the adjusted frame (the gauge camera
+        # is held, but the free scale may drift slightly).
+        c_in = -np.einsum("nji,nj->ni", w2c[refined, :3, :3], w2c[refined, :3, 3])
+        c_out = -np.einsum("nji,nj->ni", out[refined, :3, :3], out[refined, :3, 3])
+        if refined.sum() >= 3:
+            s, Q, t = _similarity_np(c_in, c_out)
+        else:
+            s, Q, t = 1.0, np.eye(3), np.zeros(3)
+        out[weak] = _move_poses(w2c[weak], s, Q, t)
+    out[~placed] = w2c[~placed]
+    stats["scale_note"] = ("camera positions are up to one global scale (gauge: one camera per "
+                           "component fixed, scale free)")
+    msg = (f"bundle adjustment: {len(accepted)}/{len(bundles)} run(s) accepted; "
+           f"{int(refined.sum())} cameras refined, {int(weak.sum())} weak kept at input pose")
+    return result(out, out_K, pts, in_ba, active, refined, weak, bundles, stats, msg)

@@ -1,0 +1,119 @@
+"""Synthetic SfM scenes for tests and benchmarks: random points, cameras on a ring looking at
+them, noisy pixel observations and the pairwise keypoint matches they imply."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .triangulation import project
+
+__all__ = ["SyntheticScene", "look_at_w2c", "make_scene", "perturb_poses"]
+
+
+@dataclass
+class SyntheticScene:
+    """Ground truth and observations of one synthetic scene.
+
+    ``K (N, 3, 3)``, ``w2c (N, 4, 4)``, ``points (P, 3)``; per image ``uv[i] (K_i, 2)`` noisy
+    pixels of its keypoints and ``kp_point[i] (K_i,)`` the point each keypoint sees;
+    ``pair_matches[(a, b)] (M, 2)`` true matches; flat observations ``obs_image, obs_point,
+    obs_kp (O,)`` and ``xy (O, 2)`` (= the keypoints' pixels).
+    """
+
+    K: np.ndarray
+    w2c: np.ndarray
+    points: np.ndarray
+    uv: list[np.ndarray]
+    kp_point: list[np.ndarray]
+    pair_matches: dict[tuple[int, int], np.ndarray]
+    obs_image: np.ndarray
+    obs_point: np.ndarray
+    obs_kp: np.ndarray
+    xy: np.ndarray
+    image_size: tuple[int, int] = (640, 480)
+
+
+def look_at_w2c(centre: np.ndarray, target: np.ndarray, up: np.ndarray) -> np.ndarray:
+    """World-to-camera ``(4, 4)`` of a camera at ``centre`` looking at ``target`` (y down)."""
+    z = target - centre
+    z = z / np.linalg.norm(z)
+    x = np.cross(z, up)
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    R = np.stack((x, y, z))
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R, -R @ centre
+    return T
+
+
+def make_scene(num_cameras: int = 8, num_points: int = 400, noise_px: float = 0.5,
+               visibility: float = 0.8, seed: int = 0, focal: float = 500.0,
+               radius: float = 4.0) -> SyntheticScene:
+    """Points in a unit-ish box, cameras on a ring of ``radius`` (random height and jitter)
+    looking at the centre, each point seen by each camera with probability ``visibility``
+    (when in front and inside the 640x480 image), Gaussian pixel noise ``noise_px``."""
+    rng = np.random.default_rng(seed)
+    W, H = 640, 480
+    K = np.array([[focal, 0, W / 2], [0, focal, H / 2], [0, 0, 1]])
+    Ks = np.repeat(K[None], num_cameras, 0)
+    pts = rng.uniform(-1, 1, (num_points, 3)) * np.array([1.5, 1.0, 1.5])
+    w2c = []
+    for i in range(num_cameras):
+        a = 2 * np.pi * i / num_cameras * 0.6 + rng.normal(0, 0.05)
+        c = radius * np.array([np.sin(a), 0, -np.cos(a)]) + rng.normal(0, 0.3, 3)
+        c[1] += rng.uniform(-1, 1)
+        w2c.append(look_at_w2c(c, rng.normal(0, 0.2, 3), np.array([0.0, -1.0, 0.0])))
+    w2c = np.stack(w2c)
+    uv, kp_point = [], []
+    oi, op, ok, oxy = [], [], [], []
+    for i in range(num_cameras):
+        pix, z = project(pts, Ks[i : i + 1].repeat(num_points, 0),
+                         w2c[i : i + 1].repeat(num_points, 0))
+        inside = (z > 0.1) & (pix[:, 0] >= 0) & (pix[:, 0] < W) & (pix[:, 1] >= 0) & \
+            (pix[:, 1] < H) & (rng.uniform(size=num_points) < visibility)
+        ids = rng.permutation(np.flatnonzero(inside))
+        obs = pix[ids] + rng.normal(0, noise_px, (ids.size, 2))
+        uv.append(obs)
+        kp_point.append(ids)
+        oi.append(np.full(ids.size, i))
+        op.append(ids)
+        ok.append(np.arange(ids.size))
+        oxy.append(obs)
+    matches: dict[tuple[int, int], np.ndarray] = {}
+    for a in range(num_cameras):
+        inv_a = np.full(num_points, -1)
+        inv_a[kp_point[a]] = np.arange(kp_point[a].size)
+        for b in range(a + 1, num_cameras):
+            ka = inv_a[kp_point[b]]
+            both = ka >= 0
+            if both.sum() >= 8:
+                matches[(a, b)] = np.stack((ka[both], np.flatnonzero(both)), 1)
+    return SyntheticScene(K=Ks, w2c=w2c, points=pts, uv=uv, kp_point=kp_point,
+                          pair_matches=matches, obs_image=np.concatenate(oi),
+                          obs_point=np.concatenate(op), obs_kp=np.concatenate(ok),
+                          xy=np.concatenate(oxy), image_size=(W, H))
+
+
+def perturb_poses(w2c: np.ndarray, rot_deg: float, trans_frac: float, seed: int = 0,
+                  keep: tuple[int, ...] = ()) -> np.ndarray:
+    """Rotate each camera by ``rot_deg`` about a random axis and move its centre by
+    ``trans_frac`` of its distance to the origin (random direction); ``keep``: untouched."""
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(seed)
+    out = w2c.copy()
+    for i in range(w2c.shape[0]):
+        if i in keep:
+            continue
+        axis = rng.normal(size=3)
+        axis /= np.linalg.norm(axis)
+        dR = Rotation.from_rotvec(np.radians(rot_deg) * axis).as_matrix()
+        R, t = w2c[i, :3, :3], w2c[i, :3, 3]
+        c = -R.T @ t
+        d = rng.normal(size=3)
+        c = c + trans_frac * np.linalg.norm(c) * d / np.linalg.norm(d)
+        R2 = dR @ R
+        out[i, :3, :3], out[i, :3, 3] = R2, -R2 @ c
+    return out
