@@ -56,7 +56,8 @@ def test_reconstruct_recovers_rendered_rotations(scene, tmp_path):
     assert r.returncode == 0, r.stderr
     assert "posernet-reconstruct: error" not in r.stderr
     poses = json.loads((out / "poses.json").read_text())
-    assert poses["format"] == "posernet-poses" and poses["stage"] == "initial"
+    assert poses["format"] == "posernet-poses" and poses["stage"] == "initial+ba"
+    assert "global scale" in poses["positions"]
     cams = poses["cameras"]
     assert len(cams) == 8 and all(c["solved"] for c in cams.values())
     # ground truth read by the 7-Scenes reader on the same scene
@@ -69,6 +70,20 @@ def test_reconstruct_recovers_rendered_rotations(scene, tmp_path):
     errs = [_rot_err_deg(R_est[j] @ R_est[i].T, R_gt[j] @ R_gt[i].T)
             for i in range(len(names)) for j in range(i + 1, len(names))]
     assert np.median(errs) < 2.0, errs
+    # positions: camera centres after a similarity alignment, against the trajectory's size
+    from posernet.metrics import umeyama_alignment
+
+    c_est = np.stack([np.asarray(cams[n]["camera_to_world"])[:3, 3] for n in names])
+    c_gt = np.stack([np.linalg.inv(reader.world_to_camera(frames[n]))[:3, 3] for n in names])
+    sc, Rs, ts = (x.numpy() for x in umeyama_alignment(torch.from_numpy(c_est),
+                                                        torch.from_numpy(c_gt)))
+    pos_err = np.linalg.norm(sc * c_est @ Rs.T + ts - c_gt, axis=1)
+    extent = np.linalg.norm(c_gt - c_gt.mean(0), axis=1).max()
+    assert np.median(pos_err) < 0.02 * extent, (pos_err, extent)
+    ba = poses["bundle_adjustment"]["initial+ba"][0]
+    assert ba["points"] > 100 and ba["runs"][0]["accepted"]
+    assert ba["reprojection_px"]["median_after"] < 2.0
+    assert all("verification" in e and "rotation_only" in e for e in poses["edges"])
     # the output's gauge: first camera of the component at the identity
     assert np.allclose(np.asarray(cams[names[0]]["world_to_camera"]), np.eye(4), atol=1e-6)
     # tables from the pose files, pictures and the summary
@@ -103,7 +118,7 @@ def test_reconstruct_without_ground_truth_and_with_a_blank_image(scene, tmp_path
     assert blank["solved"] is False and blank["camera_to_world"] is None
     assert sum(c["solved"] for c in cams.values()) == 5
     record = json.loads((out / "poses.json").read_text())
-    assert record["stage"] == "refined" and record["guard"] is True
+    assert record["stage"] == "refined+ba" and record["guard"] is True
     # the guard's checks ran against the shipped model's training statistics; the rendered
     # images' graph (no distortion, more boxes and edges per image) is unlike them: one line
     check = record["input_check"]
@@ -132,6 +147,9 @@ def test_reconstruct_without_ground_truth_and_with_a_blank_image(scene, tmp_path
          "needs a checkpoint with a confidence head"),
         (["intrinsics=500,500,160,120", "proposals=file",
           "proposals.path=/nonexistent/boxes.json"], "boxes.json"),
+        (["intrinsics=500,500,160,120", "bundle.loss=bogus"], "bundle.loss"),
+        (["intrinsics=500,500,160,120", "verify.min_inliers=2"], "verify.min_inliers"),
+        (["intrinsics=500,500,160,120", "ba=sometimes"], "ba: 'sometimes'"),
     ],
 )
 def test_reconstruct_bad_input_is_one_line(scene, tmp_path, args, message):
@@ -148,6 +166,27 @@ def test_reconstruct_bad_input_is_one_line(scene, tmp_path, args, message):
 
     assert re.search(message, lines[-1]), lines[-1]
     assert not (tmp_path / "out" / "poses.json").exists()
+
+
+@pytest.mark.slow
+def test_bundle_adjustment_that_fails_is_reported_and_loses_nothing(scene, tmp_path):
+    """One solver evaluation cannot converge: the averaged poses are kept and the run says so."""
+    out = tmp_path / "out"
+    r = _run(f"images={scene / 'seq-01'}", f"intrinsics={_intr(scene)}", f"out_dir={out}",
+             "matcher=sift", "bundle.max_nfev=1", "pictures=0")
+    assert r.returncode == 0, r.stderr
+    poses = json.loads((out / "poses.json").read_text())
+    assert poses["stage"] == "initial+ba"
+    assert all(c["solved"] for c in poses["cameras"].values())
+    ba = poses["bundle_adjustment"]["initial+ba"][0]
+    assert not any(run["accepted"] for run in ba["runs"])
+    assert "input poses kept" in ba["message"] and "input poses kept" in r.stdout
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["bundle_adjustment"] == poses["bundle_adjustment"]
+    # the error table has both stages, and the BA row equals the averaging row
+    table = (out / "abs_table.md").read_text()
+    rows = [ln for ln in table.splitlines() if ln.startswith("| KP |")]
+    assert len(rows) == 2 and rows[0].split("|")[3:] == rows[1].split("|")[3:], rows
 
 
 @pytest.mark.slow

@@ -23,7 +23,7 @@ def test_tracks_from_synthetic_matches_are_the_points() -> None:
     assert all(len(s) == 1 for s in _track_points(scene, tracks))
     seen = np.bincount(scene.obs_point, minlength=150)
     assert tracks.num_tracks == int((seen >= 2).sum())
-    assert tracks.dropped == {"inconsistent": 0, "single_view": 0}
+    assert tracks.dropped == {"inconsistent": 0, "single_view": 0, "conflicting_views": 0}
     # Sorted by (track, image), one observation per image per track.
     key = tracks.track * 100 + tracks.image
     assert np.all(np.diff(key) > 0)
@@ -40,7 +40,7 @@ def test_inconsistent_track_is_dropped_and_others_kept() -> None:
         (1, 2): np.array([[0, 0]]),
         (0, 2): np.array([[1, 0]]),
     }
-    tracks = build_tracks(matches, [3, 2, 1])
+    tracks = build_tracks(matches, [3, 2, 1], resolve_conflicts=False)
     assert tracks.dropped["inconsistent"] == 1
     assert tracks.num_tracks == 1
     assert sorted(zip(tracks.image.tolist(), tracks.keypoint.tolist(), strict=True)) == \
@@ -58,7 +58,7 @@ def test_inconsistent_match_in_synthetic_scene() -> None:
     p, q = common[0], common[1]
     bad = dict(scene.pair_matches)
     bad[(0, 1)] = np.vstack((bad[(0, 1)], [[k0[p], k1[q]]]))
-    tracks = build_tracks(bad, [len(u) for u in scene.uv])
+    tracks = build_tracks(bad, [len(u) for u in scene.uv], resolve_conflicts=False)
     # p and q merge into one track, which is dropped as a whole.
     assert tracks.dropped["inconsistent"] == 1
     assert tracks.num_tracks == clean.num_tracks - 2
@@ -87,3 +87,24 @@ def test_duplicate_and_reversed_matches_merge() -> None:
     tracks = build_tracks(matches, [2, 3])
     assert tracks.num_tracks == 1
     assert tracks.image.tolist() == [0, 1] and tracks.keypoint.tolist() == [1, 2]
+
+
+def test_conflicts_are_resolved_by_match_count() -> None:
+    """A wrong match links keypoint 3 of image 0 into a track whose true keypoint 0 of image 0
+    is matched in three pairs: keypoint 3 leaves, the rest of the track stays."""
+    matches = {
+        (0, 1): np.array([[0, 0]]),
+        (0, 2): np.array([[0, 0]]),
+        (0, 3): np.array([[0, 0]]),
+        (1, 2): np.array([[0, 0]]),
+        (2, 3): np.array([[0, 0]]),
+        (1, 4): np.array([[0, 0]]),
+        (0, 4): np.array([[3, 0]]),  # wrong: image 0 keypoint 3
+    }
+    tracks = build_tracks(matches, [4, 1, 1, 1, 1])
+    assert tracks.num_tracks == 1 and tracks.dropped["conflicting_views"] == 1
+    assert sorted(zip(tracks.image.tolist(), tracks.keypoint.tolist(), strict=True)) == \
+        [(0, 0), (1, 0), (2, 0), (3, 0), (4, 0)]
+    # without resolution the whole track goes
+    strict = build_tracks(matches, [4, 1, 1, 1, 1], resolve_conflicts=False)
+    assert strict.num_tracks == 0 and strict.dropped["inconsistent"] == 1

@@ -29,7 +29,7 @@ __version__ = "0.1.0"
 
 # The image front end (OpenCV, optional learned matchers) loads on first use, so that importing
 # the network or the geometry does not pay for it.
-_LAZY = {"frontend": ".frontend", "reconstruct": ".reconstruct"}
+_LAZY = {"frontend": ".frontend", "reconstruct": ".reconstruct", "sfm": ".sfm"}
 
 
 def __getattr__(name: str) -> object:
@@ -60,6 +60,7 @@ __all__ = [
     "reconstruct",
     "relative_pose_errors",
     "save_graphs",
+    "sfm",
     "sync",
     "threshold_row",
     "umeyama_alignment",

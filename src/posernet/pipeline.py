@@ -183,6 +183,7 @@ def refine_graphs(
     progress: bool = True,
     guard: bool = False,
     weighted: bool = False,
+    edge_weight: Sequence[Tensor] | None = None,
 ) -> RefineResult:
     """Refine every graph's ``edge_pose`` with ``model`` and average initial and refined poses.
 
@@ -200,10 +201,16 @@ def refine_graphs(
             (:func:`posernet.guard.graph_made_worse`); needs a confidence head.
         weighted: start motion averaging's IRLS from the confidence head's weights
             (``1 / sigma^2`` of the stage's predicted errors) instead of uniform ones.
+        edge_weight: per graph ``[E_g, 2]`` (rotation, translation) weights that every stage's
+            motion averaging multiplies in, e.g. a translation weight 0 on an edge without a
+            usable direction (:mod:`posernet.sync.weighted`).
     """
     graphs = list(graphs)
     if not graphs:
         raise ValueError("refine_graphs: no graphs given")
+    if edge_weight is not None and len(edge_weight) != len(graphs):
+        raise ValueError(f"refine_graphs: edge_weight has {len(edge_weight)} entries for "
+                         f"{len(graphs)} graphs")
     if batch_size < 1:
         raise ValueError(f"batch_size must be >= 1, got {batch_size}")
     stages = STAGES if model is not None else STAGES[:1]
@@ -249,6 +256,10 @@ def refine_graphs(
             poses["refined"] = refined
         elif model is not None:
             poses["refined"] = model(batch).to(batch.edge_pose.dtype)
+        if edge_weight is not None:
+            base = torch.cat([torch.as_tensor(w, dtype=batch.edge_pose.dtype).reshape(-1, 2)
+                              for w in edge_weight[i:i + batch_size]]).to(device)
+            weights = {s: base if w is None else w * base for s, w in weights.items()}
         for s, p in poses.items():
             out.edge_pose[s] += _split(p, batch.edge_ptr)
             if backend is not None:
@@ -476,7 +487,12 @@ def result_tables(evaluation: dict[str, Any], label: str = "KP",
             title=f"Relative poses{title}", note=unscored("relative", "relative poses"))
     if evaluation.get("absolute"):
         bname = (backend or {}).get("backend", "sync")
-        stage = {"initial": bname, "refined": f"{bname} + PoserNet"}
+        base = {"initial": bname, "refined": f"{bname} + PoserNet"}
+
+        def stage_name(s: str) -> str:  # "<stage>+ba": bundle adjustment after averaging
+            head, _, tail = s.partition("+")
+            return base.get(head, head) + (" + BA" if tail == "ba" else "")
+
         gauge = ("rotations aligned by the rotations" if evaluation.get("rotation_gauge") ==
                  "rotations" else "rotations aligned with the centres")
         note = (f"Scale: {(backend or {}).get('scale_label', 'unknown')}; alignment: "
@@ -492,7 +508,7 @@ def result_tables(evaluation: dict[str, Any], label: str = "KP",
             return (int(p["placed"]), int(p["cameras"])) if p else None
 
         tables["absolute"] = ResultTable(
-            rows=[TableRow((label, stage[s]), cells, placed=count(s)) for s, cells in
+            rows=[TableRow((label, stage_name(s)), cells, placed=count(s)) for s, cells in
                   evaluation["absolute"].items()],
             groups=ABSOLUTE_GROUPS, title=f"Absolute poses after motion averaging{title}",
             note=note)

@@ -11,19 +11,26 @@ Used by ``posernet-reconstruct``; usable directly::
 
 No ground truth is needed. Poses are world-to-camera up to the gauge of motion averaging: each
 connected component of the view graph is expressed in the frame of its first camera (identity),
-and translations carry the scale policy of the backend (unit relative translations by default),
-so positions are up to a similarity. Cameras that could not be placed (no edge, or a component
-the backend could not solve) are reported with ``solved: false`` and no pose.
+and positions are up to one global scale per component (a similarity). Cameras that could not
+be placed (no edge, or a component the backend could not solve) are reported with
+``solved: false`` and no pose.
+
+With ``bundle`` options (the default of ``posernet-reconstruct``) the averaged poses of every
+stage are the start of a final stage ``<stage>+ba``: the verified keypoint matches are chained
+into tracks, triangulated and refined with the cameras by robust bundle adjustment
+(:mod:`posernet.sfm`), component by component. Rotation-only pairs (pure rotation, too small a
+baseline) keep their rotation in averaging but give no translation direction.
 """
 
 from __future__ import annotations
 
 import itertools
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -33,8 +40,10 @@ from .geometry import invert_se3
 from .graph import ViewGraph
 from .io import atomic_write_json
 from .pipeline import RefineResult, refine_graphs
+from .sfm import BundleOptions, SfmResult, bundle_adjust_reconstruction
 
-__all__ = ["Reconstruction", "gauge_fixed", "poses_json", "reconstruct", "write_poses_json"]
+__all__ = ["Reconstruction", "edge_weights", "gauge_fixed", "poses_json", "reconstruct",
+           "write_poses_json"]
 
 
 @dataclass
@@ -45,11 +54,55 @@ class Reconstruction:
     graph: ViewGraph
     stats: GraphStats
     result: RefineResult
+    sfm: dict[str, list[SfmResult]] = field(default_factory=dict)  # BA stage -> per component
 
     @property
     def stage(self) -> str:
-        """The final stage: ``refined`` when PoserNet ran, else ``initial``."""
-        return "refined" if "refined" in self.result.edge_pose else "initial"
+        """The final stage: ``refined`` when PoserNet ran, else ``initial``; with ``+ba`` when
+        bundle adjustment ran."""
+        s = "refined" if "refined" in self.result.edge_pose else "initial"
+        return f"{s}+ba" if f"{s}+ba" in self.result.absolute else s
+
+
+def edge_weights(frontend: ImageFrontend, graph: ViewGraph) -> Tensor:
+    """``[E, 2]`` (rotation, translation) averaging weights of ``graph``'s edges: translation
+    weight 0 on rotation-only pairs (their direction says nothing), 1 elsewhere. Node ``i`` of
+    the graph is image ``i`` of the front end (the graph of all images)."""
+    w = torch.ones(graph.num_edges, 2, dtype=torch.float64)
+    for e, (i, j) in enumerate(graph.edge_index.T.tolist()):
+        if frontend.pair(i, j).rotation_only:
+            w[e, 1] = 0.0
+    return w
+
+
+def _bundle_stage(frontend: ImageFrontend, result: RefineResult, stage: str,
+                  options: BundleOptions) -> list[SfmResult]:
+    """Bundle-adjust the averaged poses of ``stage``, one connected component at a time, and
+    store them as stage ``<stage>+ba`` (unplaced cameras stay unplaced)."""
+    n = len(frontend.records)
+    poses = result.absolute[stage][0].double()
+    solved = result.solved[stage][0].bool()
+    comp = result.component[stage][0]
+    uv = [frontend.image(i).features.uv for i in range(n)]
+    matches = frontend.verified_matches()
+    K = np.stack([r.K for r in frontend.records]).astype(np.float64)
+    dist = [r.dist for r in frontend.records]
+    out = poses.clone()
+    runs = []
+    for c in torch.unique(comp[solved]).tolist():
+        members = solved & (comp == c)
+        if int(members.sum()) < 2:
+            continue
+        sfm = bundle_adjust_reconstruction(uv, matches, K, dist, poses.numpy(),
+                                           members.numpy(), options)
+        idx = torch.from_numpy(np.flatnonzero(members.numpy()))
+        out[idx] = torch.from_numpy(sfm.w2c[idx.numpy()]).to(out.dtype)
+        runs.append(sfm)
+    key = f"{stage}+ba"
+    result.absolute[key] = [out.to(result.absolute[stage][0].dtype)]
+    result.solved[key] = [result.solved[stage][0].clone()]
+    result.component[key] = [comp.clone()]
+    return runs
 
 
 def reconstruct(
@@ -61,11 +114,16 @@ def reconstruct(
     estimate: str = "kp",
     progress: bool = True,
     guard: bool = False,
+    bundle_adjust: bool = True,
+    bundle: BundleOptions | None = None,
 ) -> Reconstruction:
     """Evaluate every image pair, assemble the graph, refine its ``estimate`` (``kp`` or ``bb``)
-    initial poses with ``model`` (``None``: no refinement) and average them with ``backend``.
+    initial poses with ``model`` (``None``: no refinement), average them with ``backend`` and,
+    with ``bundle_adjust`` (``bundle``: its options, defaults when ``None``), bundle-adjust each
+    stage's averaged poses (stage ``<stage>+ba``; needs a backend).
     ``guard``: keep the input pose where the model's confidence says refinement would not help
-    (:func:`posernet.pipeline.refine_graphs`; needs a confidence head)."""
+    (:func:`posernet.pipeline.refine_graphs`; needs a confidence head). With a confidence head
+    the averaging starts from the model's per-edge confidence."""
     n = len(frontend.records)
     frontend.prepare(progress=progress)
     frontend.evaluate_pairs(list(itertools.combinations(range(n), 2)), progress=progress)
@@ -73,11 +131,19 @@ def reconstruct(
     graph = graph.with_estimate(estimate)
     if graph.num_edges == 0:
         raise ValueError(
-            f"no image pair shares {frontend.rules.min_boxes} matched boxes, so no camera can "
-            f"be placed ({'; '.join(frontend.summary.lines()[:2])})")
+            "no image pair passed matching and two-view verification, so no camera can be "
+            f"placed ({'; '.join(frontend.summary.lines()[1:])})")
+    weights = edge_weights(frontend, graph)
+    confidence = (model is not None and bool(getattr(model, "adaptive", False))
+                  and bool(getattr(model, "confidence", False)))
     result = refine_graphs(model, [graph], backend=backend, batch_size=1, device=device,
-                           progress=False, guard=guard)
-    return Reconstruction(frontend, graph, stats, result)
+                           progress=False, guard=guard, weighted=confidence,
+                           edge_weight=[weights])
+    rec = Reconstruction(frontend, graph, stats, result)
+    if bundle_adjust and backend is not None:
+        for s in list(result.absolute):
+            rec.sfm[f"{s}+ba"] = _bundle_stage(frontend, result, s, bundle or BundleOptions())
+    return rec
 
 
 def gauge_fixed(poses: Tensor, solved: Tensor, component: Tensor) -> Tensor:
@@ -93,6 +159,34 @@ def gauge_fixed(poses: Tensor, solved: Tensor, component: Tensor) -> Tensor:
 
 def _mat(T: Tensor) -> list[list[float]]:
     return [[round(float(v), 9) for v in row] for row in T.tolist()]
+
+
+def _num(v: Any) -> Any:
+    """JSON-safe scalar (numpy numbers to Python, non-finite floats to None)."""
+    if isinstance(v, dict):
+        return {str(k): _num(x) for k, x in v.items()}
+    if isinstance(v, np.generic):
+        v = v.item()
+    if isinstance(v, float):
+        return round(v, 6) if np.isfinite(v) else None
+    return v
+
+
+def sfm_record(r: SfmResult, keys: list[str]) -> dict[str, Any]:
+    """JSON-ready summary of one component's bundle adjustment."""
+    st = r.stats
+    return {
+        "cameras_refined": [keys[i] for i in np.flatnonzero(r.refined)],
+        "cameras_weak": [keys[i] for i in np.flatnonzero(r.weak)],
+        "tracks": int(r.tracks.num_tracks), "points": int(r.points.shape[0]),
+        "observations": int(r.obs_image.size),
+        "reprojection_px": {f"{k}_{w}": _num(st.get(f"{k}_error_{w}"))
+                            for k in ("median", "mean") for w in ("before", "after")},
+        "runs": [{"converged": bool(b.converged), "accepted": bool(b.accepted),
+                  "evaluations": int(b.iterations), "message": b.message} for b in r.bundles],
+        "seconds": _num(st.get("seconds", {})),
+        "message": r.message,
+    }
 
 
 def poses_json(rec: Reconstruction, info: dict[str, Any] | None = None) -> dict[str, Any]:
@@ -122,15 +216,23 @@ def poses_json(rec: Reconstruction, info: dict[str, Any] | None = None) -> dict[
     edges = []
     for e, (i, j) in enumerate(g.edge_index.T.tolist()):
         rows = int((g.pair_edge == e).sum())
-        item: dict[str, Any] = {"source": keys[i], "target": keys[j], "matched_boxes": rows}
+        pr = rec.frontend.pair(i, j)
+        item: dict[str, Any] = {"source": keys[i], "target": keys[j], "matched_boxes": rows,
+                                "rotation_only": bool(pr.rotation_only),
+                                "track_matches": 0 if pr.inliers is None else len(pr.inliers),
+                                "verification": dict(pr.info)}
         for s, p in res.edge_pose.items():
             item[s] = {"q_wxyz": [float(v) for v in p[0][e, :4]],
                        "t": [float(v) for v in p[0][e, 4:]],
                        "matrix": _mat(pose_vec_to_matrix(p[0][e].double()))}
         edges.append(item)
+    bundle = {s: [sfm_record(r, keys) for r in runs] for s, runs in rec.sfm.items()}
     return {"format": "posernet-poses", "version": 1, **(info or {}), "stage": stage,
+            "positions": "up to one similarity (rotation, translation, global scale) per "
+                         "component: no metric scale is known from images alone",
             "backend": res.backend, "frontend": rec.frontend.summary.to_dict(),
-            "cameras": cams, "edges": edges}
+            "bundle_adjustment": bundle, "cameras": cams, "edges": edges,
+            "rejected_pairs": rec.frontend.rejected_pairs()}
 
 
 def write_poses_json(path: str | os.PathLike[str], rec: Reconstruction,

@@ -122,13 +122,16 @@ def run(cfg: DictConfig) -> dict[str, Any]:
         records, instantiate(cfg.proposals), instantiate(cfg.matcher),
         rules=instantiate(cfg.box_matching), pose=instantiate(cfg.relpose),
         verify=instantiate(cfg.verify), estimate=str(cfg.estimate),
+        edge_rule=str(cfg.edge_rule),
         kp_top_pairs=int(cfg.kp_top_pairs), seed=int(cfg.seed), workers=int(cfg.workers))
     has_gt = all(r.c2w is not None for r in records)
     print(f"[1/3] {len(records)} images from {cfg.images} "
           f"({'with' if has_gt else 'without'} ground-truth poses); matcher "
           f"{getattr(frontend.matcher, 'name', type(frontend.matcher).__name__)}")
+    bundle = instantiate(cfg.bundle) if cfg.ba else None
     rec = reconstruct(frontend, model, backend, device=device, name=Path(cfg.images).name,
-                      estimate=str(cfg.estimate), progress=bool(cfg.progress), guard=guard)
+                      estimate=str(cfg.estimate), progress=bool(cfg.progress), guard=guard,
+                      bundle_adjust=bool(cfg.ba), bundle=bundle)
     print("[2/3] front end: " + "\n      ".join(frontend.summary.lines()))
     info: dict[str, Any] = {"images": str(cfg.images), "estimate": str(cfg.estimate),
                             "checkpoint": str(ckpt) if ckpt else None, "guard": guard}
@@ -139,11 +142,18 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     out.mkdir(parents=True, exist_ok=True)
     files: dict[str, Any] = {"poses": write_poses_json(out / "poses.json", rec, info)}
     solved = sum(c["solved"] for c in _load(files["poses"])["cameras"].values())
-    print(f"[3/3] {'PoserNet + ' if model is not None else ''}{backend!r}: {solved} of "
+    print(f"[3/3] {'PoserNet + ' if model is not None else ''}{backend!r}"
+          f"{' + bundle adjustment' if bundle is not None else ''}: {solved} of "
           f"{len(records)} cameras placed ({rec.graph.num_edges} edges)")
+    for stage, runs in rec.sfm.items():
+        for r in runs:
+            print(f"      {stage}: " + "\n      ".join(line for line in r.lines()[-4:] if line))
     files["summary"] = atomic_write_json(out / "summary.json", {
         **info, "frontend": frontend.summary.to_dict(), "cameras_placed": solved,
-        "edges": rec.graph.num_edges, "seconds_total": round(time.perf_counter() - t0, 2)})
+        "edges": rec.graph.num_edges, "rotation_only_edges": frontend.summary.rotation_only,
+        "rejected_pairs": frontend.summary.rejected and dict(frontend.summary.rejected),
+        "bundle_adjustment": _load(files["poses"])["bundle_adjustment"],
+        "seconds_total": round(time.perf_counter() - t0, 2)})
     files["pictures"] = _pictures(rec, out, int(cfg.pictures))
     files["cameras_png"] = _camera_plot(rec, out)
     if has_gt:

@@ -242,7 +242,9 @@ BUNDLE: Schema = {
     "f_scale": positive(), "max_nfev": integer(1), "ftol": positive(), "xtol": positive(),
     "gtol": positive(), "refine_focal": choice("none", "shared", "per_camera"),
     "gauge": choice("max_degree", "first"), "accept_unconverged": boolean(),
-    "anneal_factor": number(0), "max_reproj_px": positive(), "initial_reproj_factor": positive(),
+    "anneal_factor": number(0), "anneal_step": number(1, lo_open=True),
+    "robust": choice("irls", "scipy"), "max_outer": integer(1), "inner_nfev": integer(1),
+    "max_reproj_px": positive(), "initial_reproj_factor": positive(),
     "min_angle_deg": number(0), "rounds": integer(1), "min_points_per_camera": integer(0),
 }
 
@@ -360,6 +362,7 @@ COMMANDS: dict[str, Command] = {
               "gt_poses": path(null=True), "out_dir": path(), "refine": boolean(), "ba": boolean(),
               "guard": boolean(), "check_inputs": boolean(),
               "ckpt_path": path(null=True), "estimate": ESTIMATE, "kp_top_pairs": integer(0),
+              "edge_rule": choice("verified", "boxes"),
               "seed": SEED, "workers": integer(1), "pictures": integer(0), "device": DEVICE,
               "num_threads": THREADS, "progress": boolean(), "digits": DIGITS},
         groups={**FRONTEND, "verify": VERIFY, "bundle": BUNDLE, "sync": SYNC},

@@ -2,7 +2,9 @@
 
 ROI proposals per image (:mod:`.proposals`), keypoint matching per image pair (:mod:`.features`),
 the paper's box-matching rules (:mod:`.boxmatch`), OpenCV 5-point initial relative poses on
-in-box keypoints (KP) and box centres (BB) (:mod:`.relpose`), and view graphs of any set of
+in-box keypoints (KP) and box centres (BB) (:mod:`.relpose`), two-view verification of every
+pair's pose (inlier counts, pure rotation / plane, cheirality, static matches; :mod:`.verify`),
+and view graphs of any set of
 images (:mod:`.graphs`), tied together by :class:`ImageFrontend` (:mod:`.pipeline`) over the
 images a user brings (:mod:`.images`). Each stage is swappable and has its own Hydra config
 group (``proposals/``, ``matcher/``, ``box_matching/``, ``relpose/``). The synthetic generator
@@ -23,6 +25,7 @@ from .proposals import (
     filter_proposals,
 )
 from .relpose import PoseOptions, five_point
+from .verify import TwoView, VerifyRules, epipolar_consistent, keypoint_contrast, verify_two_view
 
 __all__ = [
     "BoxMatchRules",
@@ -41,14 +44,19 @@ __all__ = [
     "Proposals",
     "SelectiveSearch",
     "SiftMatcher",
+    "TwoView",
+    "VerifyRules",
     "XFeatMatcher",
     "assemble_view_graph",
+    "epipolar_consistent",
     "filter_proposals",
     "five_point",
     "grow_connected",
+    "keypoint_contrast",
     "make_matcher",
     "match_boxes",
     "parse_intrinsics",
     "read_image",
     "records_for_images",
+    "verify_two_view",
 ]

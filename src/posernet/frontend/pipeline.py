@@ -58,7 +58,8 @@ class FrontendSummary:
 
     def lines(self) -> list[str]:
         """Human-readable summary lines (counts, then time per image / per pair)."""
-        n_pairs = sum(v for k, v in self.pairs.items() if k != "too_few_matches")
+        n_pairs = sum(v for k, v in self.pairs.items()
+                      if k not in ("too_few_matches", "edge_few_boxes"))
         s = self.seconds
         out = [
             f"images: {self.images} ({self.images_without_boxes} without any proposal)",
@@ -66,7 +67,9 @@ class FrontendSummary:
             f"{self.pairs['too_few_matches']} with too few keypoint matches, "
             f"{self.pairs['unmatched'] - self.pairs['too_few_matches']} with too few matched "
             f"boxes, {self.pairs['kp_failed']} KP and {self.pairs['bb_failed']} BB two-view "
-            "rejections",
+            "rejections"
+            + (f"; {self.pairs['edge_few_boxes']} edges with fewer matched boxes than the "
+               "paper's rule" if self.pairs["edge_few_boxes"] else ""),
         ]
         if self.rejected or self.rotation_only:
             why = ", ".join(f"{k} {v}" for k, v in sorted(self.rejected.items()))
@@ -111,6 +114,10 @@ class ImageFrontend:
         verify: two-view verification rules (:mod:`posernet.frontend.verify`).
         estimate: which initial estimate an edge needs (``kp`` or ``bb``); the other is
             computed too and may be missing.
+        edge_rule: ``"boxes"`` (the paper's: an edge needs ``rules.min_boxes`` matched box
+            pairs) or ``"verified"`` (with ``estimate="kp"``, every pair whose two-view
+            geometry is verified is an edge; its matched boxes, fewer or none, ride along, and
+            PoserNet keeps the pose of an edge without any).
         kp_top_pairs: KP input from the keypoints of the ``kp_top_pairs`` box pairs sharing the
             most matches (0: every matched box pair, the paper's rule).
         seed: RANSAC seed base (per pair: :func:`pair_seed`).
@@ -127,6 +134,7 @@ class ImageFrontend:
         pose: PoseOptions | None = None,
         verify: VerifyRules | None = None,
         estimate: str = "kp",
+        edge_rule: str = "boxes",
         kp_top_pairs: int = 0,
         seed: int = 0,
         workers: int = 1,
@@ -143,6 +151,9 @@ class ImageFrontend:
         if estimate not in ("kp", "bb"):
             raise ValueError(f"estimate must be 'kp' or 'bb', got {estimate!r}")
         self.estimate = estimate
+        if edge_rule not in ("boxes", "verified"):
+            raise ValueError(f"edge_rule must be 'boxes' or 'verified', got {edge_rule!r}")
+        self.edge_rule = edge_rule
         self.kp_top_pairs = int(kp_top_pairs)
         self.seed = int(seed)
         self.workers = max(1, int(workers))
@@ -246,15 +257,32 @@ class ImageFrontend:
         t2 = time.perf_counter()
         sec["box_matching"] += t2 - t1
         wrong = np.zeros(ia.size, bool)
-        if ia.size < rules.min_boxes:
-            return PairResult(a, b, ia, ib, wrong, 0, 0, None, None, "unmatched",
-                              reason="too_few_matched_boxes")
-        inside = keypoints_in_matched_boxes(m.uv_a, m.uv_b, A.boxes, B.boxes, ia, ib,
-                                            self.kp_top_pairs)
-        p1, p2 = m.uv_a[inside], m.uv_b[inside]
         q, s = self.pose, pair_seed(self.seed, a, b)
         common = {"prob": q.ransac_prob, "max_iters": q.max_iters, "seed": s, "method": q.method}
         geo = {"K2": rb.K, "dist1": ra.dist, "dist2": rb.dist}
+        track_geo = {"K1": ra.K, **geo}
+        if ia.size < rules.min_boxes:
+            # Too few matched boxes for the paper's edge rule: verified on all its matches,
+            # it is an edge under edge_rule="verified" (KP input), and its matches join the
+            # keypoint tracks of bundle adjustment either way.
+            tv = verify_two_view(m.uv_a, m.uv_b, ra.K, rules=self.verify,
+                                 threshold=q.kp_threshold, **geo, **common)
+            sec["five_point"] += time.perf_counter() - t2
+            inliers = self._track_matches(m, tv, np.ones(len(m), bool), track_geo)
+            if tv.accepted and self.edge_rule == "verified" and self.estimate == "kp":
+                self.summary.rotation_only += bool(tv.rotation_only)
+                self.summary.pairs["edge_few_boxes"] += 1
+                return PairResult(a, b, ia, ib, wrong, len(m), 0, tv.pose, None, "edge",
+                                  rotation_only=tv.rotation_only, inliers=inliers,
+                                  info=tv.info)
+            if not tv.accepted:
+                self.summary.rejected[f"kp:{tv.status}"] += 1
+            return PairResult(a, b, ia, ib, wrong, 0, 0, None, None, "unmatched",
+                              reason="too_few_matched_boxes", rotation_only=tv.rotation_only,
+                              inliers=inliers, info=tv.info)
+        inside = keypoints_in_matched_boxes(m.uv_a, m.uv_b, A.boxes, B.boxes, ia, ib,
+                                            self.kp_top_pairs)
+        p1, p2 = m.uv_a[inside], m.uv_b[inside]
         kp = verify_two_view(p1, p2, ra.K, rules=self.verify, threshold=q.kp_threshold,
                              **geo, **common)
         bb = five_point(box_centres(A.boxes[ia]), box_centres(B.boxes[ib]), ra.K,
@@ -270,19 +298,44 @@ class ImageFrontend:
             reason = kp.status if self.estimate == "kp" else "five_point"
             return PairResult(a, b, ia, ib, wrong, int(p1.shape[0]), 0, kp.pose, bb, status,
                               reason=reason, info=kp.info)
-        inliers = None
-        if kp.accepted and m.idx_a is not None and m.idx_b is not None:
-            # every match the verified pose explains, in boxes or not, feeds the tracks
-            if kp.rotation_only:  # no depth to check against: the fitted inliers only
-                keep = np.zeros(len(m), bool)
-                keep[np.flatnonzero(inside)[kp.inliers]] = True
-            else:
-                keep = epipolar_consistent(m.uv_a, m.uv_b, kp.R, kp.t, ra.K, **geo,
-                                           threshold=2.0 * q.kp_threshold)
-            inliers = np.stack([m.idx_a[keep], m.idx_b[keep]], axis=1)
         self.summary.rotation_only += bool(kp.rotation_only)
         return PairResult(a, b, ia, ib, wrong, int(p1.shape[0]), 0, kp.pose, bb, "edge",
-                          rotation_only=kp.rotation_only, inliers=inliers, info=kp.info)
+                          rotation_only=kp.rotation_only,
+                          inliers=self._track_matches(m, kp, inside, track_geo), info=kp.info)
+
+    def _track_matches(self, m: Any, tv: Any, fitted: np.ndarray,
+                       geo: dict[str, Any]) -> np.ndarray | None:
+        """Keypoint index pairs ``(I, 2)`` of the matches a verified two-view result ``tv``
+        (fitted on the matches ``fitted``) explains, or ``None``: every match it explains, in
+        boxes or not, feeds the tracks; a rotation-only pair has no depth to check, so only the
+        matches it was fitted on and kept."""
+        if not tv.accepted or m.idx_a is None or m.idx_b is None:
+            return None
+        if tv.rotation_only:
+            keep = np.zeros(len(m), bool)
+            keep[np.flatnonzero(fitted)[tv.inliers]] = True
+        else:
+            keep = epipolar_consistent(m.uv_a, m.uv_b, tv.R, tv.t, geo["K1"], geo["K2"],
+                                       geo["dist1"], geo["dist2"],
+                                       threshold=2.0 * self.pose.kp_threshold)
+        return np.stack([m.idx_a[keep], m.idx_b[keep]], axis=1)
+
+    def verified_matches(self) -> dict[tuple[int, int], np.ndarray]:
+        """Keypoint index pairs ``(M, 2)`` that each evaluated pair's verified pose explains
+        (edges, and pairs with verified geometry but too few matched boxes for an edge), keyed
+        by image pair ``(a, b)``, ``a < b`` (the input of keypoint tracks)."""
+        return {k: p.inliers for k, p in self._pairs.items()
+                if p.inliers is not None and p.inliers.size}
+
+    def rejected_pairs(self) -> list[dict[str, Any]]:
+        """Every evaluated pair that is not an edge: image keys, reason and verification
+        numbers (for the run's summary)."""
+        out = []
+        for (a, b), p in sorted(self._pairs.items()):
+            if not p.is_edge:
+                out.append({"source": self.records[a].key, "target": self.records[b].key,
+                            "status": p.status, "reason": p.reason, **p.info})
+        return out
 
     def evaluate_pairs(self, pairs: Sequence[tuple[int, int]],
                        progress: bool = True) -> list[PairResult]:

@@ -62,7 +62,7 @@ class BundleOptions:
 
     loss: str = "cauchy"
     f_scale: float = 2.0
-    max_nfev: int = 200
+    max_nfev: int = 1000
     ftol: float = 1e-6
     xtol: float = 1e-10
     gtol: float = 1e-10
@@ -72,7 +72,7 @@ class BundleOptions:
     anneal_factor: float = 3.0
     anneal_step: float = 4.0
     robust: str = "irls"
-    max_outer: int = 30
+    max_outer: int = 100
     inner_nfev: int = 10
     max_reproj_px: float = 4.0
     initial_reproj_factor: float = 3.0
