@@ -204,3 +204,17 @@ def test_reconstruction_without_tracks_keeps_input() -> None:
     assert res.stats["invalid_placed_poses"] == 1
     with pytest.raises(ValueError, match="K must be"):
         bundle_adjust_reconstruction(uv, {}, K[:2], None, w0, np.ones(3, bool))
+
+
+def test_summary_lines_of_a_failed_adjustment() -> None:
+    """No adjustment accepted: the summary says so instead of failing on missing numbers."""
+    from posernet.sfm import bundle_adjust_reconstruction
+
+    scene = make_scene(num_cameras=5, num_points=120, seed=4)
+    start = perturb_poses(scene.w2c, 2.0, 0.05, seed=1)
+    res = bundle_adjust_reconstruction(scene.uv, scene.pair_matches, scene.K, None, start,
+                                       np.ones(5, bool), BundleOptions(max_nfev=1))
+    assert not res.refined.any() and np.allclose(res.w2c, start)
+    lines = res.lines()
+    assert "input poses kept" in lines[-1]
+    assert not any("reprojection error" in ln for ln in lines)

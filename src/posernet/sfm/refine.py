@@ -66,7 +66,7 @@ class SfmResult:
                    f"observations; cameras refined {int(self.refined.sum())}/"
                    f"{int(self.placed.sum())} placed, weak (input pose kept) "
                    f"{int(self.weak.sum())}")
-        if self.bundles:
+        if "median_error_before" in s:  # set only when an adjustment was accepted
             out.append(f"reprojection error median/mean: {s['median_error_before']:.3f}/"
                        f"{s['mean_error_before']:.3f} px -> {s['median_error_after']:.3f}/"
                        f"{s['mean_error_after']:.3f} px over {len(self.bundles)} BA run(s)")
