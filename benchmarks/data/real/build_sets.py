@@ -1,0 +1,194 @@
+"""Rebuild the real image sets in this folder from their raw sources (see each SOURCE.md).
+
+Not run by tests; kept so the conversions are reproducible. Raw inputs are expected under
+``--raw`` (default /tmp/raw): ``dino/`` (Middlebury dinoSparseRing), ``hj/`` and
+``fountain/`` (Strecha Herz-Jesu-P25 / fountain-P11 images + ``.camera`` files as in
+openMVG/SfM_quality_evaluation), ``7s/`` (the 7-Scenes frames of andyzeng/tsdf-fusion-python
+``data/``), ``cab/`` (TUM fr3_cabinet key frames of
+benchun123/cuboid_slam_with_bbox_constraints ``data/``; built only on request: it fails the
+checks for lack of texture).
+
+    python benchmarks/data/real/build_sets.py dino herzjesu fountain 7scenes
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+
+
+def write_pose(path: Path, c2w: np.ndarray) -> None:
+    path.write_text("\n".join(" ".join(f"{v:.9f}" for v in row) for row in c2w) + "\n")
+
+
+def write_jpeg(path: Path, img: np.ndarray, quality: int = 90) -> None:
+    ok, buf = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, quality])
+    assert ok
+    path.write_bytes(buf.tobytes())
+
+
+def write_intrinsics(out: Path, K: np.ndarray, dist=None) -> None:
+    d = {"fx": float(K[0, 0]), "fy": float(K[1, 1]), "cx": float(K[0, 2]), "cy": float(K[1, 2])}
+    if dist is not None:
+        d["dist"] = [float(x) for x in dist]
+    (out / "intrinsics.json").write_text(json.dumps(d, indent=2) + "\n")
+
+
+def clean(out: Path) -> None:
+    out.mkdir(parents=True, exist_ok=True)
+    for p in out.iterdir():
+        if p.suffix in (".jpg", ".png") or p.name.endswith(".pose.txt") \
+                or p.name == "intrinsics.json":
+            p.unlink()
+
+
+def build_dino(raw: Path) -> None:
+    """Middlebury dinoSparseRing: x = K [R | t] X  (world-to-camera) -> c2w = [R^T | -R^T t]."""
+    src = raw / "dino"
+    out = HERE / "middlebury_dino_sparse_ring"
+    clean(out)
+    lines = (src / "dinoSR_par.txt").read_text().split("\n")
+    n = int(lines[0])
+    Ks = []
+    for line in lines[1 : n + 1]:
+        tok = line.split()
+        name, vals = tok[0], np.array([float(x) for x in tok[1:]])
+        K, R, t = vals[:9].reshape(3, 3), vals[9:18].reshape(3, 3), vals[18:21]
+        Ks.append(K)
+        c2w = np.eye(4)
+        c2w[:3, :3] = R.T
+        c2w[:3, 3] = -R.T @ t
+        stem = Path(name).stem
+        img = cv2.imread(str(src / name), cv2.IMREAD_COLOR)
+        write_jpeg(out / f"{stem}.jpg", img, 92)
+        write_pose(out / f"{stem}.pose.txt", c2w)
+    assert all(np.allclose(K, Ks[0]) for K in Ks), "per-image K differ"
+    write_intrinsics(out, Ks[0])
+
+
+def read_strecha_camera(path: Path):
+    """Strecha ``.camera``: K (3 rows), distortion row, R (3 rows), t (1 row), W H.
+
+    Projection is P = K [R^T | -R^T t]: R is the camera-to-world rotation and t the camera
+    centre in world coordinates (metres), i.e. c2w = [R | t].
+    """
+    rows = [list(map(float, r.split())) for r in path.read_text().splitlines() if r.strip()]
+    K = np.array(rows[0:3])
+    R = np.array(rows[4:7])
+    t = np.array(rows[7])
+    W, H = int(rows[8][0]), int(rows[8][1])
+    return K, R, t, (W, H)
+
+
+def build_strecha(raw: Path, sub: str, name: str, n_keep: int = 20, scale: int = 4) -> None:
+    """Strecha et al. 2008 set: every ``len/n_keep``-th image, downscaled by ``scale``."""
+    src = raw / sub
+    out = HERE / name
+    clean(out)
+    cams = sorted(src.glob("*.jpg.camera"))
+    idx = sorted(set(np.round(np.linspace(0, len(cams) - 1, n_keep)).astype(int).tolist()))
+    K0 = None
+    for i in idx:
+        cam = cams[i]
+        K, R, t, (W, H) = read_strecha_camera(cam)
+        img = cv2.imread(str(src / cam.name.replace(".camera", "")), cv2.IMREAD_COLOR)
+        assert img.shape[1] == W and img.shape[0] == H
+        small = cv2.resize(img, (W // scale, H // scale), interpolation=cv2.INTER_AREA)
+        Ks = K.copy()
+        Ks[0, 0] /= scale
+        Ks[1, 1] /= scale
+        Ks[0, 2] = (K[0, 2] + 0.5) / scale - 0.5
+        Ks[1, 2] = (K[1, 2] + 0.5) / scale - 0.5
+        if K0 is None:
+            K0 = Ks
+        assert np.allclose(K0, Ks)
+        c2w = np.eye(4)
+        c2w[:3, :3] = R
+        c2w[:3, 3] = t
+        stem = cam.name.split(".")[0]
+        write_jpeg(out / f"{stem}.jpg", small, 90)
+        write_pose(out / f"{stem}.pose.txt", c2w)
+    write_intrinsics(out, K0)
+
+
+def quat_to_R(q):
+    x, y, z, w = q
+    n = np.sqrt(x * x + y * y + z * z + w * w)
+    x, y, z, w = x / n, y / n, z / n, w / n
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def arc_length_pick(pos: np.ndarray, n_keep: int) -> list[int]:
+    """Indices of ``n_keep`` frames equally spaced in path length along positions ``pos``."""
+    arc = np.concatenate([[0], np.cumsum(np.linalg.norm(np.diff(pos, axis=0), axis=1))])
+    return [int(np.argmin(np.abs(arc - a))) for a in np.linspace(0, arc[-1], n_keep)]
+
+
+def build_7scenes(raw: Path, first: int = 0, last: int = 500, n_keep: int = 20,
+                  K=(525.0, 525.0, 320.0, 240.0)) -> None:
+    """7-Scenes frames (as shipped in andyzeng/tsdf-fusion-python/data): poses already c2w."""
+    src = raw / "7s"
+    out = HERE / "7scenes_redkitchen"
+    clean(out)
+    ids = list(range(first, last))
+    pos = np.array([np.loadtxt(src / f"frame-{i:06d}.pose.txt")[:3, 3] for i in ids])
+    for k in arc_length_pick(pos, n_keep):
+        i = ids[k]
+        c2w = np.loadtxt(src / f"frame-{i:06d}.pose.txt")
+        # the source JPEGs (640x480) are copied byte for byte: no second lossy encoding
+        shutil.copyfile(src / f"frame-{i:06d}.color.jpg", out / f"frame-{i:06d}.color.jpg")
+        write_pose(out / f"frame-{i:06d}.pose.txt", c2w)
+    write_intrinsics(out, np.array([[K[0], 0, K[2]], [0, K[1], K[3]], [0, 0, 1.0]]))
+
+
+def build_cabinet(raw: Path, n_keep: int = 20) -> None:
+    """TUM fr3_cabinet key frames (as shipped in benchun123/cuboid_slam_with_bbox_constraints):
+    ``truth_cam_poses.txt`` rows ``t tx ty tz qx qy qz qw`` are TUM ground truth, c2w, metres."""
+    src = raw / "cab"
+    out = HERE / "tum_fr3_cabinet"
+    clean(out)
+    gt = np.loadtxt(src / "truth_cam_poses.txt")
+    idx = sorted(set(np.round(np.linspace(0, len(gt) - 1, n_keep)).astype(int).tolist()))
+    for i in idx:
+        g = gt[i]
+        c2w = np.eye(4)
+        c2w[:3, :3] = quat_to_R(g[4:8])
+        c2w[:3, 3] = g[1:4]
+        img = cv2.imread(str(src / f"{i:04d}_rgb_raw.jpg"), cv2.IMREAD_COLOR)
+        stem = f"{i:04d}_{g[0]:.4f}"
+        write_jpeg(out / f"{stem}.jpg", img, 95)
+        write_pose(out / f"{stem}.pose.txt", c2w)
+    write_intrinsics(out, np.array([[535.4, 0, 320.1], [0, 539.2, 247.6], [0, 0, 1.0]]))
+
+
+if __name__ == "__main__":
+    ap = argparse.ArgumentParser()
+    ap.add_argument("sets", nargs="+")
+    ap.add_argument("--raw", default="/tmp/raw", type=Path)
+    a = ap.parse_args()
+    for s in a.sets:
+        if s == "dino":
+            build_dino(a.raw)
+        elif s == "herzjesu":
+            build_strecha(a.raw, "hj", "strecha_herzjesu_p25")
+        elif s == "fountain":
+            build_strecha(a.raw, "fountain", "strecha_fountain_p11", n_keep=11)
+        elif s == "7scenes":
+            build_7scenes(a.raw)
+        elif s == "cabinet":
+            build_cabinet(a.raw)
+        else:
+            raise SystemExit(f"unknown set {s}")
