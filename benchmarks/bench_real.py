@@ -1,0 +1,774 @@
+"""Real photos: ``posernet-reconstruct`` against COLMAP (global and incremental) on the same
+image folders with the same fixed pinhole intrinsics, side by side in one run.
+
+Each method runs in its own subprocess on each set (``posernet-reconstruct`` from the venv;
+COLMAP through pycolmap in a worker process of this script), so wall time and peak memory
+(``ru_maxrss`` of that child) are the method's own. Per set and method the table gives:
+
+* cameras placed (of N), the size of the largest connected component (COLMAP: the largest
+  model) and the number of components (models);
+* on the largest component: the median absolute rotation error (deg; estimated
+  camera-to-world rotations after the best global rotation, the chordal mean of
+  ``R_gt R_est^T``), the median camera-position error (centres after an Umeyama similarity,
+  in ground-truth units), and over every image pair the median relative rotation error and
+  relative translation-direction error (deg);
+* wall time of the subprocess (s, interpreter start and imports included) and its peak
+  resident memory (MB).
+
+COLMAP: SIFT extraction with the set's intrinsics (one shared PINHOLE camera; OPENCV when the
+set gives distortion), exhaustive matching, then ``pycolmap.global_mapping`` (GLOMAP) or
+``pycolmap.incremental_mapping`` with every intrinsic held fixed in bundle adjustment.
+pycolmap is an optional benchmark-only dependency (``pip install pycolmap==4.2.1``); without
+it the COLMAP rows are skipped with a note.
+
+    python benchmarks/bench_real.py                          # benchmarks/data/real/* + rendered
+    python benchmarks/bench_real.py --quick                  # 8 images per set, small render
+    python benchmarks/bench_real.py --set herzjesu=benchmarks/data/real/strecha_herzjesu_p25
+    python benchmarks/bench_real.py --set lab=photos/:585,585,320,240 --rendered \\
+        --method posernet --method "posernet-eig=sync=eig_se3" \\
+        --method "posernet-refine=refine=true" --method colmap-incremental
+
+Writes ``benchmarks/results/real.md`` and ``real.json`` (every number, the exact commands and
+overrides, versions, machine); ``--quick`` writes under ``benchmarks/results/quick/``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import shlex
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+# Keep the module's own imports light: the COLMAP worker (``--colmap-worker``) runs this file
+# and must not pay for torch; posernet and torch are imported where they are used.
+
+ROOT = Path(__file__).resolve().parent
+DATA = ROOT / "data" / "real"
+COLMAP_METHODS = ("colmap-global", "colmap-incremental")
+DEFAULT_METHODS = ("posernet", *COLMAP_METHODS)
+PYCOLMAP_PIN = "pycolmap==4.2.1"
+POSE_SUFFIX = ".pose.txt"
+# per-set defaults of the intrinsics, looked for in the set folder (then its images folder)
+INTRINSICS_FILES = ("intrinsics.json", "intrinsics.txt")
+
+
+class BenchError(ValueError):
+    """Bad input to the benchmark: a missing folder, no ground truth, an unknown method."""
+
+
+# ------------------------------------------------------------------------------------ inputs
+
+
+class ImageSet:
+    """One set: ``keys`` are the image names in ``images`` (as both methods see them);
+    ``intrinsics`` as given to posernet-reconstruct (``"fx,fy,cx,cy"`` or a file path),
+    ``K (3, 3)`` and ``dist`` (OpenCV order or ``None``) parsed from it; ``c2w`` the
+    ground-truth camera-to-world pose per key. (No dataclass: the benchmark scripts are also
+    loaded as unregistered modules, see tests/test_benchmarks.py.)"""
+
+    def __init__(self, name: str, images: Path, keys: list[str], intrinsics: str,
+                 K: np.ndarray, dist: np.ndarray | None, c2w: dict[str, np.ndarray],
+                 source: str = "", note: str = "") -> None:
+        self.name, self.images, self.keys, self.intrinsics = name, images, keys, intrinsics
+        self.K, self.dist, self.c2w, self.source, self.note = K, dist, c2w, source, note
+
+
+class Method:
+    """``kind`` is ``posernet``, ``colmap-global`` or ``colmap-incremental``; ``overrides``
+    hydra overrides of a posernet method."""
+
+    def __init__(self, label: str, kind: str, overrides: list[str] | None = None) -> None:
+        self.label, self.kind, self.overrides = label, kind, list(overrides or [])
+
+
+def parse_method(text: str) -> Method:
+    """``posernet[-LABEL][=OVERRIDES]`` (hydra overrides, space separated), ``colmap-global``,
+    ``colmap-incremental``."""
+    label, eq, rest = text.strip().partition("=")
+    label = label.strip()
+    overrides = shlex.split(rest) if eq else []
+    if label == "posernet" or label.startswith("posernet-"):
+        if eq and not overrides:
+            raise BenchError(f"method {text!r}: no overrides after '='")
+        return Method(label, "posernet", overrides)
+    if label in COLMAP_METHODS:
+        if overrides:
+            raise BenchError(f"method {text!r}: COLMAP methods take no overrides")
+        return Method(label, label)
+    raise BenchError(f"unknown method {text!r}: choose posernet[-LABEL][=HYDRA OVERRIDES], "
+                     f"{', '.join(COLMAP_METHODS)}")
+
+
+def parse_set(text: str) -> tuple[str, Path, str | None]:
+    """``NAME=DIR[:INTRINSICS]`` -> ``(name, folder, intrinsics or None)``."""
+    name, eq, rest = text.partition("=")
+    if not eq or not name.strip() or not rest.strip():
+        raise BenchError(f"--set {text!r}: expected NAME=DIR[:INTRINSICS]")
+    folder, _, intr = rest.partition(":")
+    return name.strip(), Path(folder), (intr.strip() or None)
+
+
+def _pose_name(key: str) -> str:
+    """The ground-truth file of an image: ``<stem>.pose.txt`` (7-Scenes: ``.color.png`` off)."""
+    for suffix in (".color.png", ".color.jpg"):
+        if key.endswith(suffix):
+            return key[: -len(suffix)] + POSE_SUFFIX
+    return str(Path(key).with_suffix("")) + POSE_SUFFIX
+
+
+def load_set(name: str, folder: str | os.PathLike[str], intrinsics: str | None = None) -> ImageSet:
+    """The images of ``folder`` (or ``folder/images``), their intrinsics (``intrinsics``, else
+    ``folder/intrinsics.json`` or ``.txt``) and ground truth (``<stem>.pose.txt``, camera to
+    world, beside the images or in ``folder``). Every problem is a :class:`BenchError` naming
+    the set and the folder or file."""
+    from posernet.frontend.images import ImageError, list_images, parse_intrinsics, read_pose_file
+
+    root = Path(folder)
+    if not root.is_dir():
+        raise BenchError(f"set {name!r}: folder not found: {root}")
+    images = root
+    if not any(p.is_file() and p.suffix.lower() in _suffixes() for p in root.iterdir()) \
+            and (root / "images").is_dir():
+        images = root / "images"
+    try:
+        keys = [str(p.relative_to(images)) for p in list_images(images)]
+    except ImageError as e:
+        raise BenchError(f"set {name!r}: {e}") from None
+    if intrinsics is None:
+        found = [d / f for d in dict.fromkeys((root, images)) for f in INTRINSICS_FILES
+                 if (d / f).is_file()]
+        if not found:
+            raise BenchError(f"set {name!r}: no intrinsics: give NAME=DIR:FX,FY,CX,CY or a file, "
+                             f"or put {' or '.join(INTRINSICS_FILES)} in {root}")
+        intrinsics = str(found[0].resolve())
+    elif "," not in intrinsics:
+        p = Path(intrinsics)
+        if not p.is_file():
+            raise BenchError(f"set {name!r}: intrinsics file not found: {p}")
+        intrinsics = str(p.resolve())
+    try:
+        cams = parse_intrinsics(intrinsics, keys)
+    except ImageError as e:
+        raise BenchError(f"set {name!r}: {e}") from None
+    K, dist = cams[0]
+    for key, (Ki, di) in zip(keys, cams, strict=True):
+        same_d = (di is None and dist is None) or (
+            di is not None and dist is not None and di.shape == dist.shape
+            and np.allclose(di, dist))
+        if not np.allclose(Ki, K) or not same_d:
+            raise BenchError(f"set {name!r}: image {key} has other intrinsics than {keys[0]}; "
+                             "the benchmark needs one fixed camera for every image")
+    if abs(K[0, 1]) > 1e-9:
+        raise BenchError(f"set {name!r}: skewed intrinsics (K[0,1] = {K[0, 1]}) are not pinhole")
+    c2w, missing = {}, []
+    for key in keys:
+        cands = [images / _pose_name(key), root / _pose_name(Path(key).name)]
+        path = next((p for p in cands if p.is_file()), None)
+        if path is None:
+            missing.append(str(cands[0]))
+            continue
+        try:
+            c2w[key] = read_pose_file(path)
+        except ImageError as e:
+            raise BenchError(f"set {name!r}: {e}") from None
+    if missing:
+        raise BenchError(f"set {name!r}: no ground truth for {len(missing)} of {len(keys)} "
+                         f"images (camera-to-world <stem>{POSE_SUFFIX} beside the images), "
+                         f"e.g. {missing[0]}")
+    source = _source(root / "SOURCE.md") if (root / "SOURCE.md").is_file() else ""
+    return ImageSet(name, images.resolve(), keys, intrinsics, K, dist, c2w, source)
+
+
+def _source(path: Path) -> str:
+    """A few words on where a set comes from: the start of SOURCE.md's ``**What**:`` paragraph
+    (else its first line that is not a heading)."""
+    text = path.read_text(encoding="utf-8", errors="replace")
+    paras = [" ".join(p.split()) for p in text.split("\n\n") if p.strip()]
+    what = [p.split("**What**:", 1)[1].strip() for p in paras if "**What**:" in p]
+    words = what[0] if what else next((p for p in paras if not p.startswith("#")), "")
+    cuts = [i for i in (words.find(" ("), words.find(": ")) if i > 0]
+    words = words[: min(cuts)] if cuts else words
+    return (words[:77] + "...") if len(words) > 80 else words
+
+
+def _suffixes() -> tuple[str, ...]:
+    from posernet.frontend.images import IMAGE_SUFFIXES
+
+    return IMAGE_SUFFIXES
+
+
+def subsample(s: ImageSet, n: int, work: Path) -> ImageSet:
+    """``s`` cut to ``n`` evenly spaced images, linked into ``work`` with their pose files."""
+    if n <= 0 or len(s.keys) <= n:
+        return s
+    idx = sorted({round(float(v)) for v in np.linspace(0, len(s.keys) - 1, n)})
+    keys = [s.keys[i] for i in idx]
+    dst = work / f"{s.name}-{len(keys)}"
+    shutil.rmtree(dst, ignore_errors=True)
+    dst.mkdir(parents=True)
+    for key in keys:
+        os.symlink(s.images / key, dst / key)
+        np.savetxt(dst / _pose_name(key), s.c2w[key], fmt="%.9f")
+    return ImageSet(s.name, dst, keys, s.intrinsics, s.K, s.dist, {k: s.c2w[k] for k in keys},
+                    s.source, f"{len(keys)} of {len(s.keys)} images (evenly spaced)")
+
+
+def rendered_set(work: Path, scene: str, frames: int, width: int, height: int,
+                 seed: int = 0) -> ImageSet:
+    """One rendered scene (7-Scenes layout, cached in ``work``) as a set."""
+    from posernet.data.render import render_intrinsics, render_sevenscenes
+
+    focal = 585.0 * width / 640
+    folder = work / f"rendered-{scene}-{seed}-{frames}-{width}x{height}"
+    if not (folder / scene / "render.json").is_file():
+        render_sevenscenes(folder, scene, seed=seed, train_sequences=0, test_sequences=1,
+                           frames_per_sequence=frames, width=width, height=height, focal=focal,
+                           overwrite=True, progress=False)
+    intr = ",".join(f"{v:g}" for v in render_intrinsics(folder / scene))
+    s = load_set(f"rendered-{scene}", folder / scene / "seq-01", intr)
+    s.source = (f"posernet.data.render: {scene}, seed {seed}, {frames} frames, "
+                f"{width}x{height}, f = {focal:g}")
+    return s
+
+
+# ----------------------------------------------------------------------------------- metrics
+
+
+def evaluate(keys: list[str], gt_c2w: dict[str, np.ndarray],
+             est_w2c: dict[str, np.ndarray], component: dict[str, int]) -> dict[str, Any]:
+    """Errors of estimated world-to-camera poses ``est_w2c`` (placed cameras only) against
+    ground-truth camera-to-world ``gt_c2w``, on the largest component (``component``: id per
+    placed key; ties go to the smaller id).
+
+    Returns ``images``, ``placed``, ``largest``, ``components`` and the medians ``rot_deg``
+    (absolute rotation after the best global rotation), ``pos`` (camera centres after the
+    Umeyama similarity, ground-truth units), ``rel_rot_deg`` and ``rel_tdir_deg`` (every pair
+    of the component), ``pairs``; NaN where there is nothing to measure.
+    """
+    import torch
+
+    from posernet.geometry import invert_se3, matrix_to_pose_vec
+    from posernet.metrics import absolute_pose_errors_per_camera, relative_pose_errors
+
+    placed = [k for k in keys if k in est_w2c]
+    comps = sorted({int(component[k]) for k in placed})
+    sizes = {c: sum(int(component[k]) == c for k in placed) for c in comps}
+    out: dict[str, Any] = {"images": len(keys), "placed": len(placed), "largest": 0,
+                           "components": len(comps), "pairs": 0}
+    nan = float("nan")
+    out.update(rot_deg=nan, pos=nan, rel_rot_deg=nan, rel_tdir_deg=nan)
+    if not placed:
+        return out
+    main = max(comps, key=lambda c: (sizes[c], -c))
+    sel = [k for k in placed if int(component[k]) == main]
+    out["largest"] = len(sel)
+    est = torch.as_tensor(np.stack([est_w2c[k] for k in sel]), dtype=torch.float64)
+    gt = invert_se3(torch.as_tensor(np.stack([gt_c2w[k] for k in sel]), dtype=torch.float64))
+    group = torch.zeros(len(sel), dtype=torch.long)
+    rot, pos = absolute_pose_errors_per_camera(est, gt, group, 1, alignment="similarity",
+                                               rotation_gauge="rotations")
+    out["rot_deg"], out["pos"] = float(rot.median()), float(pos.median())
+    if len(sel) >= 2:
+        i, j = torch.triu_indices(len(sel), len(sel), offset=1)
+        rel_est = matrix_to_pose_vec(est[j] @ invert_se3(est[i]))
+        rel_gt = matrix_to_pose_vec(gt[j] @ invert_se3(gt[i]))
+        rrot, rtdir = relative_pose_errors(rel_est, rel_gt)
+        out["pairs"] = int(i.numel())
+        out["rel_rot_deg"] = _nanmedian(rrot)
+        out["rel_tdir_deg"] = _nanmedian(rtdir)
+    return out
+
+
+def _nanmedian(x: Any) -> float:
+    a = np.asarray(x, dtype=np.float64)
+    a = a[np.isfinite(a)]
+    return float(np.median(a)) if a.size else float("nan")
+
+
+# ---------------------------------------------------------------------------- subprocesses
+
+
+# The method's process is started by this small launcher, not forked from the benchmark
+# itself: Linux keeps ru_maxrss across exec, so a child forked from a process that has torch
+# loaded would report the parent's memory as its own peak.
+_LAUNCHER = """
+import json, os, sys, time
+out, cmd = sys.argv[1], sys.argv[2:]
+t0 = time.perf_counter()
+pid = os.fork()
+if pid == 0:
+    try:
+        os.execvp(cmd[0], cmd)
+    finally:
+        os._exit(127)
+_, status, ru = os.wait4(pid, 0)
+wall = time.perf_counter() - t0
+with open(out, "w") as fh:
+    json.dump({"status": os.waitstatus_to_exitcode(status), "wall_s": wall,
+               "maxrss": ru.ru_maxrss, "user_s": ru.ru_utime, "sys_s": ru.ru_stime}, fh)
+"""
+
+
+def run_child(cmd: list[str], log: Path, timeout: float,
+              env: dict[str, str] | None = None) -> dict[str, Any]:
+    """Run ``cmd`` with stdout and stderr into ``log``; its exit code, wall time (s), CPU time
+    and peak resident memory (MB: ``ru_maxrss`` of that process alone, from ``os.wait4`` in a
+    small launcher). Killed (with its launcher) after ``timeout`` seconds."""
+    import signal
+
+    log.parent.mkdir(parents=True, exist_ok=True)
+    usage = log.with_name(log.stem + ".usage.json")
+    usage.unlink(missing_ok=True)
+    timed_out = False
+    t0 = time.perf_counter()
+    with open(log, "wb") as fh:
+        p = subprocess.Popen([sys.executable, "-S", "-c", _LAUNCHER, str(usage), *cmd],
+                             stdout=fh, stderr=subprocess.STDOUT, env=env,
+                             start_new_session=True)
+        try:
+            p.wait(timeout=timeout)
+        except subprocess.TimeoutExpired:
+            timed_out = True
+            os.killpg(p.pid, signal.SIGKILL)  # the launcher's own session: it and the method
+            p.wait()
+    wall = time.perf_counter() - t0
+    if not usage.is_file():  # launcher killed or broken
+        return {"returncode": p.returncode or -1, "wall_s": wall, "peak_mb": float("nan"),
+                "timed_out": timed_out}
+    u = json.loads(usage.read_text(encoding="utf-8"))
+    # Linux reports ru_maxrss in KiB, macOS in bytes
+    rss = u["maxrss"] / (1024 * 1024 if sys.platform == "darwin" else 1024)
+    return {"returncode": u["status"], "wall_s": u["wall_s"], "peak_mb": rss,
+            "cpu_s": u["user_s"] + u["sys_s"], "timed_out": timed_out}
+
+
+def _tail(log: Path) -> str:
+    """The error line of a failed run's log (its last line when there is none)."""
+    import re
+
+    try:
+        lines = [s.strip() for s in log.read_text(encoding="utf-8", errors="replace")
+                 .splitlines() if s.strip()]
+    except OSError:
+        return ""
+    pat = re.compile(r"(^[\w.]*(Error|Exception)\b.*)|(: error\b)")
+    errs = [s for s in lines if pat.search(s) and "HYDRA_FULL_ERROR" not in s]
+    return (errs or lines or [""])[-1][:200].replace("|", "/")
+
+
+def child_env(threads: int) -> dict[str, str]:
+    env = dict(os.environ)
+    for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
+        env[var] = str(threads)
+    return env
+
+
+def posernet_command(s: ImageSet, m: Method, out: Path, threads: int) -> list[str]:
+    exe = Path(sys.executable).parent / "posernet-reconstruct"
+    base = [str(exe)] if exe.is_file() else [sys.executable, "-m", "posernet.cli.reconstruct"]
+    # gt_poses=none: the benchmark scores the poses itself; posernet need not evaluate them
+    return [*base, f"images={s.images}", f"intrinsics={s.intrinsics}", f"out_dir={out}",
+            "progress=false", "pictures=0", "gt_poses=none", f"num_threads={threads}",
+            f"workers={threads}", *m.overrides]
+
+
+def read_posernet(out: Path) -> tuple[dict[str, np.ndarray], dict[str, int], dict[str, Any]]:
+    """World-to-camera poses and component ids of the placed cameras from ``poses.json``
+    (only its ``cameras`` records: ``solved``, ``component``, ``camera_to_world``)."""
+    data = json.loads((out / "poses.json").read_text(encoding="utf-8"))
+    w2c, comp = {}, {}
+    for key, cam in data["cameras"].items():
+        if cam.get("solved") and cam.get("camera_to_world") is not None:
+            w2c[key] = np.linalg.inv(np.asarray(cam["camera_to_world"], dtype=np.float64))
+            comp[key] = int(cam.get("component") or 0)
+    extra: dict[str, Any] = {"backend": data.get("backend"), "stage": data.get("stage")}
+    summary = out / "summary.json"
+    if summary.is_file():
+        extra["seconds_inside"] = json.loads(summary.read_text()).get("seconds_total")
+    return w2c, comp, extra
+
+
+def colmap_camera(K: np.ndarray, dist: np.ndarray | None) -> tuple[str, list[float]]:
+    """COLMAP camera model and parameters of ``K`` and OpenCV distortion ``dist``."""
+    f = [float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])]
+    d = np.zeros(0) if dist is None else np.asarray(dist, dtype=np.float64)
+    if not np.any(d):
+        return "PINHOLE", f
+    if d.size <= 4 or (d.size >= 5 and not np.any(d[4:])):
+        return "OPENCV", f + [float(v) for v in np.pad(d[:4], (0, 4 - min(d.size, 4)))]
+    if d.size <= 8:  # k1 k2 p1 p2 k3 k4 k5 k6
+        return "FULL_OPENCV", f + [float(v) for v in np.pad(d, (0, 8 - d.size))]
+    raise BenchError(f"distortion with {d.size} coefficients has no COLMAP camera model")
+
+
+def colmap_status(kind: str) -> str | None:
+    """``None`` when pycolmap can run ``kind``, else why not (the note of a skipped row)."""
+    try:
+        import pycolmap
+    except ImportError:
+        return f"skipped: pycolmap is not installed (pip install {PYCOLMAP_PIN})"
+    fn = "global_mapping" if kind == "colmap-global" else "incremental_mapping"
+    if not hasattr(pycolmap, fn):
+        return f"skipped: pycolmap {getattr(pycolmap, '__version__', '?')} has no {fn}"
+    return None
+
+
+def colmap_options(kind: str, threads: int, seed: int) -> dict[str, dict[str, Any]]:
+    """The pycolmap options this benchmark sets (dotted paths; all others at their defaults):
+    every intrinsic fixed in bundle adjustment and pose registration, models down to 2 images
+    kept (defaults 10 incremental, 3 global) so components count as posernet's do."""
+    mapper: dict[str, Any] = {"num_threads": threads, "random_seed": seed, "min_model_size": 2}
+    if kind == "colmap-global":
+        mapper.update({
+            "mapper.num_threads": threads, "mapper.random_seed": seed,
+            "mapper.bundle_adjustment.refine_focal_length": False,
+            "mapper.bundle_adjustment.refine_principal_point": False,
+            "mapper.bundle_adjustment.refine_extra_params": False,
+            "mapper.bundle_adjustment.ceres.use_gpu": False,
+            "mapper.global_positioning.use_gpu": False})
+    else:
+        mapper.update({
+            "ba_refine_focal_length": False, "ba_refine_principal_point": False,
+            "ba_refine_extra_params": False, "mapper.abs_pose_refine_focal_length": False,
+            "mapper.abs_pose_refine_extra_params": False})
+    return {"extraction": {"num_threads": threads}, "matching": {"num_threads": threads},
+            "mapper": mapper}
+
+
+def _apply(obj: Any, settings: dict[str, Any]) -> Any:
+    """Set ``settings`` (dotted attribute paths) on a pycolmap options object; returns it."""
+    for path, value in settings.items():
+        *parents, name = path.split(".")
+        target = obj
+        for p in parents:
+            target = getattr(target, p)
+        if not hasattr(target, name):
+            raise AttributeError(f"pycolmap {type(target).__name__} has no option {name!r}")
+        setattr(target, name, value)
+    return obj
+
+
+def colmap_worker(spec_path: str) -> None:
+    """The COLMAP side of one run (in its own process): SIFT with fixed intrinsics,
+    exhaustive matching, the mapper; writes the placed cameras to ``spec["result"]``."""
+    import pycolmap
+
+    spec = json.loads(Path(spec_path).read_text(encoding="utf-8"))
+    work = Path(spec["work"])
+    db = work / "database.db"
+    db.unlink(missing_ok=True)
+    device = pycolmap.Device.cpu if hasattr(pycolmap, "Device") else None
+    dev = {"device": device} if device is not None else {}
+    seconds = {}
+    t0 = time.perf_counter()
+    reader = pycolmap.ImageReaderOptions()
+    reader.camera_model = spec["camera_model"]
+    reader.camera_params = ",".join(repr(v) for v in spec["camera_params"])
+    extraction = _apply(pycolmap.FeatureExtractionOptions(), spec["options"]["extraction"])
+    pycolmap.extract_features(db, spec["images"], image_names=spec["names"],
+                              camera_mode=pycolmap.CameraMode.SINGLE, reader_options=reader,
+                              extraction_options=extraction, **dev)
+    seconds["features"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    matching = _apply(pycolmap.FeatureMatchingOptions(), spec["options"]["matching"])
+    pycolmap.match_exhaustive(db, matching_options=matching, **dev)
+    seconds["matching"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    out = work / "sparse"
+    shutil.rmtree(out, ignore_errors=True)
+    out.mkdir(parents=True)
+    if spec["mapper"] == "colmap-global":
+        opts = _apply(pycolmap.GlobalPipelineOptions(), spec["options"]["mapper"])
+        models = pycolmap.global_mapping(db, spec["images"], out, opts)
+    else:
+        opts = _apply(pycolmap.IncrementalPipelineOptions(), spec["options"]["mapper"])
+        models = pycolmap.incremental_mapping(db, spec["images"], out, opts)
+    seconds["mapping"] = time.perf_counter() - t0
+    # component 0 = the largest model; an image in several models keeps the largest's pose
+    ranked = sorted(models.values(), key=lambda r: -r.num_reg_images())
+    cams: dict[str, Any] = {}
+    params = []
+    for c, rec in enumerate(ranked):
+        params.append([list(map(float, cam.params)) for cam in rec.cameras.values()])
+        for im in rec.images.values():
+            if im.name in cams or not im.has_pose:
+                continue
+            T = im.cam_from_world()
+            M = np.eye(4)
+            M[:3] = np.asarray(T.matrix() if callable(getattr(T, "matrix", None)) else T)
+            cams[im.name] = {"w2c": M.tolist(), "component": c}
+    Path(spec["result"]).write_text(json.dumps({
+        "cameras": cams, "models": len(ranked), "seconds": seconds,
+        "camera_params_after": params, "pycolmap": pycolmap.__version__}), encoding="utf-8")
+
+
+def run_method(s: ImageSet, m: Method, work: Path, threads: int, timeout: float,
+               seed: int = 0) -> dict[str, Any]:
+    """One method on one set in a subprocess: the row of the results (errors, wall time, peak
+    memory, the command), or a row with a ``note`` when it was skipped or failed."""
+    row: dict[str, Any] = {"set": s.name, "method": m.label, "kind": m.kind,
+                           "overrides": m.overrides, "images": len(s.keys), "note": ""}
+    out = work / "runs" / s.name / m.label
+    shutil.rmtree(out, ignore_errors=True)
+    out.mkdir(parents=True)
+    if m.kind == "posernet":
+        cmd = posernet_command(s, m, out / "out", threads)
+    else:
+        why = colmap_status(m.kind)
+        if why:
+            row["note"] = why
+            return row
+        model, params = colmap_camera(s.K, s.dist)
+        spec = {"images": str(s.images), "names": s.keys, "camera_model": model,
+                "camera_params": params, "mapper": m.kind,
+                "options": colmap_options(m.kind, threads, seed),
+                "work": str(out), "result": str(out / "result.json")}
+        (out / "spec.json").write_text(json.dumps(spec, indent=1), encoding="utf-8")
+        cmd = [sys.executable, str(Path(__file__).resolve()), "--colmap-worker",
+               str(out / "spec.json")]
+        row["colmap_camera"] = {"model": model, "params": params}
+        row["colmap_options"] = spec["options"]
+    row["command"] = shlex.join(cmd)
+    log = out / "log.txt"
+    print(f"{s.name} / {m.label}: {len(s.keys)} images ...", flush=True)
+    row.update(run_child(cmd, log, timeout, child_env(threads)))
+    row["log"] = str(log)
+    w2c: dict[str, np.ndarray] = {}
+    comp: dict[str, int] = {}
+    if row["timed_out"]:
+        row["note"] = f"timed out after {timeout:g} s"
+    elif row["returncode"] != 0:
+        row["note"] = f"failed (exit {row['returncode']}): {_tail(log)}"
+    else:
+        try:
+            if m.kind == "posernet":
+                w2c, comp, extra = read_posernet(out / "out")
+                row.update(extra)
+            else:
+                res = json.loads((out / "result.json").read_text(encoding="utf-8"))
+                w2c = {k: np.asarray(v["w2c"]) for k, v in res["cameras"].items()}
+                comp = {k: int(v["component"]) for k, v in res["cameras"].items()}
+                row.update(seconds_inside=res["seconds"],
+                           camera_params_after=res["camera_params_after"])
+        except (OSError, ValueError, KeyError, TypeError) as e:
+            row["note"] = f"unreadable output ({type(e).__name__}: {e})"[:200]
+    row.update(evaluate(s.keys, s.c2w, w2c, comp))
+    print(f"  {_cell(row['placed'], '{}')}/{len(s.keys)} placed, rot "
+          f"{_cell(row.get('rot_deg'))} deg, {row['wall_s']:.1f} s, {row['peak_mb']:.0f} MB "
+          f"{row['note']}", flush=True)
+    return row
+
+
+# ------------------------------------------------------------------------------------ output
+
+
+def _cell(v: Any, fmt: str = "{:.2f}") -> str:
+    if v is None or (isinstance(v, float) and not math.isfinite(v)):
+        return "-"
+    return fmt.format(v)
+
+
+HEADER = ("set", "method", "placed / N", "largest comp.", "components", "abs. rot (deg)",
+          "abs. pos (GT units)", "rel. rot (deg)", "rel. tdir (deg)", "wall (s)", "CPU (s)",
+          "peak mem (MB)", "note")
+
+
+def table_rows(rows: list[dict[str, Any]]) -> list[list[str]]:
+    out = []
+    for r in rows:
+        skipped = "placed" not in r
+        out.append([
+            r["set"], r["method"],
+            "-" if skipped else f"{r['placed']} / {r['images']}",
+            "-" if skipped else str(r["largest"]),
+            "-" if skipped else str(r["components"]),
+            _cell(r.get("rot_deg")), _cell(r.get("pos"), "{:.3f}"),
+            _cell(r.get("rel_rot_deg")), _cell(r.get("rel_tdir_deg")),
+            _cell(r.get("wall_s"), "{:.1f}"), _cell(r.get("cpu_s"), "{:.1f}"),
+            _cell(r.get("peak_mb"), "{:.0f}"),
+            r.get("note") or ""])
+    return out
+
+
+def _jsonable(x: Any) -> Any:
+    if isinstance(x, dict):
+        return {str(k): _jsonable(v) for k, v in x.items()}
+    if isinstance(x, list | tuple):
+        return [_jsonable(v) for v in x]
+    if isinstance(x, float) and not math.isfinite(x):
+        return None
+    if isinstance(x, np.generic):
+        return _jsonable(x.item())
+    if isinstance(x, Path):
+        return str(x)
+    return x
+
+
+def versions() -> dict[str, str | None]:
+    import importlib.metadata as md
+    import platform
+
+    import cv2
+    import torch
+
+    out: dict[str, str | None] = {"python": platform.python_version()}
+    for dist in ("posernet", "pycolmap"):
+        try:
+            out[dist] = md.version(dist)
+        except md.PackageNotFoundError:
+            out[dist] = None
+    out.update(opencv=cv2.__version__, torch=torch.__version__, numpy=np.__version__)
+    return out
+
+
+def discover() -> tuple[list[tuple[str, Path, str | None]], list[str]]:
+    """Every folder under ``benchmarks/data/real/`` (``NAME = folder name``); folders not yet
+    usable are left out with a note."""
+    sets, notes = [], []
+    if DATA.is_dir():
+        for d in sorted(p for p in DATA.iterdir() if p.is_dir() and p.name[0] not in "._"):
+            sets.append((d.name, d, None))
+    if not sets:
+        notes.append(f"no set folders under {DATA}")
+    return sets, notes
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--set", action="append", default=[], metavar="NAME=DIR[:INTRINSICS]",
+                    help="an image folder with <stem>.pose.txt ground truth; INTRINSICS: "
+                         "FX,FY,CX,CY or a file (default DIR/intrinsics.json or .txt); repeat. "
+                         "Default: every folder under benchmarks/data/real/ plus a rendered scene")
+    ap.add_argument("--rendered", action="store_true",
+                    help="add a rendered scene (posernet.data.render) to the --set folders")
+    ap.add_argument("--method", action="append", default=[], metavar="METHOD",
+                    help="posernet[-LABEL][=HYDRA OVERRIDES] (e.g. 'posernet-eig=sync=eig_se3'), "
+                         f"{', '.join(COLMAP_METHODS)}; repeat (default: "
+                         f"{', '.join(DEFAULT_METHODS)})")
+    ap.add_argument("--max-images", type=int, default=0,
+                    help="evenly spaced images per set (0: all; --quick: 8)")
+    ap.add_argument("--frames", type=int, default=None,
+                    help="frames of the rendered scene (default 16; --quick: 8)")
+    ap.add_argument("--scene", default="chess", help="preset of the rendered scene")
+    ap.add_argument("--threads", type=int, default=1,
+                    help="threads of every method (posernet num_threads/workers, COLMAP "
+                         "num_threads, OMP)")
+    ap.add_argument("--seed", type=int, default=0, help="COLMAP mapper seed")
+    ap.add_argument("--timeout", type=float, default=3600, help="seconds per method and set")
+    ap.add_argument("--work", default=None,
+                    help="folder for renders and run outputs (default: a temp folder)")
+    ap.add_argument("--quick", action="store_true", help="tiny run: 8 images, 320x240 render")
+    ap.add_argument("--out", default=None,
+                    help="results table (default benchmarks/results/real.md; real.json beside)")
+    ap.add_argument("--colmap-worker", default=None, help=argparse.SUPPRESS)
+    args = ap.parse_args(argv)
+    if args.colmap_worker:
+        colmap_worker(args.colmap_worker)
+        return 0
+
+    methods = [parse_method(t) for t in (args.method or DEFAULT_METHODS)]
+    labels = [m.label for m in methods]
+    if len(set(labels)) != len(labels):
+        raise BenchError(f"method labels repeat: {labels}; name variants posernet-LABEL")
+    if args.set:
+        specs, notes = [parse_set(t) for t in args.set], []
+        rendered = args.rendered
+    else:
+        (specs, notes), rendered = discover(), True
+    names = [n for n, _, _ in specs]
+    if len(set(names)) != len(names):
+        raise BenchError(f"set names repeat: {names}")
+    work = Path(args.work or Path(tempfile.gettempdir()) / "posernet-bench-real")
+    work.mkdir(parents=True, exist_ok=True)
+    max_images = args.max_images or (8 if args.quick else 0)
+    sets = []
+    for spec in specs:  # every input checked before any run
+        try:
+            sets.append(load_set(*spec))
+        except BenchError as e:
+            if args.set:
+                raise
+            notes.append(f"left out {spec[1]}: {e}")  # a folder still being assembled
+            print(f"note: left out {spec[1]}: {e}", file=sys.stderr)
+    if rendered:
+        frames = args.frames or (8 if args.quick else 16)
+        size = (320, 240) if args.quick else (640, 480)
+        sets.append(rendered_set(work / "render", args.scene, frames, *size))
+    sets = [subsample(s, max_images, work / "subsets") for s in sets]
+    for m in methods:
+        if m.kind != "posernet" and (why := colmap_status(m.kind)):
+            notes.append(f"{m.label}: {why}")
+
+    rows = [run_method(s, m, work, args.threads, args.timeout, args.seed)
+            for s in sets for m in methods]
+
+    if str(ROOT) not in sys.path:
+        sys.path.insert(0, str(ROOT))  # benchmarks/_common.py
+    from _common import command, table, write_results
+
+    from posernet.io import atomic_write_json
+
+    ver = versions()
+    body = [
+        f"- packages: {', '.join(f'{k} {v}' for k, v in ver.items() if k != 'python')}",
+        f"- threads per method: {args.threads}; COLMAP: SIFT with the set's intrinsics "
+        "(one shared camera), exhaustive matching, mapper with focal length, principal point "
+        "and distortion fixed and models down to 2 images kept (options in the .json)",
+        "- errors on the largest component (COLMAP: largest model); abs. rot after the best "
+        "global rotation, abs. pos after a similarity (Umeyama) on the camera centres; rel. "
+        "errors over every image pair of that component; medians. Wall time, CPU time (user + "
+        "system) and peak memory (ru_maxrss) of the method's subprocess, interpreter start and "
+        "imports included",
+        *(f"- note: {n}" for n in notes),
+        "",
+        "| set | images | intrinsics (fx, fy, cx, cy) | source |",
+        "|---|---:|---|---|",
+        *(f"| {s.name} | {len(s.keys)} | "
+          + ", ".join(f"{v:g}" for v in (s.K[0, 0], s.K[1, 1], s.K[0, 2], s.K[1, 2]))
+          + f"{' + dist' if s.dist is not None and np.any(s.dist) else ''} | "
+          + "; ".join(x for x in (s.source, s.note) if x) + " |" for s in sets),
+        "",
+        *table(HEADER, table_rows(rows)),
+    ]
+    md = write_results("real", "posernet-reconstruct vs COLMAP on real image sets", body,
+                       args.quick, "cpu", args.out)
+    report = {
+        "command": command(), "date": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+        "machine": {"cpu": _cpu(), "cores": os.cpu_count(), "threads_per_method": args.threads},
+        "versions": ver, "arguments": vars(args),
+        "methods": [{"label": m.label, "kind": m.kind, "overrides": m.overrides}
+                    for m in methods],
+        "sets": [{"name": s.name, "images_dir": str(s.images), "images": len(s.keys),
+                  "intrinsics": s.intrinsics, "K": s.K.tolist(),
+                  "dist": None if s.dist is None else s.dist.tolist(), "source": s.source,
+                  "note": s.note} for s in sets],
+        "notes": notes, "rows": rows,
+    }
+    path = atomic_write_json(md.with_suffix(".json"), _jsonable(report))
+    print(f"written: {path}")
+    return 0
+
+
+def _cpu() -> str:
+    from posernet.report import cpu_model
+
+    return cpu_model()
+
+
+if __name__ == "__main__":
+    try:
+        sys.exit(main())
+    except BenchError as e:
+        print(f"bench_real.py: error: {e}", file=sys.stderr)
+        sys.exit(2)
