@@ -2,27 +2,30 @@
 support it, as structure-from-motion systems do.
 
 :func:`verify_two_view` fits an essential matrix (OpenCV's 5-point inside RANSAC / USAC) to the
-pair's correspondences and then checks, in this order (the first failing rule names the
-rejection, ``TwoView.status``):
+pair's correspondences and then decides, in this order (a rejection names its rule in
+``TwoView.status``):
 
 * ``too_few_matches``: fewer correspondences than ``min_inliers``.
 * ``static``: most matches do not move between the two images (``max_static_ratio`` of them
   within ``static_px``): a watermark, a time stamp, sensor dust or a uniform background matched
   to itself. No real camera motion keeps the scene still in the image, except none at all.
 * ``no_model``: RANSAC found no essential matrix / pose.
-* ``cheirality``: fewer than ``min_front`` of the essential-matrix inliers triangulate in front
-  of both cameras (a wrong or degenerate solution).
+* **Pure rotation** first, because under a pure rotation (or on a plane) the essential matrix
+  is not unique and its cheirality test fails for reasons that say nothing about the pair:
+  when a rotation alone explains ``max_rotation_ratio`` of the essential-matrix inliers, the
+  pair is a **rotation-only** edge (``status="rotation"``) with that rotation, subject to the
+  count rules below. The translation direction of such an edge is meaningless and must not
+  reach translation averaging.
+* **Plane**: when a homography explains ``max_rotation_ratio`` of them the pair is reported
+  ``planar``, and the homography's decomposition replaces the 5-point pose if it puts more
+  points in front of both cameras.
+* ``cheirality``: fewer than ``min_front`` of the essential-matrix inliers triangulate in
+  front of both cameras (a wrong or degenerate solution).
 * ``too_few_inliers`` / ``low_inlier_ratio``: fewer than ``min_inliers`` pose inliers, or fewer
   than ``min_inlier_ratio`` of all correspondences.
-
-A pair that passes is either a full edge (``status="ok"``) or a **rotation-only** edge
-(``status="rotation"``): when a pure rotation explains at least ``max_rotation_ratio`` of the
-pose inliers (the camera turned in place, or moved too little to see depth) or the median
-triangulation angle of the inliers is below ``min_tri_angle``, the translation direction is
-meaningless and must not reach translation averaging; the rotation is kept (the pure-rotation
-fit when that model dominates). ``planar`` is reported when a homography explains at least
-``max_rotation_ratio`` of the inliers but parallax remains (the 5-point solution is kept: it
-handles planar scenes, up to its known two-fold ambiguity, which cheirality resolves).
+* A pair that passes is a full edge (``status="ok"``), or a rotation-only edge when the median
+  triangulation angle of its inliers is below ``min_tri_angle`` (too small a baseline to see
+  depth).
 
 Keypoints on uniform regions are removed before matching ever sees them
 (:func:`keypoint_contrast`): on an object photographed on black, learned matchers otherwise pair
@@ -37,7 +40,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from .relpose import METHODS
+from .relpose import METHODS, _normalised
 
 __all__ = ["TwoView", "VerifyRules", "epipolar_consistent", "keypoint_contrast", "verify_two_view"]
 
@@ -159,11 +162,6 @@ def _triangulation_angles(x1: np.ndarray, x2: np.ndarray, R: np.ndarray,
     ang = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
     front = (X[:, 2] > 0) & ((X @ R.T + t)[:, 2] > 0) & np.isfinite(X).all(1)
     return ang, front
-
-
-def _normalised(p: np.ndarray, K: np.ndarray, dist: np.ndarray | None) -> np.ndarray:
-    d = None if dist is None else np.asarray(dist, dtype=np.float64).reshape(-1)
-    return cv2.undistortPoints(p.reshape(-1, 1, 2).astype(np.float64), K, d).reshape(-1, 2)
 
 
 def verify_two_view(
