@@ -22,7 +22,8 @@ from .io import atomic_path
 
 __all__ = ["plot_cameras", "plot_sorted_errors", "rolling_mean"]
 
-_COLOURS = {"ground truth": "#1f9bd7", "initial": "#d62728", "refined": "#2ca02c"}
+_COLOURS = {"ground truth": "#1f9bd7", "initial": "#d62728", "refined": "#2ca02c",
+            "initial+ba": "#9467bd", "refined+ba": "#ff7f0e"}
 
 
 def rolling_mean(x: np.ndarray, window: int) -> np.ndarray:
