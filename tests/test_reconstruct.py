@@ -43,6 +43,12 @@ def _run(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess:
                           capture_output=True, text=True, cwd=cwd, env=env, timeout=600)
 
 
+def _quat_to_matrix(q: np.ndarray) -> np.ndarray:
+    from posernet.geometry import pose_vec_to_matrix
+
+    return pose_vec_to_matrix(torch.tensor([*q, 0.0, 0.0, 0.0]).double()).numpy()[:3, :3]
+
+
 def _rot_err_deg(Ra: np.ndarray, Rb: np.ndarray) -> float:
     c = (np.trace(Ra @ Rb.T) - 1) / 2
     return float(np.degrees(np.arccos(np.clip(c, -1, 1))))
@@ -84,6 +90,19 @@ def test_reconstruct_recovers_rendered_rotations(scene, tmp_path):
     assert ba["points"] > 100 and ba["runs"][0]["accepted"]
     assert ba["reprojection_px"]["median_after"] < 2.0
     assert all("verification" in e and "rotation_only" in e for e in poses["edges"])
+    # the same cameras as a COLMAP text model, with the points
+    model = out / "sparse" / "0"
+    rows = [ln for ln in (model / "images.txt").read_text().splitlines()
+            if not ln.startswith("#")]
+    head = {r.split()[-1]: r.split() for r in rows[0::2]}
+    assert set(head) == set(cams)
+    q = np.array([float(v) for v in head[names[1]][1:5]])
+    R_colmap = _quat_to_matrix(q)
+    assert np.allclose(R_colmap, np.asarray(cams[names[1]]["world_to_camera"])[:3, :3],
+                       atol=1e-6)
+    n_points = sum(1 for ln in (model / "points3D.txt").read_text().splitlines()
+                   if not ln.startswith("#"))
+    assert n_points == ba["points"]
     # the output's gauge: first camera of the component at the identity
     assert np.allclose(np.asarray(cams[names[0]]["world_to_camera"]), np.eye(4), atol=1e-6)
     # tables from the pose files, pictures and the summary

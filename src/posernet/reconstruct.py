@@ -43,7 +43,7 @@ from .pipeline import RefineResult, refine_graphs
 from .sfm import BundleOptions, SfmResult, bundle_adjust_reconstruction
 
 __all__ = ["Reconstruction", "edge_weights", "gauge_fixed", "poses_json", "reconstruct",
-           "write_poses_json"]
+           "write_colmap_models", "write_poses_json"]
 
 
 @dataclass
@@ -233,6 +233,46 @@ def poses_json(rec: Reconstruction, info: dict[str, Any] | None = None) -> dict[
             "backend": res.backend, "frontend": rec.frontend.summary.to_dict(),
             "bundle_adjustment": bundle, "cameras": cams, "edges": edges,
             "rejected_pairs": rec.frontend.rejected_pairs()}
+
+
+def write_colmap_models(folder: str | os.PathLike[str], rec: Reconstruction) -> list[Path]:
+    """The final bundle-adjusted stage as COLMAP text models, one per component of two or more
+    refined cameras, largest first: ``folder/0``, ``folder/1``, ... (:mod:`posernet.export`), in
+    the frame of ``poses.json``. Returns the model folders (none without bundle adjustment)."""
+    from .export import write_colmap_text
+    from .sfm import reprojection_errors, undistort_keypoints
+
+    runs = rec.sfm.get(rec.stage, [])
+    if not runs:
+        return []
+    fe = rec.frontend
+    recs = fe.records
+    K = np.stack([r.K for r in recs]).astype(np.float64)
+    dist = [r.dist for r in recs]
+    uv = [fe.image(i).features.uv for i in range(len(recs))]
+    und = undistort_keypoints(uv, K, dist)
+    res = rec.result
+    poses = res.absolute[rec.stage][0].double()
+    fixed = gauge_fixed(poses, res.solved[rec.stage][0].bool(), res.component[rec.stage][0])
+    out = []
+    for k, r in enumerate(sorted(runs, key=lambda r: -int(r.refined.sum()))):
+        cams = np.flatnonzero(r.refined)
+        if cams.size < 2 or r.points.shape[0] == 0:
+            continue
+        # the component's world moves with its first camera, as in poses.json
+        ref = np.flatnonzero(r.placed)[0]
+        M = poses[ref].numpy()
+        pts = r.points @ M[:3, :3].T + M[:3, 3]
+        offs = np.concatenate(([0], np.cumsum([len(u) for u in und])))
+        flat = np.concatenate([u.reshape(-1, 2) for u in und])
+        xy = flat[offs[r.obs_image] + r.obs_keypoint]
+        err = reprojection_errors(r.points, xy, r.obs_point, r.obs_image, r.K, r.w2c)
+        folder_k = Path(folder) / str(k)
+        write_colmap_text(folder_k, [x.key for x in recs], [x.path for x in recs],
+                          [x.size for x in recs], r.K, dist, fixed.numpy(), cams, uv, pts,
+                          r.obs_image, r.obs_keypoint, r.obs_point, err)
+        out.append(folder_k)
+    return out
 
 
 def write_poses_json(path: str | os.PathLike[str], rec: Reconstruction,

@@ -2,12 +2,14 @@
 
     posernet-reconstruct images=photos/ intrinsics=585,585,320,240 out_dir=out
 
-Runs ROI proposals -> keypoint matching -> box matching -> 5-point (KP) -> PoserNet (shipped
-checkpoint, with ``refine=true``; off by default, see ``posernet/conf/reconstruct.yaml``) -> motion
-averaging (``sync=``), then writes into
-``out_dir``: ``poses.json`` (format ``posernet-poses``), ``summary.json`` (counts and per-stage
-timings), ``matches_<k>.png`` (image pairs with their matched boxes) and ``cameras.png`` (the
-recovered cameras in 3D). With a pose file per image (``<name>.pose.txt``, 7-Scenes layout, or
+Runs ROI proposals -> keypoint matching -> box matching -> 5-point (KP) with two-view
+verification -> PoserNet (shipped checkpoint, with ``refine=true``; off by default, see
+``posernet/conf/reconstruct.yaml``) -> robust motion averaging (``sync=``) -> tracks,
+triangulation and bundle adjustment (``ba=true``), then writes into ``out_dir``: ``poses.json``
+(format ``posernet-poses``), ``sparse/<k>/`` (the bundle-adjusted cameras and points as COLMAP
+text models, one per component), ``summary.json`` (counts and per-stage timings),
+``matches_<k>.png`` (image pairs with their matched boxes) and ``cameras.png`` (the recovered
+cameras in 3D). With a pose file per image (``<name>.pose.txt``, 7-Scenes layout, or
 ``gt_poses=DIR``) it also prints and writes the error tables (``table.md``, ``abs_table.md``).
 """
 
@@ -101,7 +103,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     from ..io import atomic_write_json
     from ..nn import PoserNet
     from ..pipeline import evaluate_result, result_tables
-    from ..reconstruct import reconstruct, write_poses_json
+    from ..reconstruct import reconstruct, write_colmap_models, write_poses_json
     from ..sync import backend_from_config
 
     check_config(cfg, "reconstruct")  # out_dir included: made only once there is output
@@ -141,6 +143,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
             print(f"posernet-reconstruct: {line}", file=sys.stderr)
     out.mkdir(parents=True, exist_ok=True)
     files: dict[str, Any] = {"poses": write_poses_json(out / "poses.json", rec, info)}
+    files["colmap"] = write_colmap_models(out / "sparse", rec)
     solved = sum(c["solved"] for c in _load(files["poses"])["cameras"].values())
     print(f"[3/3] {'PoserNet + ' if model is not None else ''}{backend!r}"
           f"{' + bundle adjustment' if bundle is not None else ''}: {solved} of "
@@ -166,7 +169,10 @@ def run(cfg: DictConfig) -> dict[str, Any]:
                 print(tables[key].to_markdown(int(cfg.digits)) + "\n")
         files["tables"] = tables
         files["evaluation"] = ev
-    print(f"wrote {files['poses']} and pictures in {out} ({time.perf_counter() - t0:.0f} s)")
+    colmap = (f", COLMAP model{'s' if len(files['colmap']) > 1 else ''} in "
+              + ", ".join(str(p) for p in files["colmap"])) if files["colmap"] else ""
+    print(f"wrote {files['poses']}{colmap} and pictures in {out} "
+          f"({time.perf_counter() - t0:.0f} s)")
     return files
 
 

@@ -1,0 +1,134 @@
+"""A reconstruction in COLMAP's sparse text format, for the tools that start from one.
+
+``cameras.txt``, ``images.txt`` and ``points3D.txt`` (COLMAP's documented text model) hold the
+bundle-adjusted cameras and the triangulated points: multi-view stereo, Gaussian splatting and
+NeRF tool chains read such a model, as do COLMAP and pycolmap. One camera per image (PINHOLE,
+or OPENCV / FULL_OPENCV with the image's distortion); ``images.txt`` lists, per image, the
+keypoints that observe a point (``POINT2D_IDX`` counts within that list); ids start at 1.
+Poses are COLMAP's world-to-camera (quaternion ``w x y z``, translation), the same frame as
+``poses.json`` (the component's first camera at the identity); the scale is the
+reconstruction's (arbitrary).
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Sequence
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+
+from .geometry import matrix_to_pose_vec
+from .io import atomic_write_text
+
+__all__ = ["colmap_camera", "write_colmap_text"]
+
+
+def colmap_camera(K: np.ndarray, dist: np.ndarray | None) -> tuple[str, list[float]]:
+    """COLMAP camera model name and parameters for intrinsics ``K (3, 3)`` and OpenCV
+    distortion ``dist`` (``k1, k2, p1, p2[, k3[, k4, k5, k6]]``) or ``None``."""
+    f = [float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])]
+    d = np.zeros(0) if dist is None else np.asarray(dist, np.float64).reshape(-1)
+    if not d.size or not np.any(d):
+        return "PINHOLE", f
+    if d.size > 8:
+        raise ValueError(f"distortion with {d.size} coefficients has no COLMAP camera model "
+                         "(at most k1, k2, p1, p2, k3, k4, k5, k6)")
+    if d.size <= 4:
+        return "OPENCV", f + list(np.pad(d, (0, 4 - d.size)))
+    return "FULL_OPENCV", f + list(np.pad(d, (0, 8 - d.size)))
+
+
+def write_colmap_text(
+    folder: str | os.PathLike[str],
+    names: Sequence[str],
+    image_paths: Sequence[str | os.PathLike[str]] | None,
+    sizes: Sequence[tuple[int, int]],
+    K: np.ndarray,
+    dist: Sequence[np.ndarray | None],
+    w2c: np.ndarray,
+    images: np.ndarray,
+    uv: Sequence[np.ndarray],
+    points: np.ndarray,
+    obs_image: np.ndarray,
+    obs_keypoint: np.ndarray,
+    obs_point: np.ndarray,
+    errors: np.ndarray | None = None,
+) -> list[Path]:
+    """Write a COLMAP text model of ``images`` (indices into the ``N`` inputs) to ``folder``.
+
+    ``names (N,)`` image names (as in the image folder), ``image_paths`` to colour the points
+    (``None``: grey), ``sizes (N,)`` (W, H), ``K (N, 3, 3)``, ``dist`` per image or ``None``,
+    ``w2c (N, 4, 4)``; ``uv[i] (K_i, 2)`` keypoint pixels; ``points (P, 3)`` and their
+    observations ``obs_image, obs_keypoint, obs_point (O,)``; ``errors (O,)`` reprojection errors
+    (pixels; a point's ``ERROR`` is their mean, 0 without). Files are written atomically.
+    """
+    out = Path(folder)
+    out.mkdir(parents=True, exist_ok=True)
+    images = np.asarray(images, np.int64).reshape(-1)
+    keep = np.isin(obs_image, images)
+    oi, ok, op = obs_image[keep], obs_keypoint[keep], obs_point[keep]
+    err = np.zeros(oi.size) if errors is None else np.asarray(errors, np.float64)[keep]
+    used = np.unique(op)
+    pid = np.zeros(points.shape[0], np.int64)
+    pid[used] = np.arange(1, used.size + 1)  # COLMAP ids from 1
+    order = np.lexsort((ok, oi))  # per image, keypoints in index order
+    oi, ok, op, err = oi[order], ok[order], op[order], err[order]
+    # position of each observation within its image's POINTS2D list
+    starts = np.searchsorted(oi, oi, side="left")
+    p2d_idx = np.arange(oi.size) - starts
+    colour = np.full((points.shape[0], 3), 128, np.int64)
+    if image_paths is not None:
+        is_first = np.zeros(op.size, bool)  # one observation per point gives its colour
+        is_first[np.unique(op, return_index=True)[1]] = True
+        for i in np.unique(oi):
+            sel = np.flatnonzero((oi == i) & is_first)
+            if not sel.size:
+                continue
+            img = cv2.imread(str(image_paths[i]), cv2.IMREAD_COLOR)
+            if img is None:
+                continue
+            h, w = img.shape[:2]
+            xy = np.rint(uv[i][ok[sel]]).astype(np.int64)
+            bgr = img[np.clip(xy[:, 1], 0, h - 1), np.clip(xy[:, 0], 0, w - 1)]
+            colour[op[sel]] = bgr[:, ::-1]
+    cam_lines = ["# Camera list with one line of data per camera:",
+                 "#   CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]",
+                 f"# Number of cameras: {images.size}"]
+    img_lines = ["# Image list with two lines of data per image:",
+                 "#   IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME",
+                 "#   POINTS2D[] as (X, Y, POINT3D_ID)",
+                 f"# Number of images: {images.size}, mean observations per image: "
+                 f"{oi.size / max(images.size, 1):.1f}"]
+    for i in images.tolist():
+        model, params = colmap_camera(K[i], dist[i])
+        w, h = sizes[i]
+        cam_lines.append(f"{i + 1} {model} {int(w)} {int(h)} "
+                         + " ".join(f"{v:.10g}" for v in params))
+        q = matrix_to_pose_vec(torch.from_numpy(np.asarray(w2c[i], np.float64))).numpy()
+        img_lines.append(f"{i + 1} " + " ".join(f"{v:.12g}" for v in q) + f" {i + 1} "
+                         + names[i].replace(" ", "_"))
+        sel = oi == i
+        xy = uv[i][ok[sel]]
+        img_lines.append(" ".join(f"{x:.4f} {y:.4f} {p}" for (x, y), p in
+                                  zip(xy.tolist(), pid[op[sel]].tolist(), strict=True)))
+    n_obs = np.bincount(op, minlength=points.shape[0])
+    mean_err = np.bincount(op, weights=err, minlength=points.shape[0]) / np.maximum(n_obs, 1)
+    by_point = np.argsort(op, kind="stable")
+    bounds = np.concatenate(([0], np.cumsum(n_obs)))
+    pt_lines = ["# 3D point list with one line of data per point:",
+                "#   POINT3D_ID, X, Y, Z, R, G, B, ERROR, TRACK[] as (IMAGE_ID, POINT2D_IDX)",
+                f"# Number of points: {used.size}, mean track length: "
+                f"{op.size / max(used.size, 1):.2f}"]
+    for p in used.tolist():
+        obs = by_point[bounds[p]:bounds[p + 1]]
+        track = " ".join(f"{oi[o] + 1} {p2d_idx[o]}" for o in obs.tolist())
+        x, y, z = points[p]
+        r, g, b = colour[p]
+        pt_lines.append(f"{pid[p]} {x:.9g} {y:.9g} {z:.9g} {r} {g} {b} {mean_err[p]:.6g} "
+                        + track)
+    return [atomic_write_text(out / "cameras.txt", "\n".join(cam_lines) + "\n"),
+            atomic_write_text(out / "images.txt", "\n".join(img_lines) + "\n"),
+            atomic_write_text(out / "points3D.txt", "\n".join(pt_lines) + "\n")]
