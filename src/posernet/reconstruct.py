@@ -254,8 +254,10 @@ def write_colmap_models(folder: str | os.PathLike[str], rec: Reconstruction) -> 
     res = rec.result
     poses = res.absolute[rec.stage][0].double()
     fixed = gauge_fixed(poses, res.solved[rec.stage][0].bool(), res.component[rec.stage][0])
-    out = []
-    for k, r in enumerate(sorted(runs, key=lambda r: -int(r.refined.sum()))):
+    out: list[Path] = []
+    offs = np.concatenate(([0], np.cumsum([len(u) for u in und])))
+    flat = np.concatenate([u.reshape(-1, 2) for u in und])
+    for r in sorted(runs, key=lambda r: -int(r.refined.sum())):
         cams = np.flatnonzero(r.refined)
         if cams.size < 2 or r.points.shape[0] == 0:
             continue
@@ -263,11 +265,9 @@ def write_colmap_models(folder: str | os.PathLike[str], rec: Reconstruction) -> 
         ref = np.flatnonzero(r.placed)[0]
         M = poses[ref].numpy()
         pts = r.points @ M[:3, :3].T + M[:3, 3]
-        offs = np.concatenate(([0], np.cumsum([len(u) for u in und])))
-        flat = np.concatenate([u.reshape(-1, 2) for u in und])
         xy = flat[offs[r.obs_image] + r.obs_keypoint]
         err = reprojection_errors(r.points, xy, r.obs_point, r.obs_image, r.K, r.w2c)
-        folder_k = Path(folder) / str(k)
+        folder_k = Path(folder) / str(len(out))
         write_colmap_text(folder_k, [x.key for x in recs], [x.path for x in recs],
                           [x.size for x in recs], r.K, dist, fixed.numpy(), cams, uv, pts,
                           r.obs_image, r.obs_keypoint, r.obs_point, err)
