@@ -179,3 +179,32 @@ def test_five_point_with_two_intrinsics_and_distortion():
     assert np.dot(est_d[1], t / np.linalg.norm(t)) > 0.999
     with pytest.raises(ValueError, match="unknown 5-point method"):
         five_point(p1, p2, K1, method="magic")
+
+
+def test_guessed_intrinsics_from_exif_or_the_prior(tmp_path):
+    from PIL import Image
+
+    from posernet.frontend.images import FOCAL_PRIOR, guess_intrinsics
+
+    im = Image.fromarray(np.zeros((300, 400, 3), np.uint8))
+    ex = Image.Exif()
+    ex.get_ifd(0x8769)[0xA405] = 28  # 35 mm equivalent focal length
+    im.save(tmp_path / "f35.jpg", exif=ex)
+    K, src = guess_intrinsics(tmp_path / "f35.jpg")
+    assert src == "exif" and np.isclose(K[0, 0], 28 / 36 * 400) and K[0, 2] == 200
+    ex = Image.Exif()
+    ex[0x0112] = 6  # stored sideways: OpenCV reads it 300 wide, 400 high
+    ex.get_ifd(0x8769)[0x920A] = 4.0  # mm
+    ex.get_ifd(0x8769)[0xA20E] = 250.0  # pixels per mm on the focal plane
+    ex.get_ifd(0x8769)[0xA210] = 4  # unit: mm
+    im.save(tmp_path / "plane.jpg", exif=ex)
+    K, src = guess_intrinsics(tmp_path / "plane.jpg")
+    assert src == "exif" and np.isclose(K[0, 0], 1000.0) and (K[0, 2], K[1, 2]) == (150, 200)
+    im.save(tmp_path / "plain.png")
+    K, src = guess_intrinsics(tmp_path / "plain.png")
+    assert src == "prior" and np.isclose(K[1, 1], FOCAL_PRIOR * 400)
+    (tmp_path / "bad.jpg").write_bytes(b"not an image")
+    with pytest.raises(ImageError, match="bad.jpg"):
+        guess_intrinsics(tmp_path / "bad.jpg")
+    records = records_for_images(tmp_path, "auto", pattern="*.png")
+    assert [r.intrinsics_source for r in records] == ["prior"]

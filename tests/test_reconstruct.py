@@ -188,6 +188,21 @@ def test_reconstruct_bad_input_is_one_line(scene, tmp_path, args, message):
 
 
 @pytest.mark.slow
+def test_without_intrinsics_the_focal_length_is_recovered(scene, tmp_path):
+    """No intrinsics: the prior (1.2 x the longest side, 22 % too long here) is refined by
+    bundle adjustment to the rendering's focal length."""
+    out = tmp_path / "out"
+    r = _run(f"images={scene / 'seq-01'}", f"out_dir={out}", "matcher=sift", "pictures=0")
+    assert r.returncode == 0, r.stderr
+    assert "8 from the prior" in r.stdout and "refines the focal length" in r.stdout
+    cams = json.loads((out / "poses.json").read_text())["cameras"]
+    assert all(c["solved"] and c["intrinsics_source"] == "prior" for c in cams.values())
+    f = [c["K"][0][0] for c in cams.values()]
+    assert np.allclose(f, F, rtol=0.02), (f, F)
+    assert all(c["size"] == [W, H] for c in cams.values())
+
+
+@pytest.mark.slow
 def test_bundle_adjustment_that_fails_is_reported_and_loses_nothing(scene, tmp_path):
     """One solver evaluation cannot converge: the averaged poses are kept and the run says so."""
     out = tmp_path / "out"

@@ -24,6 +24,7 @@ baseline) keep their rotation in averaging but give no translation direction.
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import os
 from dataclasses import dataclass, field
@@ -42,8 +43,8 @@ from .io import atomic_write_json
 from .pipeline import RefineResult, refine_graphs
 from .sfm import BundleOptions, SfmResult, bundle_adjust_reconstruction
 
-__all__ = ["Reconstruction", "edge_weights", "gauge_fixed", "poses_json", "reconstruct",
-           "write_colmap_models", "write_poses_json"]
+__all__ = ["Reconstruction", "edge_weights", "focal_mode", "gauge_fixed", "poses_json",
+           "reconstruct", "write_colmap_models", "write_poses_json"]
 
 
 @dataclass
@@ -75,6 +76,19 @@ def edge_weights(frontend: ImageFrontend, graph: ViewGraph) -> Tensor:
     return w
 
 
+def focal_mode(frontend: ImageFrontend, requested: str = "auto") -> str:
+    """The bundle adjustment's focal-length mode: ``requested`` unless it is ``"auto"``, which
+    refines the focal length when any image's intrinsics were guessed (EXIF or prior): one
+    shared focal length when every image has the same guess, one per camera otherwise."""
+    if requested != "auto":
+        return requested
+    recs = frontend.records
+    if all(r.intrinsics_source == "given" for r in recs):
+        return "none"
+    same = all(np.array_equal(r.K, recs[0].K) for r in recs)
+    return "shared" if same else "per_camera"
+
+
 def _bundle_stage(frontend: ImageFrontend, result: RefineResult, stage: str,
                   options: BundleOptions) -> list[SfmResult]:
     """Bundle-adjust the averaged poses of ``stage``, one connected component at a time, and
@@ -87,6 +101,7 @@ def _bundle_stage(frontend: ImageFrontend, result: RefineResult, stage: str,
     matches = frontend.verified_matches()
     K = np.stack([r.K for r in frontend.records]).astype(np.float64)
     dist = [r.dist for r in frontend.records]
+    options = dataclasses.replace(options, refine_focal=focal_mode(frontend, options.refine_focal))
     out = poses.clone()
     runs = []
     for c in torch.unique(comp[solved]).tolist():
@@ -120,7 +135,8 @@ def reconstruct(
     """Evaluate every image pair, assemble the graph, refine its ``estimate`` (``kp`` or ``bb``)
     initial poses with ``model`` (``None``: no refinement), average them with ``backend`` and,
     with ``bundle_adjust`` (``bundle``: its options, defaults when ``None``), bundle-adjust each
-    stage's averaged poses (stage ``<stage>+ba``; needs a backend).
+    stage's averaged poses (stage ``<stage>+ba``; needs a backend). ``refine_focal="auto"``
+    refines the focal length of guessed intrinsics (:func:`focal_mode`).
     ``guard``: keep the input pose where the model's confidence says refinement would not help
     (:func:`posernet.pipeline.refine_graphs`; needs a confidence head). With a confidence head
     the averaging starts from the model's per-edge confidence."""
@@ -142,7 +158,8 @@ def reconstruct(
     rec = Reconstruction(frontend, graph, stats, result)
     if bundle_adjust and backend is not None:
         for s in list(result.absolute):
-            rec.sfm[f"{s}+ba"] = _bundle_stage(frontend, result, s, bundle or BundleOptions())
+            rec.sfm[f"{s}+ba"] = _bundle_stage(frontend, result, s,
+                                               bundle or BundleOptions(refine_focal="auto"))
     return rec
 
 
@@ -199,12 +216,21 @@ def poses_json(rec: Reconstruction, info: dict[str, Any] | None = None) -> dict[
         poses = res.absolute[stage][0]
         solved, comp = res.solved[stage][0].bool(), res.component[stage][0]
         fixed = gauge_fixed(poses, solved, comp)
+    # intrinsics as used last: the bundle adjustment's (focal refined) where it ran
+    K_out = [r.K.astype(np.float64) for r in rec.frontend.records]
+    for run in rec.sfm.get(stage, []):
+        for i in np.flatnonzero(run.refined):
+            K_out[i] = run.K[i]
     degree = torch.bincount(g.edge_index.flatten(), minlength=g.num_nodes)
     n_boxes = torch.bincount(g.det_node, minlength=g.num_nodes)
     for i, r in enumerate(rec.frontend.records):
         cam: dict[str, Any] = {"solved": False, "component": None, "camera_to_world": None,
                                "world_to_camera": None, "q_wxyz": None, "t": None,
-                               "edges": int(degree[i]), "boxes": int(n_boxes[i])}
+                               "edges": int(degree[i]), "boxes": int(n_boxes[i]),
+                               "size": list(r.size) if r.size else None,
+                               "K": [[round(float(v), 6) for v in row] for row in K_out[i]],
+                               "dist": None if r.dist is None else [float(v) for v in r.dist],
+                               "intrinsics_source": r.intrinsics_source}
         if res.absolute and bool(solved[i]):
             T = fixed[i]
             cam.update(solved=True, component=int(comp[i]), world_to_camera=_mat(T),

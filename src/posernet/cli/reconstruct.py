@@ -127,6 +127,15 @@ def run(cfg: DictConfig) -> dict[str, Any]:
         edge_rule=str(cfg.edge_rule),
         kp_top_pairs=int(cfg.kp_top_pairs), seed=int(cfg.seed), workers=int(cfg.workers))
     has_gt = all(r.c2w is not None for r in records)
+    guessed = {s: sum(r.intrinsics_source == s for r in records) for s in ("exif", "prior")}
+    if any(guessed.values()):
+        from ..reconstruct import focal_mode
+
+        mode = focal_mode(frontend, str(cfg.bundle.refine_focal)) if cfg.ba else "none"
+        print(f"intrinsics: {guessed['exif']} image(s) from EXIF, {guessed['prior']} from the "
+              "prior (focal length 1.2 x the longest side, principal point at the centre); "
+              + ("bundle adjustment refines the focal length" if mode != "none" else
+                 "not refined (bundle.refine_focal=none or ba=false)"))
     print(f"[1/3] {len(records)} images from {cfg.images} "
           f"({'with' if has_gt else 'without'} ground-truth poses); matcher "
           f"{getattr(frontend.matcher, 'name', type(frontend.matcher).__name__)}")

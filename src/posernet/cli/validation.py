@@ -141,7 +141,7 @@ ESTIMATE = choice("kp", "bb")
 #: stored edge_pose)
 ESTIMATE_IN = choice("kp", "bb", "free", "gt", null=True)
 SIZE = choice("small", "large")
-INTRINSICS = "FX,FY,CX,CY, [FX,FY,CX,CY] or a JSON / 3x3 text file"
+INTRINSICS = "FX,FY,CX,CY, [FX,FY,CX,CY], a JSON / 3x3 text file, or auto"
 
 
 # --------------------------------------------------------------------------- schema
@@ -240,10 +240,11 @@ VERIFY: Schema = {
 BUNDLE: Schema = {
     "_target_": text(), "loss": choice("cauchy", "huber", "soft_l1", "linear", "arctan"),
     "f_scale": positive(), "max_nfev": integer(1), "ftol": positive(), "xtol": positive(),
-    "gtol": positive(), "refine_focal": choice("none", "shared", "per_camera"),
+    "gtol": positive(), "refine_focal": choice("auto", "none", "shared", "per_camera"),
     "gauge": choice("max_degree", "first"), "accept_unconverged": boolean(),
     "anneal_factor": number(0), "anneal_step": number(1, lo_open=True),
     "robust": choice("irls", "scipy"), "max_outer": integer(1), "inner_nfev": integer(1),
+    "irls_tol": positive(),
     "max_reproj_px": positive(), "initial_reproj_factor": positive(),
     "min_angle_deg": number(0), "rounds": integer(1), "min_points_per_camera": integer(0),
 }

@@ -10,6 +10,12 @@ either one entry for all images or one per image::
     {"default": {...}, "images": {"IMG_001.jpg": {"K": [[...], [...], [...]]}, ...}}  # per image
 
 ``dist`` (OpenCV order, optional) is the lens distortion; the 5-point step undistorts with it.
+
+Without known intrinsics (``intrinsics=auto``, or ``None``), each image gets a pinhole camera
+centred on the image whose focal length comes from its EXIF data (35 mm equivalent focal
+length, or focal length and focal-plane resolution) when present, else the prior
+``FOCAL_PRIOR`` x the longest image side that SfM tools use; ``ImageRecord.intrinsics_source``
+says which (``"given"``, ``"exif"`` or ``"prior"``) so that bundle adjustment can refine it.
 """
 
 from __future__ import annotations
@@ -25,9 +31,11 @@ import cv2
 import numpy as np
 
 __all__ = [
+    "FOCAL_PRIOR",
     "IMAGE_SUFFIXES",
     "ImageError",
     "ImageRecord",
+    "guess_intrinsics",
     "intrinsics_matrix",
     "list_images",
     "parse_intrinsics",
@@ -37,6 +45,8 @@ __all__ = [
 ]
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp")
+#: focal length (pixels) of an image without known intrinsics or EXIF, times its longest side
+FOCAL_PRIOR = 1.2
 # 7-Scenes keeps depth maps beside the colour images: never take them for photos
 _SKIP_SUFFIXES = (".depth.png",)
 
@@ -59,6 +69,7 @@ class ImageRecord:
     dist: np.ndarray | None = None
     size: tuple[int, int] | None = None
     c2w: np.ndarray | None = None
+    intrinsics_source: str = "given"  # "given", "exif" or "prior" (see the module docstring)
 
     @property
     def k1(self) -> float:
@@ -154,6 +165,43 @@ def _numeric(v: Any) -> bool:
     except (TypeError, ValueError):
         return False
     return bool(a.size) and bool(np.isfinite(a).all())
+
+
+# EXIF tags (Exif IFD 0x8769): focal length (mm), its 35 mm equivalent, focal-plane resolution
+_EXIF_IFD, _FOCAL, _FOCAL_35 = 0x8769, 0x920A, 0xA405
+_PLANE_X, _PLANE_UNIT, _ORIENTATION = 0xA20E, 0xA210, 0x0112
+_UNIT_MM = {2: 25.4, 3: 10.0, 4: 1.0, 5: 0.001}  # inch, cm, mm, um
+
+
+def guess_intrinsics(path: str | os.PathLike[str]) -> tuple[np.ndarray, str]:
+    """``(K (3, 3), source)`` for an image without known intrinsics: the focal length from its
+    EXIF data (``source="exif"``) or ``FOCAL_PRIOR`` x the longest side (``"prior"``), the
+    principal point at the centre of the image as OpenCV reads it (EXIF orientation applied)."""
+    from PIL import Image, UnidentifiedImageError
+
+    try:
+        with Image.open(path) as im:
+            w, h = im.size
+            exif = im.getexif()
+    except (OSError, UnidentifiedImageError) as exc:
+        raise ImageError(f"cannot read image {path} ({exc})") from None
+    if exif.get(_ORIENTATION) in (5, 6, 7, 8):  # stored sideways: OpenCV turns it upright
+        w, h = h, w
+    tags = exif.get_ifd(_EXIF_IFD)
+    side = float(max(w, h))
+    f = None
+    try:
+        if tags.get(_FOCAL_35):  # 35 mm equivalent: a 36 mm wide frame
+            f = float(tags[_FOCAL_35]) / 36.0 * side
+        elif tags.get(_FOCAL) and tags.get(_PLANE_X) and tags.get(_PLANE_UNIT) in _UNIT_MM:
+            f = float(tags[_FOCAL]) * float(tags[_PLANE_X]) / _UNIT_MM[tags[_PLANE_UNIT]]
+    except (TypeError, ValueError, ZeroDivisionError):
+        f = None
+    source = "exif"
+    if f is None or not np.isfinite(f) or not 0.1 * side < f < 20 * side:
+        f, source = FOCAL_PRIOR * side, "prior"
+    K = np.array([[f, 0.0, w / 2.0], [0.0, f, h / 2.0], [0.0, 0.0, 1.0]])
+    return K, source
 
 
 def parse_intrinsics(
@@ -274,6 +322,9 @@ def records_for_images(
 ) -> list[ImageRecord]:
     """Records of the images in ``folder`` with their intrinsics and, optionally, poses.
 
+    ``intrinsics``: a spec for :func:`parse_intrinsics`, or ``"auto"`` / ``None`` to guess
+    them per image (:func:`guess_intrinsics`).
+
     ``gt_poses``: ``"auto"`` uses ``<name>.pose.txt`` files beside the images when every image
     has one (7-Scenes layout: ``frame-000000.color.png`` -> ``frame-000000.pose.txt``),
     ``"none"``/``None`` ignores them, a folder path requires one per image there.
@@ -281,9 +332,15 @@ def records_for_images(
     root = Path(folder)
     files = list_images(root, pattern)
     keys = [str(p.relative_to(root)) for p in files]
-    cams = parse_intrinsics(intrinsics, keys)
-    records = [ImageRecord(path=p, key=k, K=K, dist=d)
-               for p, k, (K, d) in zip(files, keys, cams, strict=True)]
+    if intrinsics is None or (isinstance(intrinsics, str) and intrinsics.lower() == "auto"):
+        records = []
+        for p, k in zip(files, keys, strict=True):
+            K, source = guess_intrinsics(p)
+            records.append(ImageRecord(path=p, key=k, K=K, intrinsics_source=source))
+    else:
+        cams = parse_intrinsics(intrinsics, keys)
+        records = [ImageRecord(path=p, key=k, K=K, dist=d)
+                   for p, k, (K, d) in zip(files, keys, cams, strict=True)]
     mode = "none" if gt_poses is None else str(gt_poses)
     if mode.lower() == "none":
         return records

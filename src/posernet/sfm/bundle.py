@@ -32,7 +32,9 @@ from ..geometry import axis_angle_to_rotation_matrix
 __all__ = ["LOSSES", "BundleOptions", "BundleResult", "bundle_adjust", "gauge_cameras"]
 
 LOSSES: tuple[str, ...] = ("linear", "huber", "soft_l1", "cauchy", "arctan")
-FOCAL_MODES: tuple[str, ...] = ("none", "shared", "per_camera")
+#: ``auto`` is for callers that know where the intrinsics came from (``posernet.reconstruct``
+#: resolves it: refine when they were guessed); :func:`bundle_adjust` itself reads it as ``none``
+FOCAL_MODES: tuple[str, ...] = ("none", "shared", "per_camera", "auto")
 GAUGES: tuple[str, ...] = ("max_degree", "first")
 
 
@@ -43,14 +45,16 @@ class BundleOptions:
 
     Solver: ``loss`` (one of :data:`LOSSES`), ``f_scale`` (px: residuals beyond it are
     down-weighted), ``max_nfev`` (function evaluations; reaching it is a failure), tolerances,
-    ``refine_focal`` (``"none"``, ``"shared"``, ``"per_camera"``), ``gauge`` (which camera per
+    ``refine_focal`` (``"none"``, ``"shared"``, ``"per_camera"``; ``"auto"``: see
+    :data:`FOCAL_MODES`), ``gauge`` (which camera per
     component stays fixed: ``"max_degree"`` most observations, or ``"first"``),
     ``accept_unconverged`` (keep an improved but unconverged result instead of the input),
     ``anneal_factor`` (robust losses start with ``f_scale`` at this many times the median
     error and shrink it to ``f_scale`` in stages, divided by ``anneal_step`` per stage; 0 turns
     this off), ``robust`` (``"irls"``:
     reweighted least squares with a per-observation loss, ``max_outer`` passes of at most
-    ``inner_nfev`` trf evaluations; ``"scipy"``: scipy's per-coordinate robust loss).
+    ``inner_nfev`` trf evaluations, converged when a pass lowers the robust cost by less than
+    ``irls_tol`` of it; ``"scipy"``: scipy's per-coordinate robust loss).
 
     Orchestrator: ``max_reproj_px`` (observations above it after a BA are dropped; also the
     triangulation filter of later rounds), ``initial_reproj_factor`` (first triangulation, from
@@ -73,6 +77,7 @@ class BundleOptions:
     anneal_step: float = 4.0
     robust: str = "irls"
     max_outer: int = 100
+    irls_tol: float = 1e-6
     inner_nfev: int = 10
     max_reproj_px: float = 4.0
     initial_reproj_factor: float = 3.0
@@ -414,7 +419,7 @@ def _solve_irls(prob: _Problem, x0: np.ndarray, med0: float, opt: BundleOptions
         x = res.x
         r = prob.residuals(x)
         cost = _robust_cost(r, opt.loss, opt.f_scale)
-        if fs <= opt.f_scale and (prev - cost) <= opt.ftol * max(cost, 1e-300):
+        if fs <= opt.f_scale and (prev - cost) <= opt.irls_tol * max(cost, 1e-300):
             return x, r, nfev, True, "robust cost converged (IRLS)"
         prev = cost if fs <= opt.f_scale else np.inf
         fs = max(opt.f_scale, fs / opt.anneal_step)
