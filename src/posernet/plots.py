@@ -123,6 +123,14 @@ def plot_cameras(
         ax.scatter(c[:, 0], c[:, 1], c[:, 2], color=colour, label=label, s=18)
         ax.quiver(c[:, 0], c[:, 1], c[:, 2], a[:, 0], a[:, 1], a[:, 2], color=colour,
                   linewidth=1.0, arrow_length_ratio=0.2)
+    # equal scales on the three axes: a trajectory must not look stretched
+    pts = torch.cat(centres_all).numpy()
+    mid = 0.5 * (pts.max(0) + pts.min(0))
+    half = 0.5 * float((pts.max(0) - pts.min(0)).max()) + length
+    ax.set_xlim(mid[0] - half, mid[0] + half)
+    ax.set_ylim(mid[1] - half, mid[1] + half)
+    ax.set_zlim(mid[2] - half, mid[2] + half)
+    ax.set_box_aspect((1, 1, 1))
     ax.set_xlabel("x (m)")
     ax.set_ylabel("y (m)")
     ax.set_zlabel("z (m)")
