@@ -6,6 +6,7 @@ Tiny graphs are dominated by per-op overhead: one torch thread is much faster th
 
 from __future__ import annotations
 
+import pytest
 import torch
 
 torch.set_num_threads(1)
@@ -23,3 +24,13 @@ def posernet_train_callbacks(out_dir: object) -> list:
     with initialize_config_dir(config_dir=CONFIG_DIR, version_base="1.3"):
         cfg = compose(config_name="train", overrides=[f"out_dir={out_dir}"])
     return [c for c in _instantiate_dict(cfg.callbacks) if isinstance(c, ModelCheckpoint)]
+
+
+@pytest.fixture(scope="module")
+def one_torch_thread():
+    """One torch thread for a module (timing-insensitive, and no oversubscription on the
+    2-core CI box); restored afterwards."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)

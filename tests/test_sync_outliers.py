@@ -21,12 +21,7 @@ from posernet.sync import get_backend
 F64 = torch.float64
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def _look_at(c: torch.Tensor, target: torch.Tensor, roll: torch.Tensor) -> torch.Tensor:

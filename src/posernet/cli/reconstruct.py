@@ -103,7 +103,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     from ..io import atomic_write_json
     from ..nn import PoserNet
     from ..pipeline import evaluate_result, result_tables
-    from ..reconstruct import reconstruct, write_colmap_models, write_poses_json
+    from ..reconstruct import poses_json, reconstruct, write_colmap_models
     from ..sync import backend_from_config
 
     check_config(cfg, "reconstruct")  # out_dir included: made only once there is output
@@ -151,9 +151,10 @@ def run(cfg: DictConfig) -> dict[str, Any]:
         if line:
             print(f"posernet-reconstruct: {line}", file=sys.stderr)
     out.mkdir(parents=True, exist_ok=True)
-    files: dict[str, Any] = {"poses": write_poses_json(out / "poses.json", rec, info)}
+    record = poses_json(rec, info)  # built once: poses.json and the summary share it
+    files: dict[str, Any] = {"poses": atomic_write_json(out / "poses.json", record, indent=1)}
     files["colmap"] = write_colmap_models(out / "sparse", rec)
-    solved = sum(c["solved"] for c in _load(files["poses"])["cameras"].values())
+    solved = sum(c["solved"] for c in record["cameras"].values())
     print(f"[3/3] {'PoserNet + ' if model is not None else ''}{backend!r}"
           f"{' + bundle adjustment' if bundle is not None else ''}: {solved} of "
           f"{len(records)} cameras placed ({rec.graph.num_edges} edges)")
@@ -164,7 +165,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
         **info, "frontend": frontend.summary.to_dict(), "cameras_placed": solved,
         "edges": rec.graph.num_edges, "rotation_only_edges": frontend.summary.rotation_only,
         "rejected_pairs": frontend.summary.rejected and dict(frontend.summary.rejected),
-        "bundle_adjustment": _load(files["poses"])["bundle_adjustment"],
+        "bundle_adjustment": record["bundle_adjustment"],
         "seconds_total": round(time.perf_counter() - t0, 2)})
     files["pictures"] = _pictures(rec, out, int(cfg.pictures))
     files["cameras_png"] = _camera_plot(rec, out)
@@ -183,12 +184,6 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     print(f"wrote {files['poses']}{colmap} and pictures in {out} "
           f"({time.perf_counter() - t0:.0f} s)")
     return files
-
-
-def _load(path: Path) -> dict[str, Any]:
-    import json
-
-    return json.loads(Path(path).read_text(encoding="utf-8"))
 
 
 @hydra.main(version_base="1.3", config_path=CONFIG_DIR, config_name="reconstruct")

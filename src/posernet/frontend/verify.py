@@ -164,6 +164,18 @@ def _triangulation_angles(x1: np.ndarray, x2: np.ndarray, R: np.ndarray,
     return ang, front
 
 
+def _to_normalised(p1: np.ndarray, p2: np.ndarray, K1: np.ndarray, K2: np.ndarray | None,
+                   dist1: np.ndarray | None, dist2: np.ndarray | None
+                   ) -> tuple[np.ndarray, np.ndarray, float]:
+    """Pixels ``(M, 2)`` of both images -> undistorted normalised coordinates, and the mean
+    focal length that turns a pixel threshold into a normalised one (``K2`` defaults to
+    ``K1``)."""
+    K1 = np.asarray(K1, dtype=np.float64)
+    K2 = K1 if K2 is None else np.asarray(K2, dtype=np.float64)
+    f = 0.25 * (K1[0, 0] + K1[1, 1] + K2[0, 0] + K2[1, 1])
+    return _normalised(p1, K1, dist1), _normalised(p2, K2, dist2), float(f)
+
+
 def verify_two_view(
     p1: np.ndarray,
     p2: np.ndarray,
@@ -205,12 +217,9 @@ def verify_two_view(
     info["static_ratio"] = round(static, 4)
     if static > rules.max_static_ratio:
         return reject("static")
-    K1 = np.asarray(K1, dtype=np.float64)
-    K2 = K1 if K2 is None else np.asarray(K2, dtype=np.float64)
-    x1, x2 = _normalised(p1, K1, dist1), _normalised(p2, K2, dist2)
+    x1, x2, f = _to_normalised(p1, p2, K1, K2, dist1, dist2)
     if not (np.isfinite(x1).all() and np.isfinite(x2).all()):
         return reject("no_model")
-    f = 0.25 * (K1[0, 0] + K1[1, 1] + K2[0, 0] + K2[1, 1])
     thr = threshold / f
     cv2.setRNGSeed(int(seed) & 0x7FFFFFFF)
     try:
@@ -328,9 +337,7 @@ def epipolar_consistent(
     keypoint tracks."""
     if p1.shape[0] == 0:
         return np.zeros(0, bool)
-    K1 = np.asarray(K1, dtype=np.float64)
-    K2 = K1 if K2 is None else np.asarray(K2, dtype=np.float64)
-    x1, x2 = _normalised(p1, K1, dist1), _normalised(p2, K2, dist2)
+    x1, x2, f = _to_normalised(p1, p2, K1, K2, dist1, dist2)
     tx = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
     E = tx @ R
     h1 = np.concatenate([x1, np.ones((x1.shape[0], 1))], 1)
@@ -338,7 +345,6 @@ def epipolar_consistent(
     Ex1, Etx2 = h1 @ E.T, h2 @ E
     num = (h2 * Ex1).sum(1) ** 2
     den = Ex1[:, 0] ** 2 + Ex1[:, 1] ** 2 + Etx2[:, 0] ** 2 + Etx2[:, 1] ** 2
-    f = 0.25 * (K1[0, 0] + K1[1, 1] + K2[0, 0] + K2[1, 1])
     sampson = np.sqrt(num / np.maximum(den, 1e-300)) * f
     _, front = _triangulation_angles(x1, x2, R, t)
     return (sampson < threshold) & front
