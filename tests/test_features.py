@@ -373,3 +373,17 @@ def test_draw_matches_writes_a_png(tmp_path, pair):
             box_pairs=[[0, 5]],
         )
     assert not (tmp_path / "bad.png").exists()
+
+
+def test_sift_detects_again_on_sparse_images(pair):
+    """A faint image (an object on a plain background) gets a second, lower-threshold
+    detection; a textured one keeps the default detection."""
+    faint = (128 + (pair[0].astype(np.float64) - 128) * 0.08).astype(np.uint8)
+    once = SiftMatcher(min_features=0).extract(faint)
+    again = SiftMatcher(min_features=1000).extract(faint)
+    assert len(once.uv) < 1000 and len(again.uv) > 1.5 * len(once.uv)
+    rich = SiftMatcher(min_features=0).extract(pair[0])
+    np.testing.assert_array_equal(SiftMatcher(min_features=10).extract(pair[0]).uv, rich.uv)
+    for bad in (-1, 2.5, True):
+        with pytest.raises(ValueError, match="min_features"):
+            SiftMatcher(min_features=bad)

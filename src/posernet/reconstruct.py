@@ -41,7 +41,7 @@ from .geometry import invert_se3
 from .graph import ViewGraph
 from .io import atomic_write_json
 from .pipeline import RefineResult, refine_graphs
-from .sfm import BundleOptions, SfmResult, bundle_adjust_reconstruction
+from .sfm import BundleOptions, SfmResult, anchored_cameras, bundle_adjust_reconstruction
 
 __all__ = ["Reconstruction", "edge_weights", "focal_mode", "gauge_fixed", "poses_json",
            "reconstruct", "write_colmap_models", "write_poses_json"]
@@ -89,10 +89,12 @@ def focal_mode(frontend: ImageFrontend, requested: str = "auto") -> str:
     return "shared" if same else "per_camera"
 
 
-def _bundle_stage(frontend: ImageFrontend, result: RefineResult, stage: str,
-                  options: BundleOptions) -> list[SfmResult]:
+def _bundle_stage(frontend: ImageFrontend, graph: ViewGraph, weights: Tensor,
+                  result: RefineResult, stage: str, options: BundleOptions) -> list[SfmResult]:
     """Bundle-adjust the averaged poses of ``stage``, one connected component at a time, and
-    store them as stage ``<stage>+ba`` (unplaced cameras stay unplaced)."""
+    store them as stage ``<stage>+ba`` (unplaced cameras stay unplaced). Cameras that
+    ``graph``'s edges with a usable direction (``weights [E, 2]``, translation column) do not
+    pin are first re-placed from 3D points."""
     n = len(frontend.records)
     poses = result.absolute[stage][0].double()
     solved = result.solved[stage][0].bool()
@@ -102,14 +104,20 @@ def _bundle_stage(frontend: ImageFrontend, result: RefineResult, stage: str,
     K = np.stack([r.K for r in frontend.records]).astype(np.float64)
     dist = [r.dist for r in frontend.records]
     options = dataclasses.replace(options, refine_focal=focal_mode(frontend, options.refine_focal))
+    # Which cameras the averaging pinned: the graph's edges with a usable direction.
+    edges = graph.edge_index.T.numpy().astype(np.int64)
+    strength = np.asarray([len(frontend.pair(i, j).inliers if frontend.pair(i, j).inliers
+                               is not None else ()) for i, j in edges.tolist()], np.float64)
     out = poses.clone()
     runs = []
     for c in torch.unique(comp[solved]).tolist():
         members = solved & (comp == c)
         if int(members.sum()) < 2:
             continue
+        anchored = anchored_cameras(edges, weights[:, 1].numpy(), members.numpy(), strength)
         sfm = bundle_adjust_reconstruction(uv, matches, K, dist, poses.numpy(),
-                                           members.numpy(), options)
+                                           members.numpy(), options, anchored=anchored,
+                                           seed=frontend.seed)
         idx = torch.from_numpy(np.flatnonzero(members.numpy()))
         out[idx] = torch.from_numpy(sfm.w2c[idx.numpy()]).to(out.dtype)
         runs.append(sfm)
@@ -158,7 +166,7 @@ def reconstruct(
     rec = Reconstruction(frontend, graph, stats, result)
     if bundle_adjust and backend is not None:
         for s in list(result.absolute):
-            rec.sfm[f"{s}+ba"] = _bundle_stage(frontend, result, s,
+            rec.sfm[f"{s}+ba"] = _bundle_stage(frontend, graph, weights, result, s,
                                                bundle or BundleOptions(refine_focal="auto"))
     return rec
 
@@ -175,7 +183,7 @@ def gauge_fixed(poses: Tensor, solved: Tensor, component: Tensor) -> Tensor:
 
 
 def _mat(T: Tensor) -> list[list[float]]:
-    return [[round(float(v), 9) for v in row] for row in T.tolist()]
+    return [[float(f"{float(v):.9g}") for v in row] for row in T.tolist()]
 
 
 def _num(v: Any) -> Any:
@@ -203,6 +211,9 @@ def sfm_record(r: SfmResult, keys: list[str]) -> dict[str, Any]:
                   "evaluations": int(b.iterations), "message": b.message} for b in r.bundles],
         "seconds": _num(st.get("seconds", {})),
         "message": r.message,
+        # cameras whose averaged position no edge pinned, re-placed by PnP on 3D points
+        "resection": {keys[i]: {"points": n, "pnp_inliers": k, "resected": ok}
+                      for i, n, k, ok in st.get("resection", {}).get("cameras", [])},
     }
 
 

@@ -213,7 +213,8 @@ PROPOSALS: Schema = {
 MATCHER: Schema = {
     "name": choice("auto", "sift", "xfeat", "xfeat+lighterglue"),
     "max_features": integer(1), "ratio": number(0, 1, lo_open=True), "mutual": boolean(),
-    "rootsift": boolean(), "contrast_threshold": number(0, 1), "top_k": integer(1),
+    "rootsift": boolean(), "contrast_threshold": number(0, 1), "min_features": integer(0),
+    "top_k": integer(1),
     "lighterglue": boolean(), "min_cossim": number(-1, 1), "device": DEVICE,
 }
 
@@ -243,7 +244,7 @@ BUNDLE: Schema = {
     "gtol": positive(), "refine_focal": choice("auto", "none", "shared", "per_camera"),
     "gauge": choice("max_degree", "first"), "accept_unconverged": boolean(),
     "anneal_factor": number(0), "anneal_step": number(1, lo_open=True),
-    "robust": choice("irls", "scipy"), "max_outer": integer(1), "inner_nfev": integer(1),
+    "robust": choice("lm", "irls", "scipy"), "max_outer": integer(1), "inner_nfev": integer(1),
     "irls_tol": positive(),
     "max_reproj_px": positive(), "initial_reproj_factor": positive(),
     "min_angle_deg": number(0), "rounds": integer(1), "min_points_per_camera": integer(0),

@@ -247,6 +247,10 @@ class SiftMatcher:
         rootsift: RootSIFT descriptors (L1-normalise, square root): better matching than plain
             SIFT at no cost (Arandjelovic & Zisserman 2012).
         contrast_threshold: SIFT detector threshold; lower gives more keypoints in flat images.
+        min_features: an image with fewer keypoints than this (a dark object on a plain
+            background, a blurred frame) is detected again with a quarter of the contrast
+            threshold, so that textured images keep the default and sparse ones still get
+            enough matches for two-view geometry; 0 turns this off.
     """
 
     name = "sift"
@@ -258,8 +262,13 @@ class SiftMatcher:
         mutual: bool = True,
         rootsift: bool = True,
         contrast_threshold: float = 0.04,
+        min_features: int = 1000,
     ) -> None:
         self.max_features = _positive_int(max_features, "max_features")
+        if isinstance(min_features, bool) or not isinstance(min_features, (int, np.integer)) \
+                or min_features < 0:
+            raise ValueError(f"min_features must be an integer >= 0, got {min_features!r}")
+        self.min_features = int(min_features)
         self.ratio = _number(ratio, "ratio", 1e-6, 1.0)
         self.mutual = bool(mutual)
         self.rootsift = bool(rootsift)
@@ -270,7 +279,7 @@ class SiftMatcher:
         return (
             f"SiftMatcher(max_features={self.max_features}, ratio={self.ratio}, "
             f"mutual={self.mutual}, rootsift={self.rootsift}, "
-            f"contrast_threshold={self.contrast_threshold})"
+            f"contrast_threshold={self.contrast_threshold}, min_features={self.min_features})"
         )
 
     def extract(self, image: np.ndarray) -> Features:
@@ -278,10 +287,15 @@ class SiftMatcher:
         image = _check_image(image)
         h, w = image.shape[:2]
         # created per call: cheap, and cv2 objects are neither picklable nor clearly thread-safe
+        grey = _grey(image)
         sift = cv2.SIFT_create(
             nfeatures=self.max_features, contrastThreshold=self.contrast_threshold
         )
-        kps, desc = sift.detectAndCompute(_grey(image), None)
+        kps, desc = sift.detectAndCompute(grey, None)
+        if len(kps) < min(self.min_features, self.max_features):
+            sift = cv2.SIFT_create(nfeatures=self.max_features,
+                                   contrastThreshold=self.contrast_threshold / 4)
+            kps, desc = sift.detectAndCompute(grey, None)
         if not kps or desc is None:
             return Features(
                 np.zeros((0, 2)), np.zeros((0, 128), np.float32), (w, h), {"kind": self.kind}

@@ -9,6 +9,8 @@ Stages (each usable on its own):
   cheirality, triangulation-angle and reprojection filters; :func:`undistort_keypoints`;
 * :mod:`~posernet.sfm.bundle` -- :func:`bundle_adjust`: robust bundle adjustment on
   ``scipy.optimize.least_squares`` with an analytic sparse Jacobian;
+* :mod:`~posernet.sfm.resection` -- :func:`anchored_cameras` (which averaged positions the
+  edge directions pin) and :func:`resect_cameras` (the others re-placed by PnP on 3D points);
 * :mod:`~posernet.sfm.refine` -- :func:`bundle_adjust_reconstruction`: the orchestrator
   (tracks, triangulation, BA, filter, BA) used as the last stage of a reconstruction;
 * :mod:`~posernet.sfm.synthetic` -- synthetic scenes for tests and benchmarks.
@@ -22,6 +24,7 @@ from __future__ import annotations
 
 from .bundle import LOSSES, BundleOptions, BundleResult, bundle_adjust, gauge_cameras
 from .refine import SfmResult, bundle_adjust_reconstruction
+from .resection import Resection, anchored_cameras, resect_cameras
 from .tracks import Tracks, build_tracks
 from .triangulation import (
     REASONS,
@@ -37,15 +40,18 @@ __all__ = [
     "REASONS",
     "BundleOptions",
     "BundleResult",
+    "Resection",
     "SfmResult",
     "Tracks",
     "Triangulation",
+    "anchored_cameras",
     "build_tracks",
     "bundle_adjust",
     "bundle_adjust_reconstruction",
     "gauge_cameras",
     "project",
     "reprojection_errors",
+    "resect_cameras",
     "triangulate_tracks",
     "undistort_keypoints",
 ]

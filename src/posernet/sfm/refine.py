@@ -18,6 +18,7 @@ import torch
 
 from ..metrics import umeyama_alignment
 from .bundle import BundleOptions, BundleResult, bundle_adjust
+from .resection import resect_cameras
 from .tracks import Tracks, build_tracks
 from .triangulation import reprojection_errors, triangulate_tracks, undistort_keypoints
 
@@ -59,6 +60,10 @@ class SfmResult:
         """Human-readable summary, one fact per line."""
         s = self.stats
         out = [*self.tracks.lines()]
+        if "resection" in s:
+            r = s["resection"]
+            out.append(f"cameras not pinned by averaging: {r['tried']}; re-placed from 3D points "
+                       f"(PnP) {r['resected']}, failed {r['failed']}")
         if "triangulation" in s:
             out.append("initial triangulation: " + ", ".join(
                 f"{k} {v}" for k, v in s["triangulation"].items()))
@@ -115,14 +120,20 @@ def bundle_adjust_reconstruction(uv: Sequence[np.ndarray],
                                  pair_matches: Mapping[tuple[int, int], np.ndarray],
                                  K: np.ndarray, dist: Sequence[np.ndarray | None] | None,
                                  w2c: np.ndarray, placed: np.ndarray,
-                                 options: BundleOptions | None = None) -> SfmResult:
+                                 options: BundleOptions | None = None,
+                                 anchored: np.ndarray | None = None,
+                                 seed: int = 0) -> SfmResult:
     """Tracks, triangulation and robust bundle adjustment of the placed images.
 
     ``uv[i] (K_i, 2)`` keypoint pixels of image i (distorted as detected), ``pair_matches``
     verified ``(M, 2)`` keypoint index pairs per image pair ``(a, b)``, ``K (N, 3, 3)``,
     ``dist``: per image OpenCV distortion coefficients or None, ``w2c (N, 4, 4)`` initial
     poses (motion averaging), ``placed (N,)`` which of them are meaningful. Placed cameras
-    with a non-finite pose are treated as not placed. Malformed shapes raise ValueError; a
+    with a non-finite pose are treated as not placed. ``anchored (N,)``: the placed cameras
+    whose averaged position is trustworthy (see
+    :func:`~posernet.sfm.resection.anchored_cameras`; None: all); the others are first
+    re-placed by PnP on points triangulated from the anchored ones (``seed``: its RANSAC), and
+    those that fail are kept out of the adjustment (weak). Malformed shapes raise ValueError; a
     failed bundle adjustment keeps the previous (ultimately the input) poses.
     """
     opt = options or BundleOptions()
@@ -167,6 +178,26 @@ def bundle_adjust_reconstruction(uv: Sequence[np.ndarray],
                          bundles=bundles, stats=stats, message=msg)
 
     no = np.zeros(N, bool)
+    stats: dict[str, Any] = {"tracks": T}
+    not_pinned = no.copy()
+    if anchored is not None and T:
+        anchor = np.asarray(anchored, bool).reshape(-1) & placed
+        if (placed & ~anchor).any() and int(anchor.sum()) >= 2:
+            t0 = time.perf_counter()
+            rs = resect_cameras(xy, track, image, T, K, w2c, anchor, placed,
+                                max_reproj_px=opt.max_reproj_px,
+                                min_angle_deg=opt.min_angle_deg,
+                                min_inliers=max(6, opt.min_points_per_camera),
+                                reproj_factor=opt.initial_reproj_factor, seed=seed)
+            w2c = rs.w2c
+            not_pinned = rs.failed
+            stats["resection"] = {"tried": int((placed & ~anchor).sum()),
+                                  "resected": int(rs.resected.sum()),
+                                  "failed": int(rs.failed.sum()),
+                                  "cameras": [(int(i), int(rs.points[i]), int(rs.inliers[i]),
+                                               bool(rs.resected[i]))
+                                              for i in np.flatnonzero(placed & ~anchor)]}
+            seconds["resection"] = time.perf_counter() - t0
     if T == 0:
         return result(w2c.copy(), K.copy(), np.zeros((0, 3)), np.zeros(0, bool),
                       np.zeros(0, bool), no, placed.copy(), [], {},
@@ -174,7 +205,8 @@ def bundle_adjust_reconstruction(uv: Sequence[np.ndarray],
 
     # 1. Triangulate at the input poses; adaptive error threshold.
     t0 = time.perf_counter()
-    tri = triangulate_tracks(xy, track, image, T, K, w2c, max_reproj_px=np.inf,
+    ok = ~not_pinned[image]  # a camera PnP could not place would spoil its tracks
+    tri = triangulate_tracks(xy[ok], track[ok], image[ok], T, K, w2c, max_reproj_px=np.inf,
                              min_angle_deg=opt.min_angle_deg)
     in_ba = tri.valid.copy()
     thr0 = opt.max_reproj_px
@@ -190,11 +222,10 @@ def bundle_adjust_reconstruction(uv: Sequence[np.ndarray],
     active = np.ones(track.size, bool)
     # Weak cameras: too few points to pin their pose; leave them out of the problem.
     n_pts = np.bincount(image[in_ba[track]], minlength=N)
-    weak = placed & (n_pts < opt.min_points_per_camera)
+    weak = placed & ((n_pts < opt.min_points_per_camera) | not_pinned)
     active &= ~weak[image]
     in_ba &= np.bincount(track[active], minlength=T) >= 2
-    stats: dict[str, Any] = {"tracks": T, "triangulation": counts,
-                             "initial_threshold_px": thr0}
+    stats.update(triangulation=counts, initial_threshold_px=thr0)
 
     cur_w2c, cur_K = w2c.copy(), K.copy()
     bundles: list[BundleResult] = []
