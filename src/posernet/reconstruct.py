@@ -94,7 +94,8 @@ def _bundle_stage(frontend: ImageFrontend, graph: ViewGraph, weights: Tensor,
     """Bundle-adjust the averaged poses of ``stage``, one connected component at a time, and
     store them as stage ``<stage>+ba`` (unplaced cameras stay unplaced). Cameras that
     ``graph``'s edges with a usable direction (``weights [E, 2]``, translation column) do not
-    pin are first re-placed from 3D points."""
+    pin are first re-placed from 3D points; those whose position nothing determines are not
+    placed in ``<stage>+ba``."""
     n = len(frontend.records)
     poses = result.absolute[stage][0].double()
     solved = result.solved[stage][0].bool()
@@ -109,6 +110,7 @@ def _bundle_stage(frontend: ImageFrontend, graph: ViewGraph, weights: Tensor,
     strength = np.asarray([len(frontend.pair(i, j).inliers if frontend.pair(i, j).inliers
                                is not None else ()) for i, j in edges.tolist()], np.float64)
     out = poses.clone()
+    solved_ba = solved.clone()
     runs = []
     for c in torch.unique(comp[solved]).tolist():
         members = solved & (comp == c)
@@ -120,10 +122,11 @@ def _bundle_stage(frontend: ImageFrontend, graph: ViewGraph, weights: Tensor,
                                            seed=frontend.seed)
         idx = torch.from_numpy(np.flatnonzero(members.numpy()))
         out[idx] = torch.from_numpy(sfm.w2c[idx.numpy()]).to(out.dtype)
+        solved_ba[torch.from_numpy(np.flatnonzero(sfm.undetermined))] = False
         runs.append(sfm)
     key = f"{stage}+ba"
     result.absolute[key] = [out.to(result.absolute[stage][0].dtype)]
-    result.solved[key] = [result.solved[stage][0].clone()]
+    result.solved[key] = [solved_ba]
     result.component[key] = [comp.clone()]
     return runs
 
@@ -203,6 +206,7 @@ def sfm_record(r: SfmResult, keys: list[str]) -> dict[str, Any]:
     return {
         "cameras_refined": [keys[i] for i in np.flatnonzero(r.refined)],
         "cameras_weak": [keys[i] for i in np.flatnonzero(r.weak)],
+        "cameras_position_undetermined": [keys[i] for i in np.flatnonzero(r.undetermined)],
         "tracks": int(r.tracks.num_tracks), "points": int(r.points.shape[0]),
         "observations": int(r.obs_image.size),
         "reprojection_px": {f"{k}_{w}": _num(st.get(f"{k}_error_{w}"))
@@ -248,6 +252,9 @@ def poses_json(rec: Reconstruction, info: dict[str, Any] | None = None) -> dict[
                        camera_to_world=_mat(invert_se3(T)),
                        q_wxyz=[float(v) for v in matrix_to_pose_vec(T)[:4]],
                        t=[float(v) for v in T[:3, 3]])
+        if any(bool(run.undetermined[i]) for run in rec.sfm.get(stage, [])):
+            cam["note"] = ("position not determined: a single edge's direction and too few "
+                           "3D points shared with the other cameras")
         cams[r.key] = cam
     keys = [r.key for r in rec.frontend.records]
     edges = []

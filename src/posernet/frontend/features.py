@@ -262,7 +262,7 @@ class SiftMatcher:
         mutual: bool = True,
         rootsift: bool = True,
         contrast_threshold: float = 0.04,
-        min_features: int = 1000,
+        min_features: int = 500,
     ) -> None:
         self.max_features = _positive_int(max_features, "max_features")
         if isinstance(min_features, bool) or not isinstance(min_features, (int, np.integer)) \

@@ -55,6 +55,9 @@ class SfmResult:
     bundles: list[BundleResult] = field(default_factory=list)
     stats: dict[str, Any] = field(default_factory=dict)
     message: str = ""
+    #: weak cameras whose position nothing determined (averaging did not pin it, PnP failed):
+    #: callers should not report them as placed
+    undetermined: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
 
     def lines(self) -> list[str]:
         """Human-readable summary, one fact per line."""
@@ -143,6 +146,7 @@ def bundle_adjust_reconstruction(uv: Sequence[np.ndarray],
     w2c = np.asarray(w2c, np.float64)
     placed_in = np.asarray(placed, bool).reshape(-1)
     N = _check_inputs(uv, K, dist, w2c, placed_in)
+    w2c_in = w2c
     placed = placed_in & np.isfinite(w2c).all((1, 2)) & np.isfinite(K).all((1, 2))
     n_bad = int((placed_in & ~placed).sum())
 
@@ -170,7 +174,8 @@ def bundle_adjust_reconstruction(uv: Sequence[np.ndarray],
         seconds["total"] = time.perf_counter() - t_all
         stats["seconds"] = seconds
         stats["invalid_placed_poses"] = n_bad
-        return SfmResult(w2c=out_w2c, K=out_K, points=pts[keep_tr], point_track=keep_tr,
+        return SfmResult(undetermined=weak & guessed,
+                         w2c=out_w2c, K=out_K, points=pts[keep_tr], point_track=keep_tr,
                          obs_image=image[sel], obs_keypoint=kp[sel],
                          obs_point=remap[track[sel]],
                          observations_per_image=np.bincount(image[sel], minlength=N),
@@ -180,9 +185,25 @@ def bundle_adjust_reconstruction(uv: Sequence[np.ndarray],
     no = np.zeros(N, bool)
     stats: dict[str, Any] = {"tracks": T}
     not_pinned = no.copy()
+    guessed = no.copy()  # position neither pinned by averaging nor found by PnP
     if anchored is not None and T:
         anchor = np.asarray(anchored, bool).reshape(-1) & placed
         if (placed & ~anchor).any() and int(anchor.sum()) >= 2:
+            # Adjust the pinned cameras first: points triangulated from averaged poses are
+            # too rough (tens of px) for PnP. The others follow into the adjusted frame.
+            t0 = time.perf_counter()
+            core = bundle_adjust_reconstruction(uv, pair_matches, K, dist, w2c, anchor, opt)
+            w2c = w2c.copy()
+            ok = core.refined
+            if ok.any():
+                w2c[ok], K = core.w2c[ok], np.where(ok[:, None, None], core.K, K)
+                rest = placed & ~anchor
+                if int(ok.sum()) >= 3:
+                    c_in = -np.einsum("nji,nj->ni", w2c_in[ok, :3, :3], w2c_in[ok, :3, 3])
+                    c_out = -np.einsum("nji,nj->ni", w2c[ok, :3, :3], w2c[ok, :3, 3])
+                    w2c[rest] = _move_poses(w2c_in[rest], *_similarity_np(c_in, c_out))
+                anchor = anchor & ok  # pinned but too weakly seen: PnP may do better
+            seconds["core_bundle"] = time.perf_counter() - t0
             t0 = time.perf_counter()
             rs = resect_cameras(xy, track, image, T, K, w2c, anchor, placed,
                                 max_reproj_px=opt.max_reproj_px,
@@ -191,6 +212,7 @@ def bundle_adjust_reconstruction(uv: Sequence[np.ndarray],
                                 reproj_factor=opt.initial_reproj_factor, seed=seed)
             w2c = rs.w2c
             not_pinned = rs.failed
+            guessed = placed & ~anchor & ~rs.resected
             stats["resection"] = {"tried": int((placed & ~anchor).sum()),
                                   "resected": int(rs.resected.sum()),
                                   "failed": int(rs.failed.sum()),
