@@ -187,7 +187,7 @@ def bundle_adjust_reconstruction(uv: Sequence[np.ndarray],
     not_pinned = no.copy()
     guessed = no.copy()  # position neither pinned by averaging nor found by PnP
     if anchored is not None and T:
-        anchor = np.asarray(anchored, bool).reshape(-1) & placed
+        anchor = pinned = np.asarray(anchored, bool).reshape(-1) & placed
         if (placed & ~anchor).any() and int(anchor.sum()) >= 2:
             # Adjust the pinned cameras first: points triangulated from averaged poses are
             # too rough (tens of px) for PnP. The others follow into the adjusted frame.
@@ -212,7 +212,9 @@ def bundle_adjust_reconstruction(uv: Sequence[np.ndarray],
                                 reproj_factor=opt.initial_reproj_factor, seed=seed)
             w2c = rs.w2c
             not_pinned = rs.failed
-            guessed = placed & ~anchor & ~rs.resected
+            # position unknown: never pinned, or pinned but contradicted by the adjusted points
+            min_pts = max(6, opt.min_points_per_camera)
+            guessed = placed & ~anchor & ~rs.resected & (~pinned | (rs.points >= min_pts))
             stats["resection"] = {"tried": int((placed & ~anchor).sum()),
                                   "resected": int(rs.resected.sum()),
                                   "failed": int(rs.failed.sum()),

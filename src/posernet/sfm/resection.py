@@ -59,9 +59,8 @@ def anchored_cameras(edges: np.ndarray, weights: np.ndarray, members: np.ndarray
 
 @dataclass
 class Resection:
-    """Outcome of :func:`resect_cameras`: ``w2c (N, 4, 4)`` (resected cameras replaced, the
-    others slid to a typical baseline), ``resected`` / ``failed`` ``(N,)`` masks of the
-    non-anchored cameras (neither: slid), and per camera
+    """Outcome of :func:`resect_cameras`: ``w2c (N, 4, 4)`` (resected cameras replaced),
+    ``resected`` / ``failed`` ``(N,)`` masks of the non-anchored cameras, and per camera
     ``inliers`` / ``points`` (2D-3D correspondences tried; 0 where not tried)."""
 
     w2c: np.ndarray
@@ -115,23 +114,6 @@ def _pnp(X: np.ndarray, x: np.ndarray, K: np.ndarray, T0: np.ndarray, thr: float
     return best, best_n
 
 
-def _centres(w2c: np.ndarray) -> np.ndarray:
-    return -np.einsum("nji,nj->ni", w2c[:, :3, :3], w2c[:, :3, 3])
-
-
-def _slide(w2c: np.ndarray, cam: int, ref: int, length: float) -> np.ndarray:
-    """``w2c[cam]`` moved along the line from camera ``ref`` to it so that their distance is
-    ``length`` (rotation and direction kept: what the averaging did determine)."""
-    c = _centres(w2c[[ref, cam]])
-    d = c[1] - c[0]
-    n = float(np.linalg.norm(d))
-    if not (np.isfinite(n) and n > 0 and np.isfinite(length) and length > 0):
-        return w2c[cam]
-    out = w2c[cam].copy()
-    out[:3, 3] = -out[:3, :3] @ (c[0] + d * (length / n))
-    return out
-
-
 def resect_cameras(xy: np.ndarray, track: np.ndarray, image: np.ndarray, num_tracks: int,
                    K: np.ndarray, w2c: np.ndarray, anchored: np.ndarray, placed: np.ndarray,
                    *, max_reproj_px: float = 4.0, min_angle_deg: float = 1.0,
@@ -146,11 +128,9 @@ def resect_cameras(xy: np.ndarray, track: np.ndarray, image: np.ndarray, num_tra
     the PnP inliers use ``max(max_reproj_px, reproj_factor * median track error)`` as their
     threshold. A camera is resected when at least ``min_inliers`` and ``min_inlier_ratio`` of
     its 2D-3D correspondences agree within it;
-    otherwise it slides along its averaged direction from the anchored camera it shares most
-    tracks with to the anchored cameras' median nearest-neighbour distance (a start for the
-    bundle adjustment, which then decides), or is ``failed`` (no such camera: averaged pose
-    kept). Each step takes the camera that sees the most triangulated points (a Python loop
-    over cameras, not observations).
+    otherwise it is ``failed`` and keeps its averaged pose (whose position nothing fixed: the
+    caller should not trust it). Each step takes the camera that sees the most triangulated
+    points (a Python loop over cameras, not observations).
     """
     N = w2c.shape[0]
     out = w2c.copy()
@@ -174,15 +154,6 @@ def resect_cameras(xy: np.ndarray, track: np.ndarray, image: np.ndarray, num_tra
         cam = int(np.argmax(counts))
         o = np.flatnonzero(seen & (image == cam))
         n_pts[cam] = o.size
-        # start: slid to a typical baseline from its best-linked anchored camera
-        mine = np.zeros(num_tracks, bool)
-        mine[track[image == cam]] = True
-        link = np.bincount(image[mine[track] & fixed[image]], minlength=N)
-        if link.max() > 0:
-            cf = _centres(out[fixed])
-            dist = np.linalg.norm(cf[:, None] - cf[None], axis=2)
-            np.fill_diagonal(dist, np.inf)
-            out[cam] = _slide(out, cam, int(np.argmax(link)), float(np.median(dist.min(1))))
         T, inl = (None, 0)
         if o.size >= min_inliers:
             T, inl = _pnp(tri.points[track[o]].astype(np.float64), xy[o].astype(np.float64),
@@ -192,6 +163,6 @@ def resect_cameras(xy: np.ndarray, track: np.ndarray, image: np.ndarray, num_tra
         if T is not None and inl >= min_inliers and inl >= min_inlier_ratio * o.size:
             out[cam] = T
             resected[cam] = fixed[cam] = True
-        elif link.max() == 0:
+        else:
             failed[cam] = True
     return Resection(w2c=out, resected=resected, failed=failed, inliers=n_inl, points=n_pts)
