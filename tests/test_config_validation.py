@@ -113,7 +113,7 @@ BAD = [
     ("demo", "images.matcher=orb", "images.matcher: 'orb' is not one of auto, sift"),
     ("demo", "images.scene=garage", "images.scene: 'garage' is not one of chess"),
     ("demo", "dataset.small.graph_size=1", "dataset.small.graph_size"),  # the options' own
-    ("reconstruct", "workers=0", "workers: 0 is not an integer >= 1"),
+    ("reconstruct", "workers=-1", "workers: -1 is not an integer >= 0"),
     ("reconstruct", "proposals.top_k=abc", "proposals.top_k: 'abc' is not an integer >= 1"),
     ("reconstruct", "proposals.max_area=2", r"proposals.max_area: 2 is not a number in \(0, 1\]"),
     ("reconstruct", "box_matching.min_keypoints=0",

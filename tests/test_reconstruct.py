@@ -251,3 +251,23 @@ def test_gauge_fixed_puts_each_component_first_camera_at_identity():
     from posernet.geometry import relative_pose
 
     assert torch.allclose(relative_pose(out[0], out[1]), relative_pose(T[0], T[1]), atol=1e-12)
+
+
+@pytest.mark.slow
+def test_same_command_again_resumes_from_the_cache(scene, tmp_path):
+    args = (f"images={scene / 'seq-01'}", f"intrinsics={_intr(scene)}",
+            f"out_dir={tmp_path / 'out'}", "pictures=0", "workers=2")
+    first = _run(*args)
+    assert first.returncode == 0, first.stderr
+    assert "reused from the cache" not in first.stdout
+    poses = json.loads((tmp_path / "out" / "poses.json").read_text())
+    again = _run(*args)
+    assert again.returncode == 0, again.stderr
+    assert "reused from the cache: 8 images, 28 pairs" in again.stdout
+    assert json.loads((tmp_path / "out" / "poses.json").read_text())["cameras"] == poses["cameras"]
+    # without the cache nothing is reused, and the result is the same
+    fresh = _run(*args[:2], f"out_dir={tmp_path / 'fresh'}", "pictures=0", "cache=false")
+    assert fresh.returncode == 0 and "reused" not in fresh.stdout
+    assert not (tmp_path / "fresh" / "cache").exists()
+    got = json.loads((tmp_path / "fresh" / "poses.json").read_text())["cameras"]
+    assert got == poses["cameras"]

@@ -26,6 +26,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from . import CONFIG_DIR
 from .common import (
+    available_cores,
     check_config,
     guard_check,
     guard_option,
@@ -125,7 +126,9 @@ def run(cfg: DictConfig) -> dict[str, Any]:
         rules=instantiate(cfg.box_matching), pose=instantiate(cfg.relpose),
         verify=instantiate(cfg.verify), estimate=str(cfg.estimate),
         edge_rule=str(cfg.edge_rule),
-        kp_top_pairs=int(cfg.kp_top_pairs), seed=int(cfg.seed), workers=int(cfg.workers))
+        kp_top_pairs=int(cfg.kp_top_pairs), seed=int(cfg.seed),
+        workers=int(cfg.workers) or available_cores(),
+        cache=out / "cache" if cfg.get("cache", True) else None)
     has_gt = all(r.c2w is not None for r in records)
     guessed = {s: sum(r.intrinsics_source == s for r in records) for s in ("exif", "prior")}
     if any(guessed.values()):

@@ -362,10 +362,10 @@ COMMANDS: dict[str, Command] = {
     "reconstruct": Command(
         keys={"images": path(), "pattern": text(null=True), "intrinsics": anything(INTRINSICS),
               "gt_poses": path(null=True), "out_dir": path(), "refine": boolean(), "ba": boolean(),
-              "guard": boolean(), "check_inputs": boolean(),
+              "guard": boolean(), "check_inputs": boolean(), "cache": boolean(),
               "ckpt_path": path(null=True), "estimate": ESTIMATE, "kp_top_pairs": integer(0),
               "edge_rule": choice("verified", "boxes"),
-              "seed": SEED, "workers": integer(1), "pictures": integer(0), "device": DEVICE,
+              "seed": SEED, "workers": integer(0), "pictures": integer(0), "device": DEVICE,
               "num_threads": THREADS, "progress": boolean(), "digits": DIGITS},
         groups={**FRONTEND, "verify": VERIFY, "bundle": BUNDLE, "sync": SYNC},
         outputs=_outputs(("out_dir", "dir")),

@@ -19,15 +19,19 @@ import time
 from collections import Counter
 from collections.abc import Iterable, Sequence
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field, is_dataclass
+from pathlib import Path
 from typing import Any
 
 import cv2
 import numpy as np
+import torch
 from tqdm.auto import tqdm
 
 from ..graph import ViewGraph
 from .boxmatch import BoxMatchRules, box_centres, keypoints_in_matched_boxes, match_boxes
+from .cache import FrontendCache, file_digest
+from .features import Features, Matches
 from .graphs import GraphStats, PairResult, assemble_view_graph
 from .images import ImageRecord, read_image
 from .relpose import PoseOptions, five_point
@@ -55,6 +59,7 @@ class FrontendSummary:
     rejected: Counter = field(default_factory=Counter)  # "kp:<reason>" / "bb:<reason>" -> count
     rotation_only: int = 0  # edges whose translation direction is meaningless
     flat_keypoints: int = 0  # keypoints dropped on uniform patches
+    reused: Counter = field(default_factory=Counter)  # "images" / "pairs" read from the cache
 
     def lines(self) -> list[str]:
         """Human-readable summary lines (counts, then time per image / per pair)."""
@@ -76,20 +81,35 @@ class FrontendSummary:
             out.append(f"verification: {self.rotation_only} rotation-only edges"
                        + (f"; rejected: {why}" if why else "")
                        + f"; {self.flat_keypoints} keypoints on flat patches dropped")
-        if self.images:
-            per = ", ".join(f"{k} {1000 * s[k] / self.images:.0f} ms"
+        if self.reused:
+            out.append(f"reused from the cache: {self.reused['images']} images, "
+                       f"{self.reused['pairs']} pairs")
+        done = self.images - self.reused["images"]
+        if done > 0:
+            per = ", ".join(f"{k} {1000 * s[k] / done:.0f} ms"
                             for k in ("read", "proposals", "features") if k in s)
             out.append(f"per image: {per}")
-        if n_pairs:
-            per = ", ".join(f"{k} {1000 * s[k] / n_pairs:.1f} ms"
+        done = n_pairs - self.reused["pairs"]
+        if done > 0:
+            per = ", ".join(f"{k} {1000 * s[k] / done:.1f} ms"
                             for k in ("matching", "box_matching", "five_point") if k in s)
             out.append(f"per pair: {per}")
         return out
+
+    def merge(self, other: FrontendSummary) -> None:
+        """Add ``other``'s pair counts, rejections and seconds (one pair's, evaluated on a
+        worker thread) to this summary."""
+        self.pairs.update(other.pairs)
+        self.rejected.update(other.rejected)
+        self.seconds.update(other.seconds)
+        self.rotation_only += other.rotation_only
+        self.reused.update(other.reused)
 
     def to_dict(self) -> dict[str, Any]:
         return {"images": self.images, "images_without_boxes": self.images_without_boxes,
                 "pairs": dict(self.pairs), "rejected": dict(self.rejected),
                 "rotation_only": self.rotation_only, "flat_keypoints": self.flat_keypoints,
+                "reused": dict(self.reused),
                 "seconds": {k: round(v, 3) for k, v in self.seconds.items()}}
 
 
@@ -121,8 +141,10 @@ class ImageFrontend:
         kp_top_pairs: KP input from the keypoints of the ``kp_top_pairs`` box pairs sharing the
             most matches (0: every matched box pair, the paper's rule).
         seed: RANSAC seed base (per pair: :func:`pair_seed`).
-        workers: threads for the per-image stages.
+        workers: threads for the per-image and per-pair stages.
         keep_matches: keep every pair's keypoint matches (for pictures).
+        cache: a folder for :class:`~posernet.frontend.cache.FrontendCache` (per-image and
+            per-pair results, so a repeated or interrupted run resumes), or ``None``.
     """
 
     def __init__(
@@ -139,6 +161,7 @@ class ImageFrontend:
         seed: int = 0,
         workers: int = 1,
         keep_matches: bool = True,
+        cache: str | Path | None = None,
     ) -> None:
         if not records:
             raise ValueError("the front end needs at least one image")
@@ -162,12 +185,38 @@ class ImageFrontend:
         self._pairs: dict[tuple[int, int], PairResult] = {}
         self.matches: dict[tuple[int, int], Any] = {}
         self.summary = FrontendSummary(images=len(self.records))
+        self._digest: dict[int, str] = {}
+        self.cache = None if cache is None else FrontendCache(cache, self.fingerprint())
+
+    def fingerprint(self) -> dict[str, Any]:
+        """Every option that changes a front-end result (the cache's key)."""
+        return {"proposals": _describe(self.proposals), "matcher": _describe(self.matcher),
+                "rules": _describe(self.rules), "pose": _describe(self.pose),
+                "verify": _describe(self.verify), "estimate": self.estimate,
+                "edge_rule": self.edge_rule, "kp_top_pairs": self.kp_top_pairs,
+                "seed": self.seed}
 
     # ------------------------------------------------------------------ images
+
+    def _digest_of(self, i: int) -> str:
+        if i not in self._digest:
+            self._digest[i] = file_digest(self.records[i].path)
+        return self._digest[i]
 
     def _process(self, i: int) -> tuple[int, _ImageData, dict[str, float]]:
         r = self.records[i]
         t0 = time.perf_counter()
+        if self.cache is not None:
+            try:
+                hit = self.cache.load("images", self._digest_of(i))
+            except OSError as exc:  # unreadable file: read_image below names it
+                log.debug("no digest for %s: %s", r.path, exc)
+                hit = None
+            if hit is not None:
+                data, size = _image_from_cache(*hit, device=getattr(self.matcher, "device",
+                                                                     None))
+                r.size = size
+                return i, data, {"cached": time.perf_counter() - t0}
         img = read_image(r.path)
         t1 = time.perf_counter()
         h, w = img.shape[:2]
@@ -181,6 +230,8 @@ class ImageFrontend:
         data = _ImageData(np.asarray(props.boxes, np.float64).reshape(-1, 4),
                           np.asarray(props.scores, np.float64).reshape(-1), feats,
                           contrast >= self.verify.min_contrast)
+        if self.cache is not None:
+            self.cache.save("images", self._digest_of(i), *_image_to_cache(data, r.size))
         return i, data, {"read": t1 - t0, "proposals": t2 - t1, "features": t3 - t2}
 
     def prepare(self, ids: Iterable[int] | None = None, progress: bool = True) -> None:
@@ -205,6 +256,8 @@ class ImageFrontend:
     def _store(self, i: int, data: _ImageData, secs: dict[str, float]) -> None:
         self._images[i] = data
         self.summary.seconds.update(secs)
+        if "cached" in secs:
+            self.summary.reused["images"] += 1
         self.summary.flat_keypoints += int((~data.textured).sum())
         if data.boxes.shape[0] == 0:
             self.summary.images_without_boxes += 1
@@ -229,15 +282,42 @@ class ImageFrontend:
             raise ValueError(f"a pair needs two different images, got {a} twice")
         hit = self._pairs.get((a, b))
         if hit is None:
-            hit = self._evaluate(a, b)
-            self._pairs[(a, b)] = hit
-            self.summary.pairs[hit.status] += 1
+            hit = self._store_pair(*self._evaluate(a, b))
         return hit
 
-    def _evaluate(self, a: int, b: int) -> PairResult:
+    def _store_pair(self, hit: PairResult, delta: FrontendSummary) -> PairResult:
+        self._pairs[(hit.a, hit.b)] = hit
+        delta.pairs[hit.status] += 1
+        self.summary.merge(delta)
+        return hit
+
+    def _evaluate(self, a: int, b: int) -> tuple[PairResult, FrontendSummary]:
+        """One pair's result and its counts/seconds (kept apart so that pairs can be evaluated
+        on worker threads and merged in order); from the cache when it has the pair."""
+        out = FrontendSummary()
+        key = None
+        if self.cache is not None:
+            ra, rb = self.records[a], self.records[b]
+            key = self.cache.pair_key(self._digest_of(a), self._digest_of(b), ra.K, rb.K,
+                                      ra.dist, rb.dist)
+            t0 = time.perf_counter()
+            hit = self.cache.load("pairs", key)
+            if hit is not None:
+                res, m = _pair_from_cache(*hit, a=a, b=b, summary=out)
+                if self.keep_matches and m is not None:
+                    self.matches[(a, b)] = m
+                out.seconds["cached"] += time.perf_counter() - t0
+                out.reused["pairs"] += 1
+                return res, out
+        res = self._evaluate_into(a, b, out)
+        if key is not None:
+            self.cache.save("pairs", key, *_pair_to_cache(res, out, self.matches.get((a, b))))
+        return res, out
+
+    def _evaluate_into(self, a: int, b: int, summary: FrontendSummary) -> PairResult:
         A, B = self.image(a), self.image(b)
         ra, rb = self.records[a], self.records[b]
-        sec = self.summary.seconds
+        sec = summary.seconds
         t0 = time.perf_counter()
         m = self.matcher.match(A.features, B.features)
         if m.idx_a is not None and m.idx_b is not None:
@@ -249,7 +329,7 @@ class ImageFrontend:
         none = np.zeros(0, np.int64)
         rules = self.rules
         if m.uv_a.shape[0] < rules.min_keypoints:  # cannot match a single box pair
-            self.summary.pairs["too_few_matches"] += 1
+            summary.pairs["too_few_matches"] += 1
             return PairResult(a, b, none, none, np.zeros(0, bool), 0, 0, None, None, "unmatched",
                               reason="too_few_matches")
         ia, ib, _ = match_boxes(m.uv_a, m.uv_b, A.boxes, B.boxes, rules.min_keypoints,
@@ -270,13 +350,13 @@ class ImageFrontend:
             sec["five_point"] += time.perf_counter() - t2
             inliers = self._track_matches(m, tv, np.ones(len(m), bool), track_geo)
             if tv.accepted and self.edge_rule == "verified" and self.estimate == "kp":
-                self.summary.rotation_only += bool(tv.rotation_only)
-                self.summary.pairs["edge_few_boxes"] += 1
+                summary.rotation_only += bool(tv.rotation_only)
+                summary.pairs["edge_few_boxes"] += 1
                 return PairResult(a, b, ia, ib, wrong, len(m), 0, tv.pose, None, "edge",
                                   rotation_only=tv.rotation_only, inliers=inliers,
                                   info=tv.info)
             if not tv.accepted:
-                self.summary.rejected[f"kp:{tv.status}"] += 1
+                summary.rejected[f"kp:{tv.status}"] += 1
             return PairResult(a, b, ia, ib, wrong, 0, 0, None, None, "unmatched",
                               reason="too_few_matched_boxes", rotation_only=tv.rotation_only,
                               inliers=inliers, info=tv.info)
@@ -289,16 +369,16 @@ class ImageFrontend:
                         q.bb_threshold, **geo, **common)
         sec["five_point"] += time.perf_counter() - t2
         if not kp.accepted:
-            self.summary.rejected[f"kp:{kp.status}"] += 1
+            summary.rejected[f"kp:{kp.status}"] += 1
         if bb is None:
-            self.summary.rejected["bb:five_point"] += 1
+            summary.rejected["bb:five_point"] += 1
         need = kp.pose if self.estimate == "kp" else bb
         if need is None:
             status = f"{self.estimate}_failed"
             reason = kp.status if self.estimate == "kp" else "five_point"
             return PairResult(a, b, ia, ib, wrong, int(p1.shape[0]), 0, kp.pose, bb, status,
                               reason=reason, info=kp.info)
-        self.summary.rotation_only += bool(kp.rotation_only)
+        summary.rotation_only += bool(kp.rotation_only)
         return PairResult(a, b, ia, ib, wrong, int(p1.shape[0]), 0, kp.pose, bb, "edge",
                           rotation_only=kp.rotation_only,
                           inliers=self._track_matches(m, kp, inside, track_geo), info=kp.info)
@@ -339,12 +419,24 @@ class ImageFrontend:
 
     def evaluate_pairs(self, pairs: Sequence[tuple[int, int]],
                        progress: bool = True) -> list[PairResult]:
-        """Evaluate the given image pairs (with a progress bar); cached ones are free."""
+        """Evaluate the given image pairs (with a progress bar; on ``workers`` threads, as
+        matching and RANSAC release the GIL); cached ones are free. Results and counts do not
+        depend on the number of workers (each pair has its own RANSAC seed)."""
         self.prepare({i for p in pairs for i in p}, progress=progress)
-        out = []
-        for a, b in tqdm(pairs, desc="pairs", unit="pair", disable=not progress):
-            out.append(self.pair(a, b))
-        return out
+        keys = [(int(min(a, b)), int(max(a, b))) for a, b in pairs]
+        todo = list(dict.fromkeys(k for k in keys if k not in self._pairs))
+        bar = tqdm(total=len(todo), desc="pairs", unit="pair", disable=not progress)
+        if self.workers > 1 and len(todo) > 1:
+            with ThreadPoolExecutor(self.workers) as pool:
+                for res in pool.map(lambda k: self._evaluate(*k), todo):
+                    self._store_pair(*res)
+                    bar.update(1)
+        else:
+            for k in todo:
+                self._store_pair(*self._evaluate(*k))
+                bar.update(1)
+        bar.close()
+        return [self.pair(a, b) for a, b in pairs]
 
     # ------------------------------------------------------------------ graphs
 
@@ -369,3 +461,105 @@ class ImageFrontend:
             w2c,
             meta,
         )
+
+
+# ---------------------------------------------------------------------- cache records
+
+
+def _describe(obj: Any) -> dict[str, Any]:
+    """The settings of a front-end stage object, for the cache key: a dataclass's fields, else
+    its plain public attributes (a file it reads is named by its content digest)."""
+    if is_dataclass(obj) and not isinstance(obj, type):
+        return {"type": type(obj).__name__, **asdict(obj)}
+    out: dict[str, Any] = {"type": type(obj).__name__}
+    for k, v in sorted(vars(obj).items()):
+        if k.startswith("_"):
+            continue
+        if isinstance(v, (bool, int, float, str, type(None))):
+            out[k] = v
+        elif isinstance(v, (tuple, list)) and all(isinstance(x, (int, float, str)) for x in v):
+            out[k] = list(v)
+        elif isinstance(v, Path) and v.is_file():
+            out[k] = file_digest(v)
+        elif k == "device":
+            out[k] = str(v)
+    return out
+
+
+def _image_to_cache(data: _ImageData, size: tuple[int, int] | None
+                    ) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+    f = data.features
+    arrays = {"boxes": data.boxes, "scores": data.scores, "textured": data.textured,
+              "uv": f.uv, "desc": _numpy(f.desc)}
+    meta: dict[str, Any] = {"size": list(f.size), "image_size": list(size) if size else None,
+                            "desc_torch": not isinstance(f.desc, np.ndarray), "extra": {},
+                            "extra_arrays": {}}
+    for k, v in f.extra.items():
+        if isinstance(v, (np.ndarray, torch.Tensor)):
+            arrays[f"x_{k}"] = _numpy(v)
+            meta["extra_arrays"][k] = isinstance(v, torch.Tensor)
+        else:
+            meta["extra"][k] = v
+    return arrays, meta
+
+
+def _image_from_cache(arrays: dict[str, np.ndarray], meta: dict[str, Any],
+                      device: Any = None) -> tuple[_ImageData, tuple[int, int] | None]:
+    def restore(x: np.ndarray, as_torch: bool) -> Any:
+        return torch.as_tensor(x, device=device) if as_torch else x
+
+    extra = dict(meta["extra"])
+    for k, as_torch in meta["extra_arrays"].items():
+        extra[k] = restore(arrays[f"x_{k}"], as_torch)
+    feats = Features(arrays["uv"], restore(arrays["desc"], meta["desc_torch"]),
+                     tuple(meta["size"]), extra)
+    size = tuple(meta["image_size"]) if meta["image_size"] else None
+    return _ImageData(arrays["boxes"], arrays["scores"], feats, arrays["textured"]), size
+
+
+def _numpy(x: Any) -> np.ndarray:
+    if isinstance(x, torch.Tensor):
+        return x.detach().cpu().numpy()
+    return np.asarray(x)
+
+
+def _pair_to_cache(p: PairResult, summary: FrontendSummary, m: Matches | None
+                   ) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+    arrays = {"box_a": p.box_a, "box_b": p.box_b, "wrong": p.wrong}
+    for name in ("kp", "bb"):
+        pose = getattr(p, name)
+        if pose is not None:
+            arrays[f"{name}_R"], arrays[f"{name}_t"] = pose
+    if p.inliers is not None:
+        arrays["inliers"] = p.inliers
+    if m is not None:
+        arrays.update(m_uv_a=m.uv_a, m_uv_b=m.uv_b, m_score=m.score)
+        if m.idx_a is not None and m.idx_b is not None:
+            arrays.update(m_idx_a=m.idx_a, m_idx_b=m.idx_b)
+    meta = {"n_kp": p.n_kp, "n_kp_outliers": p.n_kp_outliers, "status": p.status,
+            "reason": p.reason, "rotation_only": bool(p.rotation_only), "info": p.info,
+            "pairs": dict(summary.pairs), "rejected": dict(summary.rejected),
+            "rotation_only_count": summary.rotation_only}
+    return arrays, meta
+
+
+def _pair_from_cache(arrays: dict[str, np.ndarray], meta: dict[str, Any], a: int, b: int,
+                     summary: FrontendSummary) -> tuple[PairResult, Matches | None]:
+    def pose(name: str) -> tuple[np.ndarray, np.ndarray] | None:
+        if f"{name}_R" not in arrays:
+            return None
+        return arrays[f"{name}_R"], arrays[f"{name}_t"]
+
+    res = PairResult(a, b, arrays["box_a"], arrays["box_b"], arrays["wrong"],
+                     int(meta["n_kp"]), int(meta["n_kp_outliers"]), pose("kp"), pose("bb"),
+                     meta["status"], reason=meta["reason"],
+                     rotation_only=bool(meta["rotation_only"]),
+                     inliers=arrays.get("inliers"), info=meta["info"])
+    summary.pairs.update(meta["pairs"])
+    summary.rejected.update(meta["rejected"])
+    summary.rotation_only += int(meta["rotation_only_count"])
+    m = None
+    if "m_uv_a" in arrays:
+        m = Matches(arrays["m_uv_a"], arrays["m_uv_b"], arrays["m_score"],
+                    arrays.get("m_idx_a"), arrays.get("m_idx_b"))
+    return res, m

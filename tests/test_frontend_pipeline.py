@@ -1,0 +1,152 @@
+"""The image front end: worker threads change nothing, the cache resumes what a run did."""
+
+from __future__ import annotations
+
+import logging
+import shutil
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from posernet.data.render import render_intrinsics, render_sevenscenes
+from posernet.frontend.features import SiftMatcher
+from posernet.frontend.images import records_for_images
+from posernet.frontend.pipeline import ImageFrontend
+from posernet.frontend.proposals import SelectiveSearch
+from posernet.frontend.verify import VerifyRules
+
+N = 6
+PAIRS = [(a, b) for a in range(N) for b in range(a + 1, N)]
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory) -> Path:
+    root = tmp_path_factory.mktemp("render")
+    seq = render_sevenscenes(root, "chess", seed=4, train_sequences=0, test_sequences=1,
+                             frames_per_sequence=N, width=320, height=240, focal=292.5,
+                             progress=False)
+    assert [f"{v:g}" for v in render_intrinsics(seq)] == ["292.5", "292.5", "160", "120"]
+    return next(p for p in seq.rglob("seq-*") if p.is_dir())
+
+
+def _frontend(folder: Path, **kw) -> ImageFrontend:
+    intr = "292.5,292.5,160,120"
+    records = records_for_images(folder, intr, "*.color.png", "none")
+    kw.setdefault("verify", VerifyRules())
+    return ImageFrontend(records, SelectiveSearch(resize=160), SiftMatcher(),
+                         edge_rule="verified", **kw)
+
+
+def _outcome(fe: ImageFrontend) -> list[tuple]:
+    out = []
+    for a, b in PAIRS:
+        p = fe.pair(a, b)
+        kp = None if p.kp is None else np.round(np.concatenate([p.kp[0].ravel(),
+                                                                p.kp[1].ravel()]), 9)
+        inl = None if p.inliers is None else p.inliers.tolist()
+        out.append((a, b, p.status, p.reason, p.box_a.tolist(), p.box_b.tolist(),
+                    None if kp is None else kp.tolist(), inl))
+    return out
+
+
+def _counts(fe: ImageFrontend) -> tuple:
+    s = fe.summary
+    return dict(s.pairs), dict(s.rejected), s.rotation_only
+
+
+@pytest.fixture(scope="module")
+def reference(scene):
+    fe = _frontend(scene)
+    fe.evaluate_pairs(PAIRS, progress=False)
+    assert fe.summary.pairs["edge"] >= 5  # the scene is usable
+    return _outcome(fe), _counts(fe)
+
+
+def test_worker_threads_change_nothing(scene, reference) -> None:
+    fe = _frontend(scene, workers=2)
+    fe.evaluate_pairs(PAIRS, progress=False)
+    assert _outcome(fe) == reference[0]
+    assert _counts(fe) == reference[1]
+
+
+class _Interrupt:
+    """A matcher that stops the run (like Ctrl-C) after ``n`` matches."""
+
+    def __init__(self, n: int) -> None:
+        self.inner, self.left = SiftMatcher(), n
+        self.name, self.kind = "sift", "rootsift"
+
+    def __getattr__(self, name):
+        return getattr(self.inner, name)
+
+    def extract(self, image):
+        return self.inner.extract(image)
+
+    def match(self, a, b):
+        if self.left == 0:
+            raise KeyboardInterrupt
+        self.left -= 1
+        return self.inner.match(a, b)
+
+
+def test_interrupted_run_resumes_from_the_cache(scene, reference, tmp_path) -> None:
+    cache = tmp_path / "cache"
+    fe = _frontend(scene, cache=cache)
+    fe.matcher = _Interrupt(5)  # same options (the cache key is taken at construction)
+    with pytest.raises(KeyboardInterrupt):
+        fe.evaluate_pairs(PAIRS, progress=False)
+    again = _frontend(scene, cache=cache)
+    again.evaluate_pairs(PAIRS, progress=False)
+    assert again.summary.reused == {"images": N, "pairs": 5}
+    assert _outcome(again) == reference[0] and _counts(again) == reference[1]
+    # a third run reuses everything, matches included (for pictures)
+    third = _frontend(scene, cache=cache)
+    third.evaluate_pairs(PAIRS, progress=False)
+    assert third.summary.reused == {"images": N, "pairs": len(PAIRS)}
+    assert _outcome(third) == reference[0] and _counts(third) == reference[1]
+    assert set(third.matches) == set(PAIRS)
+    assert "reused from the cache: 6 images, 15 pairs" in "\n".join(third.summary.lines())
+
+
+def test_cache_follows_options_and_image_content(scene, tmp_path, caplog) -> None:
+    cache = tmp_path / "cache"
+    _frontend(scene, cache=cache).evaluate_pairs(PAIRS, progress=False)
+    first = {p.name for p in cache.iterdir()}
+    # another verification option: a new cache folder; the stale one is removed
+    fe = _frontend(scene, cache=cache, verify=VerifyRules(min_inliers=20))
+    fe.evaluate_pairs(PAIRS, progress=False)
+    assert not fe.summary.reused
+    assert len({p.name for p in cache.iterdir()} - first) == 1 and len(list(cache.iterdir())) == 1
+    # an image whose content changed is recomputed, with every pair it is in
+    copy = tmp_path / "seq"
+    shutil.copytree(scene, copy)
+    base = _frontend(copy, cache=tmp_path / "c2")
+    base.evaluate_pairs(PAIRS, progress=False)
+    img = sorted(copy.glob("*.color.png"))[2]
+    cv2.imwrite(str(img), cv2.flip(cv2.imread(str(img)), 1))
+    fe = _frontend(copy, cache=tmp_path / "c2")
+    fe.evaluate_pairs(PAIRS, progress=False)
+    assert fe.summary.reused == {"images": N - 1, "pairs": len(PAIRS) - (N - 1)}
+    # a damaged entry is a miss: recomputed, with one warning naming the file
+    r0, r1 = fe.records[0], fe.records[1]
+    key = fe.cache.pair_key(fe._digest_of(0), fe._digest_of(1), r0.K, r1.K, r0.dist, r1.dist)
+    entry = fe.cache.folder / "pairs" / f"{key}.npz"
+    entry.write_bytes(entry.read_bytes()[:40])
+    with caplog.at_level(logging.WARNING, logger="posernet.frontend"):
+        fe = _frontend(copy, cache=tmp_path / "c2")
+        fe.evaluate_pairs(PAIRS, progress=False)
+    assert fe.summary.reused["pairs"] == len(PAIRS) - 1
+    assert any(entry.name in r.getMessage() for r in caplog.records)
+
+
+def test_cache_that_cannot_be_written_is_turned_off(scene, tmp_path, caplog) -> None:
+    blocker = tmp_path / "file"
+    blocker.write_text("not a folder")
+    with caplog.at_level(logging.WARNING, logger="posernet.frontend"):
+        fe = _frontend(scene, cache=blocker / "cache")
+        fe.evaluate_pairs(PAIRS[:3], progress=False)
+    assert fe.cache is not None and not fe.cache.enabled
+    assert any("cache" in r.getMessage() for r in caplog.records)
+    assert fe.summary.pairs  # the run went on without it
