@@ -267,7 +267,7 @@ def test_selection_report_is_json_ready():
     assert json.loads(json.dumps(d)) == d
     assert d["n_pairs"] == len(sel.pairs) and d["mode"] == "sequential"
     text = "\n".join(sel.lines())
-    assert f"pairs: {len(sel.pairs)}" in text and "components: 1" in text
+    assert f"sequential, {len(sel.pairs)} pairs; 1 connected component(s)" in text
 
 
 @settings(max_examples=25, deadline=None)
@@ -290,3 +290,17 @@ def test_pairs_are_unique_ordered_in_range(sizes, mode, k, window, loop_k, seed)
         assert sel.isolated == []  # every mode pairs every image with something
     again = select_pairs(feats, opts)
     assert again.pairs == sel.pairs
+
+
+def test_auto_is_exhaustive_for_few_images_and_retrieval_beyond():
+    opts = PairOptions(mode="auto", auto_max=5, k=2, words=8)
+    assert opts.resolved(5) == "exhaustive" and opts.resolved(6) == "retrieval"
+    rng = np.random.default_rng(0)
+    few = [_feat(_unit(rng, 50)) for _ in range(5)]
+    sel = select_pairs(few, opts)
+    assert sel.mode == "exhaustive" and len(sel.pairs) == 10
+    many = few + few[:3]
+    sel = select_pairs(many, opts)
+    assert sel.mode == "retrieval" and len(sel.pairs) < 28
+    with pytest.raises(ValueError, match="auto_max"):
+        PairOptions(auto_max=0)

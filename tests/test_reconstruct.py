@@ -271,3 +271,24 @@ def test_same_command_again_resumes_from_the_cache(scene, tmp_path):
     assert not (tmp_path / "fresh" / "cache").exists()
     got = json.loads((tmp_path / "fresh" / "poses.json").read_text())["cameras"]
     assert got == poses["cameras"]
+
+
+@pytest.mark.slow
+def test_pair_selection_and_boxes_only_when_used(scene, tmp_path):
+    args = (f"images={scene / 'seq-01'}", f"intrinsics={_intr(scene)}", "pictures=0")
+    r = _run(*args, f"out_dir={tmp_path / 'seq'}", "pairs.mode=sequential", "pairs.window=2",
+             "pairs.loop_k=0")
+    assert r.returncode == 0, r.stderr
+    poses = json.loads((tmp_path / "seq" / "poses.json").read_text())
+    sel = poses["pair_selection"]
+    assert sel["mode"] == "sequential" and sel["n_pairs"] == 7 + 6 and sel["components"] == 1
+    assert sum(c["solved"] for c in poses["cameras"].values()) == 8
+    assert "pair selection: sequential, 13 pairs" in r.stdout
+    # no stage uses boxes by default: none detected; with boxes=true they are
+    assert "no boxes: no stage uses them" in r.stdout
+    assert all(e["matched_boxes"] == 0 for e in poses["edges"])
+    r = _run(*args, f"out_dir={tmp_path / 'boxes'}", "boxes=true")
+    assert r.returncode == 0, r.stderr
+    poses = json.loads((tmp_path / "boxes" / "poses.json").read_text())
+    assert poses["pair_selection"]["mode"] == "exhaustive"  # auto: few images
+    assert any(e["matched_boxes"] > 0 for e in poses["edges"])

@@ -25,7 +25,6 @@ baseline) keep their rotation in averaging but give no translation direction.
 from __future__ import annotations
 
 import dataclasses
-import itertools
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -36,6 +35,7 @@ import torch
 from torch import Tensor
 
 from .frontend.graphs import GraphStats
+from .frontend.pairs import PairOptions, PairSelection, select_pairs
 from .frontend.pipeline import ImageFrontend
 from .geometry import invert_se3
 from .graph import ViewGraph
@@ -56,6 +56,7 @@ class Reconstruction:
     stats: GraphStats
     result: RefineResult
     sfm: dict[str, list[SfmResult]] = field(default_factory=dict)  # BA stage -> per component
+    pairs: PairSelection | None = None  # which image pairs were matched
 
     @property
     def stage(self) -> str:
@@ -142,19 +143,24 @@ def reconstruct(
     guard: bool = False,
     bundle_adjust: bool = True,
     bundle: BundleOptions | None = None,
+    pairs: PairOptions | None = None,
 ) -> Reconstruction:
-    """Evaluate every image pair, assemble the graph, refine its ``estimate`` (``kp`` or ``bb``)
-    initial poses with ``model`` (``None``: no refinement), average them with ``backend`` and,
-    with ``bundle_adjust`` (``bundle``: its options, defaults when ``None``), bundle-adjust each
-    stage's averaged poses (stage ``<stage>+ba``; needs a backend). ``refine_focal="auto"``
-    refines the focal length of guessed intrinsics (:func:`focal_mode`).
+    """Evaluate the image pairs that ``pairs`` selects (default: every pair; see
+    :func:`posernet.frontend.pairs.select_pairs`), assemble the graph, refine its ``estimate``
+    (``kp`` or ``bb``) initial poses with ``model`` (``None``: no refinement), average them
+    with ``backend`` and, with ``bundle_adjust`` (``bundle``: its options, defaults when
+    ``None``), bundle-adjust each stage's averaged poses (stage ``<stage>+ba``; needs a
+    backend). ``refine_focal="auto"`` refines the focal length of guessed intrinsics
+    (:func:`focal_mode`).
     ``guard``: keep the input pose where the model's confidence says refinement would not help
     (:func:`posernet.pipeline.refine_graphs`; needs a confidence head). With a confidence head
     the averaging starts from the model's per-edge confidence."""
     n = len(frontend.records)
     frontend.prepare(progress=progress)
-    frontend.evaluate_pairs(list(itertools.combinations(range(n), 2)), progress=progress)
-    graph, stats = frontend.graph(range(n), meta={"name": name, "size": "all"})
+    selection = select_pairs([frontend.image(i).features for i in range(n)], pairs)
+    frontend.evaluate_pairs(selection.pairs, progress=progress)
+    graph, stats = frontend.graph(range(n), meta={"name": name, "size": "all"},
+                                  pairs=selection.pairs)
     graph = graph.with_estimate(estimate)
     if graph.num_edges == 0:
         raise ValueError(
@@ -166,7 +172,7 @@ def reconstruct(
     result = refine_graphs(model, [graph], backend=backend, batch_size=1, device=device,
                            progress=False, guard=guard, weighted=confidence,
                            edge_weight=[weights])
-    rec = Reconstruction(frontend, graph, stats, result)
+    rec = Reconstruction(frontend, graph, stats, result, pairs=selection)
     if bundle_adjust and backend is not None:
         for s in list(result.absolute):
             rec.sfm[f"{s}+ba"] = _bundle_stage(frontend, graph, weights, result, s,
@@ -275,6 +281,7 @@ def poses_json(rec: Reconstruction, info: dict[str, Any] | None = None) -> dict[
             "positions": "up to one similarity (rotation, translation, global scale) per "
                          "component: no metric scale is known from images alone",
             "backend": res.backend, "frontend": rec.frontend.summary.to_dict(),
+            "pair_selection": None if rec.pairs is None else rec.pairs.as_dict(),
             "bundle_adjustment": bundle, "cameras": cams, "edges": edges,
             "rejected_pairs": rec.frontend.rejected_pairs()}
 

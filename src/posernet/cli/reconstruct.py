@@ -35,6 +35,7 @@ from .common import (
     run_task,
     set_threads,
 )
+from .validation import ConfigValueError
 
 __all__ = ["main", "run"]
 
@@ -121,8 +122,10 @@ def run(cfg: DictConfig) -> dict[str, Any]:
         model = PoserNet.from_checkpoint(ckpt, map_location=device)
     guard = guard_option(cfg, model, ckpt)
     backend = backend_from_config(OmegaConf.to_container(cfg.sync, resolve=True))
+    proposals = instantiate(cfg.proposals)  # checked (a missing boxes file) even when unused
     frontend = ImageFrontend(
-        records, instantiate(cfg.proposals), instantiate(cfg.matcher),
+        records, proposals if _needs_boxes(cfg) else None,
+        instantiate(cfg.matcher),
         rules=instantiate(cfg.box_matching), pose=instantiate(cfg.relpose),
         verify=instantiate(cfg.verify), estimate=str(cfg.estimate),
         edge_rule=str(cfg.edge_rule),
@@ -145,8 +148,9 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     bundle = instantiate(cfg.bundle) if cfg.ba else None
     rec = reconstruct(frontend, model, backend, device=device, name=Path(cfg.images).name,
                       estimate=str(cfg.estimate), progress=bool(cfg.progress), guard=guard,
-                      bundle_adjust=bool(cfg.ba), bundle=bundle)
-    print("[2/3] front end: " + "\n      ".join(frontend.summary.lines()))
+                      bundle_adjust=bool(cfg.ba), bundle=bundle, pairs=instantiate(cfg.pairs))
+    print("[2/3] front end: " + "\n      ".join(
+        [*(rec.pairs.lines() if rec.pairs else []), *frontend.summary.lines()]))
     info: dict[str, Any] = {"images": str(cfg.images), "estimate": str(cfg.estimate),
                             "checkpoint": str(ckpt) if ckpt else None, "guard": guard}
     if ckpt is not None and bool(cfg.get("check_inputs", True)):
@@ -165,13 +169,14 @@ def run(cfg: DictConfig) -> dict[str, Any]:
         for r in runs:
             print(f"      {stage}: " + "\n      ".join(line for line in r.lines()[-4:] if line))
     files["summary"] = atomic_write_json(out / "summary.json", {
-        **info, "frontend": frontend.summary.to_dict(), "cameras_placed": solved,
+        **info, "frontend": frontend.summary.to_dict(), "pair_selection": record["pair_selection"],
+        "cameras_placed": solved,
         "edges": rec.graph.num_edges, "rotation_only_edges": frontend.summary.rotation_only,
         "rejected_pairs": frontend.summary.rejected and dict(frontend.summary.rejected),
         "bundle_adjustment": record["bundle_adjustment"],
         "seconds_total": round(time.perf_counter() - t0, 2)})
     files["pictures"] = _pictures(rec, out, int(cfg.pictures))
-    files["cameras_png"] = _camera_plot(rec, out)
+    files["cameras_png"] = _camera_plot(rec, out) if int(cfg.pictures) > 0 else None
     if has_gt:
         ev = evaluate_result(rec.result)
         tables = result_tables(ev, label=str(cfg.estimate).upper(), backend=rec.result.backend,
@@ -187,6 +192,18 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     print(f"wrote {files['poses']}{colmap} and pictures in {out} "
           f"({time.perf_counter() - t0:.0f} s)")
     return files
+
+
+def _needs_boxes(cfg: DictConfig) -> bool:
+    """``boxes=auto``: detect boxes only when a stage uses them (PoserNet, box-centre input,
+    the paper's edge rule); ``true`` / ``false`` decide. Contradictions are config errors."""
+    users = [name for name, used in (("refine=true", bool(cfg.refine)),
+                                     ("estimate=bb", str(cfg.estimate) == "bb"),
+                                     ("edge_rule=boxes", str(cfg.edge_rule) == "boxes")) if used]
+    choice = cfg.get("boxes", "auto")
+    if choice is False and users:
+        raise ConfigValueError(f"boxes=false, but {' and '.join(users)} needs the boxes")
+    return bool(users) if choice == "auto" else bool(choice)
 
 
 @hydra.main(version_base="1.3", config_path=CONFIG_DIR, config_name="reconstruct")

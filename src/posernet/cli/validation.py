@@ -102,6 +102,11 @@ def choice(*options: str, null: bool = False) -> Rule:
                 null)
 
 
+def auto_or_bool() -> Rule:
+    return Rule("auto, true or false",
+                lambda v: isinstance(v, bool) or (isinstance(v, str) and v == "auto"), False)
+
+
 def text(*, null: bool = False) -> Rule:
     return Rule("a string", lambda v: isinstance(v, str) and v != "", null)
 
@@ -208,6 +213,12 @@ PROPOSALS: Schema = {
     "path": path(), "top_k": integer(1, null=True),
     "max_area": number(0, 1, lo_open=True, null=True), "min_size": number(0),
     "strategy": choice("single", "fast", "quality"), "resize": integer(32, null=True),
+}
+
+PAIRS: Schema = {
+    "mode": choice("auto", "exhaustive", "sequential", "retrieval"), "auto_max": integer(1),
+    "k": integer(1), "window": integer(1), "loop_k": integer(0), "words": integer(1),
+    "sample": integer(1), "seed": SEED,
 }
 
 MATCHER: Schema = {
@@ -363,11 +374,12 @@ COMMANDS: dict[str, Command] = {
         keys={"images": path(), "pattern": text(null=True), "intrinsics": anything(INTRINSICS),
               "gt_poses": path(null=True), "out_dir": path(), "refine": boolean(), "ba": boolean(),
               "guard": boolean(), "check_inputs": boolean(), "cache": boolean(),
+              "boxes": auto_or_bool(),
               "ckpt_path": path(null=True), "estimate": ESTIMATE, "kp_top_pairs": integer(0),
               "edge_rule": choice("verified", "boxes"),
               "seed": SEED, "workers": integer(0), "pictures": integer(0), "device": DEVICE,
               "num_threads": THREADS, "progress": boolean(), "digits": DIGITS},
-        groups={**FRONTEND, "verify": VERIFY, "bundle": BUNDLE, "sync": SYNC},
+        groups={**FRONTEND, "verify": VERIFY, "bundle": BUNDLE, "sync": SYNC, "pairs": PAIRS},
         outputs=_outputs(("out_dir", "dir")),
         devices=("device", "matcher.device"), checks=(_check_sync,)),
     "make_data": Command(

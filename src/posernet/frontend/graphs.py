@@ -10,7 +10,8 @@ as ``a -> b`` in local node order, its matched detections as ``pair_*`` rows, th
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+import itertools
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -172,6 +173,7 @@ def assemble_view_graph(
     k1: float | np.ndarray = 0.0,
     w2c: np.ndarray | None = None,
     meta: dict | None = None,
+    candidates: Iterable[tuple[int, int]] | None = None,
 ) -> tuple[ViewGraph, GraphStats]:
     """Evaluate every pair of ``nodes`` (image ids) with ``pair`` and assemble the graph.
 
@@ -184,25 +186,28 @@ def assemble_view_graph(
         k1: first radial distortion coefficient, scalar or ``(N,)``.
         w2c: ground-truth world-to-camera poses ``(N, 4, 4)``, or ``None`` (no ground truth).
         meta: graph metadata (``name``, ``scene``, ...).
+        candidates: only these node-index pairs ``(a, b)`` (a selected subset of pairs, e.g.
+            by retrieval among many images); ``None``: every pair.
 
     Returns the graph (float32; unit translations renormalised) and its statistics.
     """
     n = len(nodes)
     stats = GraphStats()
     src, dst, results = [], [], []
-    for a in range(n):
-        for b in range(a + 1, n):
-            fa, fb = nodes[a], nodes[b]
-            stats.pairs_checked += 1
-            r = pair(fa, fb)
-            if r.status != "unmatched":
-                stats.matched += 1
-                stats.dropped_kp += r.status == "kp_failed"
-                stats.dropped_bb += r.status == "bb_failed"
-            if r.is_edge:
-                src.append(a)
-                dst.append(b)
-                results.append(r)
+    todo = (itertools.combinations(range(n), 2) if candidates is None
+            else sorted({(min(a, b), max(a, b)) for a, b in candidates if a != b}))
+    for a, b in todo:
+        fa, fb = nodes[a], nodes[b]
+        stats.pairs_checked += 1
+        r = pair(fa, fb)
+        if r.status != "unmatched":
+            stats.matched += 1
+            stats.dropped_kp += r.status == "kp_failed"
+            stats.dropped_bb += r.status == "bb_failed"
+        if r.is_edge:
+            src.append(a)
+            dst.append(b)
+            results.append(r)
 
     # detections of every image, concatenated
     offsets = np.cumsum([0] + [b.shape[0] for b in boxes])

@@ -1,6 +1,7 @@
 """Image-pair selection for structure from motion: which of the N(N-1)/2 pairs of N images to match.
 
-Three modes (:class:`PairOptions` ``mode``):
+Three modes (:class:`PairOptions` ``mode``), and ``auto``: exhaustive up to ``auto_max``
+images, retrieval beyond:
 
 * ``exhaustive``: every pair. Right for tens of images; quadratic beyond.
 * ``sequential``: ordered captures (video, walk-throughs): each image with the next ``window``
@@ -37,7 +38,7 @@ __all__ = ["PAIR_MODES", "PairOptions", "PairSelection", "global_descriptors", "
 
 log = logging.getLogger("posernet.frontend")
 
-PAIR_MODES = ("exhaustive", "sequential", "retrieval")
+PAIR_MODES = ("auto", "exhaustive", "sequential", "retrieval")
 
 _ROWS = 1024  # query images per similarity block: memory stays at _ROWS x N floats
 _CHUNK = 1 << 16  # local descriptors per assignment batch
@@ -49,13 +50,15 @@ class PairOptions:
     """How :func:`select_pairs` chooses pairs.
 
     Attributes:
-        mode: ``"exhaustive"``, ``"sequential"`` or ``"retrieval"``.
+        mode: ``"exhaustive"``, ``"sequential"``, ``"retrieval"`` or ``"auto"`` (exhaustive
+            for at most ``auto_max`` images, else retrieval).
         window: sequential: each image is paired with the next ``window`` images (file order).
         loop_k: sequential: plus this many loop-closure neighbours per image (0 = off).
         k: retrieval: nearest images per image by global descriptor.
         words: retrieval / loop closures: visual words of the per-run VLAD codebook.
         sample: descriptors sampled (over all images) to learn the codebook.
         seed: seed of the sampling and of the k-means++ seeding.
+        auto_max: the largest image count ``auto`` matches exhaustively.
     """
 
     mode: str = "exhaustive"
@@ -65,6 +68,13 @@ class PairOptions:
     words: int = 64
     sample: int = 20000
     seed: int = 0
+    auto_max: int = 40
+
+    def resolved(self, n: int) -> str:
+        """The mode used for ``n`` images (``auto`` resolved)."""
+        if self.mode != "auto":
+            return self.mode
+        return "exhaustive" if n <= self.auto_max else "retrieval"
 
     def __post_init__(self) -> None:
         if self.mode not in PAIR_MODES:
@@ -78,6 +88,7 @@ class PairOptions:
             ("words", 1),
             ("sample", 1),
             ("seed", 0),
+            ("auto_max", 1),
         ):
             value = getattr(self, name)
             if (
@@ -112,18 +123,12 @@ class PairSelection:
     seconds: float
 
     def lines(self) -> list[str]:
-        """Human-readable summary, one fact per line."""
-        isolated = (
-            f"{len(self.isolated)} ({', '.join(map(str, self.isolated))})" if self.isolated else "0"
-        )
-        return [
-            f"pair selection: {self.mode}",
-            f"pairs: {len(self.pairs)}",
-            f"connected components: {self.components}",
-            f"largest component: {self.largest} images",
-            f"isolated images: {isolated}",
-            f"selection time: {self.seconds:.3f} s",
-        ]
+        """Human-readable summary (one line: mode, pairs, connectivity, time)."""
+        iso = (f", isolated images {', '.join(map(str, self.isolated))}" if self.isolated
+               else "")
+        return [f"pair selection: {self.mode}, {len(self.pairs)} pairs; {self.components} "
+                f"connected component(s), the largest {self.largest} images{iso} "
+                f"({self.seconds:.2f} s)"]
 
     def as_dict(self) -> dict:
         """JSON-ready dictionary (plain ints, floats and lists)."""
@@ -459,11 +464,12 @@ def select_pairs(features: Sequence[Features], options: PairOptions | None = Non
     features = list(features)
     _check_kinds(features)
     n = len(features)
+    mode = opts.resolved(n)
     pairs: set[tuple[int, int]] = set()
     if n >= 2:
-        if opts.mode == "exhaustive" or (opts.mode == "retrieval" and opts.k >= n - 1):
+        if mode == "exhaustive" or (mode == "retrieval" and opts.k >= n - 1):
             pairs = _all_pairs(n)
-        elif opts.mode == "sequential":
+        elif mode == "sequential":
             pairs = {(i, j) for i in range(n) for j in range(i + 1, min(n, i + opts.window + 1))}
             if opts.loop_k > 0 and opts.window < n - 1:  # else nothing lies outside a window
                 descs, dim = _descriptor_list(features)
@@ -487,7 +493,7 @@ def select_pairs(features: Sequence[Features], options: PairOptions | None = Non
         np.add.at(degree, np.array(ordered).ravel(), 1)
     selection = PairSelection(
         pairs=ordered,
-        mode=opts.mode,
+        mode=mode,
         components=count if n else 0,
         largest=int(np.bincount(labels).max()) if n else 0,
         isolated=np.flatnonzero(degree == 0).tolist(),

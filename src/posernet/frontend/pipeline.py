@@ -60,21 +60,24 @@ class FrontendSummary:
     rotation_only: int = 0  # edges whose translation direction is meaningless
     flat_keypoints: int = 0  # keypoints dropped on uniform patches
     reused: Counter = field(default_factory=Counter)  # "images" / "pairs" read from the cache
+    boxes: bool = True  # False: no proposals were made (keypoints only)
 
     def lines(self) -> list[str]:
         """Human-readable summary lines (counts, then time per image / per pair)."""
         n_pairs = sum(v for k, v in self.pairs.items()
                       if k not in ("too_few_matches", "edge_few_boxes"))
         s = self.seconds
+        few_boxes = self.pairs["unmatched"] - self.pairs["too_few_matches"]
         out = [
-            f"images: {self.images} ({self.images_without_boxes} without any proposal)",
+            f"images: {self.images} " + (f"({self.images_without_boxes} without any proposal)"
+                                         if self.boxes else "(no boxes: no stage uses them)"),
             f"pairs: {n_pairs} checked, {self.pairs['edge']} edges; skipped: "
             f"{self.pairs['too_few_matches']} with too few keypoint matches, "
-            f"{self.pairs['unmatched'] - self.pairs['too_few_matches']} with too few matched "
-            f"boxes, {self.pairs['kp_failed']} KP and {self.pairs['bb_failed']} BB two-view "
-            "rejections"
-            + (f"; {self.pairs['edge_few_boxes']} edges with fewer matched boxes than the "
-               "paper's rule" if self.pairs["edge_few_boxes"] else ""),
+            + (f"{few_boxes} with too few matched boxes, {self.pairs['kp_failed']} KP and "
+               f"{self.pairs['bb_failed']} BB two-view rejections"
+               + (f"; {self.pairs['edge_few_boxes']} edges with fewer matched boxes than the "
+                  "paper's rule" if self.pairs["edge_few_boxes"] else "")
+               if self.boxes else f"{few_boxes} rejected by two-view verification"),
         ]
         if self.rejected or self.rotation_only:
             why = ", ".join(f"{k} {v}" for k, v in sorted(self.rejected.items()))
@@ -87,12 +90,14 @@ class FrontendSummary:
         done = self.images - self.reused["images"]
         if done > 0:
             per = ", ".join(f"{k} {1000 * s[k] / done:.0f} ms"
-                            for k in ("read", "proposals", "features") if k in s)
+                            for k in ("read", "proposals", "features")
+                            if k in s and (self.boxes or k != "proposals"))
             out.append(f"per image: {per}")
         done = n_pairs - self.reused["pairs"]
         if done > 0:
             per = ", ".join(f"{k} {1000 * s[k] / done:.1f} ms"
-                            for k in ("matching", "box_matching", "five_point") if k in s)
+                            for k in ("matching", "box_matching", "five_point")
+                            if k in s and (self.boxes or k != "box_matching"))
             out.append(f"per pair: {per}")
         return out
 
@@ -126,7 +131,8 @@ class ImageFrontend:
 
     Args:
         records: the images (intrinsics per image; ground truth optional).
-        proposals: a callable ``(image, key) -> Proposals`` (:mod:`posernet.frontend.proposals`).
+        proposals: a callable ``(image, key) -> Proposals`` (:mod:`posernet.frontend.proposals`),
+            or ``None``: no boxes (keypoints only; every pair needs ``edge_rule="verified"``).
         matcher: an object with ``extract(image)`` and ``match(a, b)``
             (:mod:`posernet.frontend.features`).
         rules: the box-matching rules (paper defaults, one-to-one).
@@ -177,6 +183,9 @@ class ImageFrontend:
         if edge_rule not in ("boxes", "verified"):
             raise ValueError(f"edge_rule must be 'boxes' or 'verified', got {edge_rule!r}")
         self.edge_rule = edge_rule
+        if proposals is None and (edge_rule != "verified" or estimate != "kp"):
+            raise ValueError("without proposals (no boxes) only estimate='kp' with "
+                             "edge_rule='verified' makes edges")
         self.kp_top_pairs = int(kp_top_pairs)
         self.seed = int(seed)
         self.workers = max(1, int(workers))
@@ -184,13 +193,14 @@ class ImageFrontend:
         self._images: dict[int, _ImageData] = {}
         self._pairs: dict[tuple[int, int], PairResult] = {}
         self.matches: dict[tuple[int, int], Any] = {}
-        self.summary = FrontendSummary(images=len(self.records))
+        self.summary = FrontendSummary(images=len(self.records), boxes=proposals is not None)
         self._digest: dict[int, str] = {}
         self.cache = None if cache is None else FrontendCache(cache, self.fingerprint())
 
     def fingerprint(self) -> dict[str, Any]:
         """Every option that changes a front-end result (the cache's key)."""
-        return {"proposals": _describe(self.proposals), "matcher": _describe(self.matcher),
+        return {"proposals": None if self.proposals is None else _describe(self.proposals),
+                "matcher": _describe(self.matcher),
                 "rules": _describe(self.rules), "pose": _describe(self.pose),
                 "verify": _describe(self.verify), "estimate": self.estimate,
                 "edge_rule": self.edge_rule, "kp_top_pairs": self.kp_top_pairs,
@@ -220,15 +230,19 @@ class ImageFrontend:
         img = read_image(r.path)
         t1 = time.perf_counter()
         h, w = img.shape[:2]
-        props = self.proposals(img, r.key)
+        if self.proposals is not None:
+            props = self.proposals(img, r.key)
+            boxes, scores = props.boxes, props.scores
+        else:
+            boxes, scores = np.zeros((0, 4)), np.zeros(0)
         t2 = time.perf_counter()
         feats = self.matcher.extract(img)
         grey = img if img.ndim == 2 else cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
         contrast = keypoint_contrast(grey, feats.uv, self.verify.contrast_radius)
         t3 = time.perf_counter()
         r.size = (int(w), int(h))
-        data = _ImageData(np.asarray(props.boxes, np.float64).reshape(-1, 4),
-                          np.asarray(props.scores, np.float64).reshape(-1), feats,
+        data = _ImageData(np.asarray(boxes, np.float64).reshape(-1, 4),
+                          np.asarray(scores, np.float64).reshape(-1), feats,
                           contrast >= self.verify.min_contrast)
         if self.cache is not None:
             self.cache.save("images", self._digest_of(i), *_image_to_cache(data, r.size))
@@ -259,7 +273,7 @@ class ImageFrontend:
         if "cached" in secs:
             self.summary.reused["images"] += 1
         self.summary.flat_keypoints += int((~data.textured).sum())
-        if data.boxes.shape[0] == 0:
+        if data.boxes.shape[0] == 0 and self.proposals is not None:
             self.summary.images_without_boxes += 1
             log.warning("image %s: no ROI proposal survived the filters; it cannot join a "
                         "graph", self.records[i].key)
@@ -440,10 +454,16 @@ class ImageFrontend:
 
     # ------------------------------------------------------------------ graphs
 
-    def graph(self, ids: Sequence[int], meta: dict | None = None) -> tuple[ViewGraph, GraphStats]:
-        """The view graph of images ``ids`` (every pair evaluated); ground truth when every
-        image has a pose."""
+    def graph(self, ids: Sequence[int], meta: dict | None = None,
+              pairs: Iterable[tuple[int, int]] | None = None) -> tuple[ViewGraph, GraphStats]:
+        """The view graph of images ``ids`` (every pair evaluated, or only ``pairs``: image-id
+        pairs, e.g. a :func:`~posernet.frontend.pairs.select_pairs` selection); ground truth
+        when every image has a pose."""
         ids = list(ids)
+        candidates = None
+        if pairs is not None:
+            node = {i: k for k, i in enumerate(ids)}
+            candidates = [(node[a], node[b]) for a, b in pairs if a in node and b in node]
         recs = [self.records[i] for i in ids]
         self.prepare(ids, progress=False)
         w2c = None
@@ -460,6 +480,7 @@ class ImageFrontend:
             np.array([r.k1 for r in recs]),
             w2c,
             meta,
+            candidates,
         )
 
 
