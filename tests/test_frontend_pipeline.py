@@ -150,3 +150,19 @@ def test_cache_that_cannot_be_written_is_turned_off(scene, tmp_path, caplog) -> 
     assert fe.cache is not None and not fe.cache.enabled
     assert any("cache" in r.getMessage() for r in caplog.records)
     assert fe.summary.pairs  # the run went on without it
+
+
+def test_working_resolution_maps_keypoints_back(scene) -> None:
+    img = cv2.imread(str(sorted(scene.glob("*.color.png"))[0]))
+    big = cv2.resize(img, (1280, 960), interpolation=cv2.INTER_CUBIC)
+    fe = _frontend(scene, max_image_size=320)
+    small = fe.matcher.extract(img)  # what the 1280x960 copy shrunk to 320x240 looks like
+    mapped = fe._features(big)
+    assert mapped.size == (1280, 960) and len(mapped) == pytest.approx(len(small), rel=0.2)
+    # keypoints sit where the small image's do, in full-resolution pixels
+    d = np.linalg.norm(mapped.uv[:, None] - ((small.uv + 0.5) * 4 - 0.5)[None], axis=2)
+    assert np.median(d.min(1)) < 2.0
+    full = _frontend(scene, max_image_size=None)._features(big)
+    assert len(full) > len(mapped)  # full size: more (finer) keypoints
+    with pytest.raises(ValueError, match="max_image_size"):
+        _frontend(scene, max_image_size=8)

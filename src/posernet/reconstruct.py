@@ -26,6 +26,8 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import sys
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -57,6 +59,9 @@ class Reconstruction:
     result: RefineResult
     sfm: dict[str, list[SfmResult]] = field(default_factory=dict)  # BA stage -> per component
     pairs: PairSelection | None = None  # which image pairs were matched
+    #: per stage (images, pair_selection, pairs, graph, averaging, bundle_adjustment): wall
+    #: seconds, items, and the process's peak memory (MB) at its end
+    stages: dict[str, dict[str, float]] = field(default_factory=dict)
 
     @property
     def stage(self) -> str:
@@ -156,12 +161,17 @@ def reconstruct(
     (:func:`posernet.pipeline.refine_graphs`; needs a confidence head). With a confidence head
     the averaging starts from the model's per-edge confidence."""
     n = len(frontend.records)
+    clock = _StageClock()
     frontend.prepare(progress=progress)
+    clock.done("images", n)
     selection = select_pairs([frontend.image(i).features for i in range(n)], pairs)
+    clock.done("pair_selection", len(selection.pairs))
     frontend.evaluate_pairs(selection.pairs, progress=progress)
+    clock.done("pairs", len(selection.pairs))
     graph, stats = frontend.graph(range(n), meta={"name": name, "size": "all"},
                                   pairs=selection.pairs)
     graph = graph.with_estimate(estimate)
+    clock.done("graph", graph.num_edges)
     if graph.num_edges == 0:
         raise ValueError(
             "no image pair passed matching and two-view verification, so no camera can be "
@@ -172,12 +182,38 @@ def reconstruct(
     result = refine_graphs(model, [graph], backend=backend, batch_size=1, device=device,
                            progress=False, guard=guard, weighted=confidence,
                            edge_weight=[weights])
-    rec = Reconstruction(frontend, graph, stats, result, pairs=selection)
+    clock.done("averaging", graph.num_edges)
+    rec = Reconstruction(frontend, graph, stats, result, pairs=selection, stages=clock.stages)
     if bundle_adjust and backend is not None:
         for s in list(result.absolute):
             rec.sfm[f"{s}+ba"] = _bundle_stage(frontend, graph, weights, result, s,
                                                bundle or BundleOptions(refine_focal="auto"))
+        clock.done("bundle_adjustment", n)
     return rec
+
+
+class _StageClock:
+    """Wall time, item count and peak memory so far at the end of each stage."""
+
+    def __init__(self) -> None:
+        self.stages: dict[str, dict[str, float]] = {}
+        self.t = time.perf_counter()
+
+    def done(self, name: str, items: int) -> None:
+        now = time.perf_counter()
+        self.stages[name] = {"seconds": round(now - self.t, 3), "items": int(items),
+                             "peak_mb": _peak_mb()}
+        self.t = now
+
+
+def _peak_mb() -> float:
+    """Peak resident memory of this process so far (MB; NaN where the OS does not say)."""
+    try:
+        import resource
+    except ImportError:  # Windows
+        return float("nan")
+    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return round(rss / (1024 * 1024 if sys.platform == "darwin" else 1024), 1)
 
 
 def gauge_fixed(poses: Tensor, solved: Tensor, component: Tensor) -> Tensor:
@@ -282,6 +318,7 @@ def poses_json(rec: Reconstruction, info: dict[str, Any] | None = None) -> dict[
                          "component: no metric scale is known from images alone",
             "backend": res.backend, "frontend": rec.frontend.summary.to_dict(),
             "pair_selection": None if rec.pairs is None else rec.pairs.as_dict(),
+            "stages": rec.stages,
             "bundle_adjustment": bundle, "cameras": cams, "edges": edges,
             "rejected_pairs": rec.frontend.rejected_pairs()}
 

@@ -131,7 +131,8 @@ def run(cfg: DictConfig) -> dict[str, Any]:
         edge_rule=str(cfg.edge_rule),
         kp_top_pairs=int(cfg.kp_top_pairs), seed=int(cfg.seed),
         workers=int(cfg.workers) or available_cores(),
-        cache=out / "cache" if cfg.get("cache", True) else None)
+        cache=out / "cache" if cfg.get("cache", True) else None,
+        max_image_size=cfg.get("max_image_size"))
     has_gt = all(r.c2w is not None for r in records)
     guessed = {s: sum(r.intrinsics_source == s for r in records) for s in ("exif", "prior")}
     if any(guessed.values()):
@@ -168,9 +169,15 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     for stage, runs in rec.sfm.items():
         for r in runs:
             print(f"      {stage}: " + "\n      ".join(line for line in r.lines()[-4:] if line))
+    print("      seconds: " + ", ".join(
+        f"{k.replace('_', ' ')} {v['seconds']:.2f}"
+        + (f" ({1000 * v['seconds'] / v['items']:.1f} ms x {v['items']})"
+           if k in ("images", "pairs") and v["items"] else "")
+        for k, v in rec.stages.items())
+        + f"; peak memory {max(v['peak_mb'] for v in rec.stages.values()):.0f} MB")
     files["summary"] = atomic_write_json(out / "summary.json", {
         **info, "frontend": frontend.summary.to_dict(), "pair_selection": record["pair_selection"],
-        "cameras_placed": solved,
+        "stages": rec.stages, "cameras_placed": solved,
         "edges": rec.graph.num_edges, "rotation_only_edges": frontend.summary.rotation_only,
         "rejected_pairs": frontend.summary.rejected and dict(frontend.summary.rejected),
         "bundle_adjustment": record["bundle_adjustment"],

@@ -151,6 +151,8 @@ class ImageFrontend:
         keep_matches: keep every pair's keypoint matches (for pictures).
         cache: a folder for :class:`~posernet.frontend.cache.FrontendCache` (per-image and
             per-pair results, so a repeated or interrupted run resumes), or ``None``.
+        max_image_size: keypoints are detected on a copy whose longer side is at most this
+            many pixels (``None``: full size); their coordinates are mapped back to the image.
     """
 
     def __init__(
@@ -168,6 +170,7 @@ class ImageFrontend:
         workers: int = 1,
         keep_matches: bool = True,
         cache: str | Path | None = None,
+        max_image_size: int | None = None,
     ) -> None:
         if not records:
             raise ValueError("the front end needs at least one image")
@@ -194,6 +197,9 @@ class ImageFrontend:
         self._pairs: dict[tuple[int, int], PairResult] = {}
         self.matches: dict[tuple[int, int], Any] = {}
         self.summary = FrontendSummary(images=len(self.records), boxes=proposals is not None)
+        if max_image_size is not None and int(max_image_size) < 32:
+            raise ValueError(f"max_image_size must be >= 32 px or None, got {max_image_size}")
+        self.max_image_size = None if max_image_size is None else int(max_image_size)
         self._digest: dict[int, str] = {}
         self.cache = None if cache is None else FrontendCache(cache, self.fingerprint())
 
@@ -204,7 +210,7 @@ class ImageFrontend:
                 "rules": _describe(self.rules), "pose": _describe(self.pose),
                 "verify": _describe(self.verify), "estimate": self.estimate,
                 "edge_rule": self.edge_rule, "kp_top_pairs": self.kp_top_pairs,
-                "seed": self.seed}
+                "seed": self.seed, "max_image_size": self.max_image_size}
 
     # ------------------------------------------------------------------ images
 
@@ -236,7 +242,7 @@ class ImageFrontend:
         else:
             boxes, scores = np.zeros((0, 4)), np.zeros(0)
         t2 = time.perf_counter()
-        feats = self.matcher.extract(img)
+        feats = self._features(img)
         grey = img if img.ndim == 2 else cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
         contrast = keypoint_contrast(grey, feats.uv, self.verify.contrast_radius)
         t3 = time.perf_counter()
@@ -247,6 +253,20 @@ class ImageFrontend:
         if self.cache is not None:
             self.cache.save("images", self._digest_of(i), *_image_to_cache(data, r.size))
         return i, data, {"read": t1 - t0, "proposals": t2 - t1, "features": t3 - t2}
+
+    def _features(self, img: np.ndarray) -> Features:
+        """The matcher's features of ``img``, detected at the working resolution."""
+        h, w = img.shape[:2]
+        if self.max_image_size is None or max(h, w) <= self.max_image_size:
+            return self.matcher.extract(img)
+        f = self.max_image_size / max(h, w)
+        small = cv2.resize(img, (max(1, round(w * f)), max(1, round(h * f))),
+                           interpolation=cv2.INTER_AREA)
+        feats = self.matcher.extract(small)
+        sx, sy = w / small.shape[1], h / small.shape[0]
+        # pixel centres at integers: x_full + 0.5 = (x_small + 0.5) * scale
+        uv = (feats.uv + 0.5) * np.array([sx, sy]) - 0.5
+        return Features(uv, feats.desc, (w, h), feats.extra)
 
     def prepare(self, ids: Iterable[int] | None = None, progress: bool = True) -> None:
         """Read, propose and extract features for images ``ids`` (default: all), once each."""
