@@ -82,6 +82,7 @@ def _check_pairs(sel: PairSelection, n: int) -> None:
     ("field", "value"),
     [
         ("mode", "vocab_tree"),
+        ("repair_links", 0),
         ("window", 0),
         ("k", 0),
         ("loop_k", -1),
@@ -158,12 +159,22 @@ def test_global_descriptors_find_the_place():
 
 def test_retrieval_neighbours_and_connectivity_repair():
     feats, place = _places()  # 3 places x 6 images, no descriptor shared across places
-    sel = select_pairs(feats, PairOptions(mode="retrieval", k=3, words=32))
+    sel = select_pairs(feats, PairOptions(mode="retrieval", k=3, words=32, repair_links=1))
     _check_pairs(sel, len(feats))
     assert sel.mode == "retrieval"
     # the 3-NN graph is 3 components (one per place); the repair joins them with exactly 2 links
     cross = [(a, b) for a, b in sel.pairs if place[a] != place[b]]
     assert len(cross) == 3 - 1
+    # by default each join is 5 pairs to 5 different images (so averaging can fix the scale
+    # between the two blocks), the first of them the single best link
+    many = select_pairs(feats, PairOptions(mode="retrieval", k=3, words=32))
+    cross5 = [(a, b) for a, b in many.pairs if place[a] != place[b]]
+    assert len(cross5) == 2 * 5 and set(cross) <= set(cross5) and many.components == 1
+    for pa, pb in ((0, 1), (0, 2), (1, 2)):
+        join = [p for p in cross5 if {place[p[0]], place[p[1]]} == {pa, pb}]
+        if join:
+            side = [{x for p in join for x in p if place[x] == q} for q in (pa, pb)]
+            assert len(set(join)) == 5 and max(map(len, side)) == 5
     assert (sel.components, sel.largest, sel.isolated) == (1, 18, [])
     # the rest is exactly the union of every image's 3 nearest neighbours
     g = global_descriptors(feats, words=32)
@@ -183,7 +194,7 @@ def test_retrieval_repair_takes_the_most_similar_link():
         if i == 7:
             x = np.vstack([x[:160], bases[2][:120]])
         feats.append(_feat(_noisy(rng, x)))
-    sel = select_pairs(feats, PairOptions(mode="retrieval", k=3, words=32))
+    sel = select_pairs(feats, PairOptions(mode="retrieval", k=3, words=32, repair_links=1))
     cross = [(a, b) for a, b in sel.pairs if place[a] != place[b]]
     assert len(cross) == 2 and sel.components == 1
     assert any(7 in pair and 2 in place[list(pair)] for pair in cross)

@@ -59,16 +59,19 @@ class PairOptions:
         sample: descriptors sampled (over all images) to learn the codebook.
         seed: seed of the sampling and of the k-means++ seeding.
         auto_max: the largest image count ``auto`` matches exhaustively.
+        repair_links: retrieval: pairs added between two components the k nearest
+            neighbours left apart (several, so that averaging can fix their relative scale).
     """
 
     mode: str = "exhaustive"
     window: int = 5
     loop_k: int = 3
-    k: int = 10
+    k: int = 20
     words: int = 64
     sample: int = 20000
     seed: int = 0
     auto_max: int = 40
+    repair_links: int = 5
 
     def resolved(self, n: int) -> str:
         """The mode used for ``n`` images (``auto`` resolved)."""
@@ -89,6 +92,7 @@ class PairOptions:
             ("sample", 1),
             ("seed", 0),
             ("auto_max", 1),
+            ("repair_links", 1),
         ):
             value = getattr(self, name)
             if (
@@ -372,19 +376,21 @@ def _graph_components(n: int, pairs: Sequence[tuple[int, int]] | set) -> tuple[i
 
 
 def _repair(
-    n: int, pairs: set[tuple[int, int]], g: np.ndarray, valid: np.ndarray
+    n: int, pairs: set[tuple[int, int]], g: np.ndarray, valid: np.ndarray, links: int = 5
 ) -> list[tuple[int, int]]:
     """Cross-component links that connect the graph of ``pairs`` over the images ``valid``.
 
-    Repeatedly adding the single most similar cross-component pair is Kruskal's maximum spanning
-    tree over the components, with each two components joined by their most similar pair; it is
-    computed that way (one similarity pass per component, then union-find).
+    Kruskal's maximum spanning tree over the components, two components scored by their most
+    similar pair (one similarity pass per component, then union-find); each join adds the
+    ``links`` most similar pairs between the two (distinct images of the other component):
+    blocks joined by a single pair could slide and scale against each other in translation
+    averaging, which needs several non-parallel directions between them.
 
     The sign of the similarity is not a stop: with a codebook learned on the run's own
     descriptors, each word's residuals sum to about zero over the run, so images of unrelated
     places score below zero (about -0.25 for 3 synthetic places of 6 images) and a
-    positive-only rule would leave such components apart. One extra pair per component is
-    cheap, and two-view verification rejects it if the places really are unrelated.
+    positive-only rule would leave such components apart. A few extra pairs per component are
+    cheap, and two-view verification rejects them if the places really are unrelated.
     """
     _, labels = _graph_components(n, pairs)
     vlab = labels[valid]
@@ -392,7 +398,7 @@ def _repair(
     if comps.size < 2:
         return []
     gv = g[valid]
-    edges: list[tuple[float, int, int, int, int]] = []
+    groups: list[tuple[float, int, int, list[tuple[int, int]]]] = []
     for comp in comps[:-1]:
         rows = valid[vlab == comp]
         cols = np.flatnonzero(vlab > comp)  # each pair of components once
@@ -405,14 +411,18 @@ def _repair(
             v = sim[j, np.arange(cols.size)]
             better = v > best
             best[better], arg[better] = v[better], block[j[better]]
-        # best column per other component: sort by (component, -similarity), keep the first
+        # per other component: its images sorted by their best similarity, the top `links`
         order = np.lexsort((-best, vlab[cols]))
         lab = vlab[cols][order]
-        first = order[np.r_[True, lab[1:] != lab[:-1]]]
-        for c in first:
-            a, b = int(arg[c]), int(valid[cols[c]])
-            edges.append((float(best[c]), min(a, b), max(a, b), int(comp), int(vlab[cols[c]])))
-    edges.sort(key=lambda e: (-e[0], e[1], e[2]))
+        starts = np.flatnonzero(np.r_[True, lab[1:] != lab[:-1]])
+        for st, en in zip(starts, np.r_[starts[1:], order.size], strict=True):
+            top = order[st:min(en, st + links)]
+            group = []
+            for c in top:
+                a, b = int(arg[c]), int(valid[cols[c]])
+                group.append((min(a, b), max(a, b)))
+            groups.append((float(best[top[0]]), int(comp), int(lab[st]), group))
+    groups.sort(key=lambda e: (-e[0], e[3][0]))
     parent = {int(c): int(c) for c in comps}
 
     def root(c: int) -> int:
@@ -421,13 +431,15 @@ def _repair(
             c = parent[c]
         return c
 
-    added = []
-    for _, a, b, ca, cb in edges:
+    added: list[tuple[int, int]] = []
+    joins = 0
+    for _, ca, cb, group in groups:
         ra, rb = root(ca), root(cb)
         if ra != rb:
             parent[ra] = rb
-            added.append((a, b))
-            if len(added) == comps.size - 1:
+            added.extend(group)
+            joins += 1
+            if joins == comps.size - 1:
                 break
     return added
 
@@ -483,7 +495,7 @@ def select_pairs(features: Sequence[Features], options: PairOptions | None = Non
             if valid.size >= 2:
                 g = _vlad(descs, dim, opts.words, opts.sample, opts.seed)
                 pairs = _knn_pairs(g, valid, opts.k)
-                pairs.update(_repair(n, pairs, g, valid))
+                pairs.update(_repair(n, pairs, g, valid, opts.repair_links))
             for i in np.setdiff1d(np.arange(n), valid).tolist():  # no keypoints: file order
                 pairs.update((j, j + 1) for j in (i - 1, i) if 0 <= j and j + 1 < n)
     ordered = sorted(pairs)
