@@ -8,8 +8,11 @@ Cauchy loss with the same scale (px), one camera's pose held fixed and the scale
 
 Solvers:
 
-* ``scipy-irls`` -- :func:`posernet.sfm.bundle_adjust` (scipy ``least_squares`` trf + lsmr,
-  analytic sparse Jacobian, reweighted least squares with a graduated loss scale; the default);
+* ``lm-schur`` -- :func:`posernet.sfm.bundle_adjust`, the default: Levenberg-Marquardt with
+  exact Schur-complement steps (dense reduced camera system, scipy Cholesky), the observations
+  reweighted every iteration with a graduated loss scale, analytic sparse Jacobian;
+* ``scipy-irls`` -- the same reweighting around scipy ``least_squares`` trf + lsmr
+  (``robust="irls"``);
 * ``scipy-loss`` -- the same problem with scipy's own robust loss (``robust="scipy"``);
 * ``gtsam`` -- projection factors with a robust Cauchy noise model, Levenberg-Marquardt
   (optional: ``pip install gtsam``);
@@ -258,6 +261,7 @@ def _version(dist: str) -> str:
 
 def solvers(args: argparse.Namespace) -> dict[str, object]:
     out: dict[str, object] = {
+        "lm-schur": lambda pb: run_scipy(pb, args, "lm"),
         "scipy-irls": lambda pb: run_scipy(pb, args, "irls"),
         "scipy-loss": lambda pb: run_scipy(pb, args, "scipy"),
     }

@@ -243,7 +243,10 @@ def make_se3(R: Tensor, t: Tensor) -> Tensor:
     """Homogeneous 4x4 from ``R (*, 3, 3)`` and ``t (*, 3)``."""
     _check_mat(R, 3, "R")
     _check_last(t, 3, "t")
-    batch = torch.broadcast_shapes(R.shape[:-2], t.shape[:-1])
+    # equal shapes need no broadcasting (and torch.broadcast_shapes' first call costs ~0.2 s
+    # of lazy imports, a tenth of a small reconstruction)
+    batch = (R.shape[:-2] if R.shape[:-2] == t.shape[:-1]
+             else torch.broadcast_shapes(R.shape[:-2], t.shape[:-1]))
     T = R.new_zeros(*batch, 4, 4)
     T[..., :3, :3] = R
     T[..., :3, 3] = t

@@ -8,7 +8,8 @@ Stages (each usable on its own):
 * :mod:`~posernet.sfm.triangulation` -- :func:`triangulate_tracks`: batched DLT with
   cheirality, triangulation-angle and reprojection filters; :func:`undistort_keypoints`;
 * :mod:`~posernet.sfm.bundle` -- :func:`bundle_adjust`: robust bundle adjustment on
-  ``scipy.optimize.least_squares`` with an analytic sparse Jacobian;
+  Levenberg-Marquardt with Schur-complement steps (or scipy's least squares) and an analytic
+  sparse Jacobian;
 * :mod:`~posernet.sfm.resection` -- :func:`anchored_cameras` (which averaged positions the
   edge directions pin) and :func:`resect_cameras` (the others re-placed by PnP on 3D points);
 * :mod:`~posernet.sfm.refine` -- :func:`bundle_adjust_reconstruction`: the orchestrator

@@ -1,5 +1,5 @@
-"""Robust bundle adjustment on :func:`scipy.optimize.least_squares` with an analytic sparse
-Jacobian.
+"""Robust bundle adjustment: Levenberg-Marquardt with exact Schur-complement steps (default),
+or :func:`scipy.optimize.least_squares`; analytic sparse Jacobian.
 
 Unknowns: per camera a rotation increment ``w`` (angle-axis, ``R = exp(w) R_0``: starts at 0,
 stays far from the pi wrap of a rotation vector) and translation ``t``; per point ``X``;
@@ -24,7 +24,6 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 from scipy.linalg import cho_factor, cho_solve
-from scipy.optimize import least_squares
 from scipy.sparse import bsr_matrix, coo_matrix, csr_matrix
 from scipy.sparse.csgraph import connected_components
 
@@ -400,6 +399,8 @@ def _solve_irls(prob: _Problem, x0: np.ndarray, med0: float, opt: BundleOptions
     ``f_scale``.
     Returns ``x``, unweighted residuals, evaluations used, converged flag, message.
     """
+    from scipy.optimize import least_squares  # only this solver needs it (import ~0.15 s)
+
     x = x0
     r = prob.residuals(x)
     fs = opt.f_scale
@@ -561,6 +562,8 @@ def _solve_scipy_loss(prob: _Problem, x0: np.ndarray, med0: float, opt: BundleOp
     """scipy's own robust loss (applied per residual coordinate), with the same graduated
     ``f_scale``. Kept for comparison: slower and less accurate than IRLS in
     ``benchmarks/bench_ba.py``."""
+    from scipy.optimize import least_squares
+
     x = x0
     fs = opt.f_scale
     if opt.anneal_factor > 0 and opt.loss != "linear":
