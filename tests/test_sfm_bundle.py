@@ -218,3 +218,30 @@ def test_summary_lines_of_a_failed_adjustment() -> None:
     lines = res.lines()
     assert "input poses kept" in lines[-1]
     assert not any("reprojection error" in ln for ln in lines)
+
+
+@pytest.mark.parametrize("focal", ["none", "shared", "per_camera"])
+@pytest.mark.parametrize("dense", [True, False])
+def test_schur_step_is_the_damped_gauss_newton_step(focal: str, dense: bool) -> None:
+    """The reduced-camera-system step (dense or block-sparse product) equals solving the full
+    damped normal equations ``(J^T J + lam diag(J^T J)) dx = -J^T r``."""
+    from posernet.sfm.bundle import _Schur
+
+    sc = make_scene(num_cameras=6, num_points=200, noise_px=0.5, seed=1)
+    prob = _Problem(sc.w2c, sc.points + 0.01, sc.K * 1.01, sc.xy, sc.obs_image, sc.obs_point,
+                    np.array([0]), focal)
+    x = prob.x0()
+    r = prob.residuals(x)
+    J = prob.jacobian(x).toarray()
+    lam = 1e-3
+    H = J.T @ J
+    H[np.diag_indices_from(H)] += lam * np.maximum(np.diag(J.T @ J), 1e-9)
+    ref = np.linalg.solve(H, -J.T @ r)
+    system = _Schur(prob, *prob.blocks(x), r)
+    if not dense:
+        system.dense = False
+    assert system.dense == dense  # a 6-camera problem picks the dense product by itself
+    dc, dp = system.step(lam)
+    n6 = 6 * system.nc
+    dx = np.concatenate([dc[:n6], dp.ravel(), dc[n6:]])
+    np.testing.assert_allclose(dx, ref, rtol=0, atol=1e-9 * np.abs(ref).max())

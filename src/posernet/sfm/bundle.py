@@ -265,7 +265,7 @@ class _Problem:
         self.n_focal = int(self.f_group.max()) + 1 if (self.f_group >= 0).any() else 0
         self.f_off = off
         self.n_params = off + self.n_focal
-        self._build_structure()
+        self.perm = None  # CSR layout of the Jacobian, built on first use (trf solvers only)
 
     def x0(self) -> np.ndarray:
         x = np.zeros(self.n_params)
@@ -342,8 +342,10 @@ class _Problem:
         self.indptr = np.concatenate(([0], np.cumsum(np.bincount(rows_a, minlength=2 * O))))
         self.shape = (2 * O, self.n_params)
 
-    def jacobian(self, x: np.ndarray, row_weight: np.ndarray | None = None) -> csr_matrix:
-        """Sparse ``(2 O, n_params)`` Jacobian, rows scaled by ``row_weight (2 O,)`` if given."""
+    def blocks(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Per-observation Jacobian blocks (internal order): ``(O, 2, 6)`` rotation increment
+        and translation of its camera, ``(O, 2, 3)`` its point, ``(O, 2)`` its log focal scale
+        (whether or not those are variables)."""
         w, R, RX, z, q, _, fx, sk, fy = self._project(x)
         O = z.size
         inv_z = 1.0 / z
@@ -356,23 +358,157 @@ class _Problem:
         # d p / d w = -[R X]_x J_l(w), and a^T (-[v]_x) = (v x a)^T for each row a.
         cross = np.cross(RX[:, None, :], duv_dp)
         Jl = _left_jacobian(w)
-        d_rot = np.empty_like(duv_dp)
+        d_cam = np.empty((O, 2, 6))
         d_pt = np.empty_like(duv_dp)
         for ci, a, b in self.segs:
-            d_rot[a:b] = (cross[a:b].reshape(-1, 3) @ Jl[ci]).reshape(-1, 2, 3)
+            d_cam[a:b, :, :3] = (cross[a:b].reshape(-1, 3) @ Jl[ci]).reshape(-1, 2, 3)
             d_pt[a:b] = (duv_dp[a:b].reshape(-1, 3) @ R[ci]).reshape(-1, 2, 3)
+        d_cam[:, :, 3:] = duv_dp
+        return d_cam, d_pt, q  # d uv / d log f = A n = q
+
+    def jacobian(self, x: np.ndarray, row_weight: np.ndarray | None = None) -> csr_matrix:
+        """Sparse ``(2 O, n_params)`` Jacobian, rows scaled by ``row_weight (2 O,)`` if given."""
+        if self.perm is None:
+            self._build_structure()
+        d_cam, d_pt, d_f = self.blocks(x)
         data = []
         if self.cam_obs.size:
-            o = self.cam_obs
-            data.append(np.concatenate((d_rot[o], duv_dp[o]), axis=2).ravel())
+            data.append(d_cam[self.cam_obs].ravel())
         if self.pt_obs.size:
             data.append(d_pt[self.pt_obs].ravel())
         if self.f_obs.size:
-            data.append(q[self.f_obs].ravel())  # d uv / d log f = A n
+            data.append(d_f[self.f_obs].ravel())
         vals = np.concatenate(data)[self.perm]
         if row_weight is not None:
             vals *= np.repeat(row_weight, np.diff(self.indptr))
         return csr_matrix((vals, self.indices, self.indptr), shape=self.shape)
+
+
+def _gram(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """Per-row ``A_o^T B_o`` of ``(O, 2, m)`` and ``(O, 2, n)`` blocks -> ``(O, m, n)``
+    (batched matmul: faster than einsum or broadcast sums on tiny matrices)."""
+    return np.matmul(A.transpose(0, 2, 1), B)
+
+
+class _Schur:
+    """The normal equations of one weighted Jacobian, reduced onto the camera parameters.
+
+    Built once per Jacobian from its per-observation blocks (:meth:`_Problem.blocks`, rows
+    scaled by the weights), then solved for any damping (:meth:`step`): ``U`` (camera and focal
+    parameters, dense), ``V`` (one 3x3 block per point), ``W`` (one 6x3 camera-point block per
+    observation), so that the reduced system ``S = U - W V^-1 W^T`` costs one block-sparse
+    product (scipy BSR) instead of generic sparse ones.
+    """
+
+    def __init__(self, prob: _Problem, d_cam: np.ndarray, d_pt: np.ndarray, d_f: np.ndarray,
+                 r: np.ndarray) -> None:
+        nc, npt, nf = prob.var_cam.size, prob.var_pt.size, prob.n_focal
+        self.nc, self.npt, self.nf = nc, npt, nf
+        O = d_pt.shape[0]
+        r = r.reshape(O, 2)
+        pj = (prob.pt_col[prob.pt] - 6 * nc) // 3  # point index among the variable points
+        # points: V and gradient, summed per point by a sparse aggregation matrix
+        agg = csr_matrix((np.ones(O), (pj, np.arange(O))), shape=(npt, O))
+        self.V = np.asarray(agg @ _gram(d_pt, d_pt).reshape(O, 9)).reshape(npt, 3, 3)
+        self.gp = np.asarray(agg @ _gram(d_pt, r[:, :, None]).reshape(O, 3))
+        # cameras: observations are sorted by camera, so per-camera sums are segment sums
+        nP = 6 * nc + nf
+        U = np.zeros((nP, nP))
+        g = np.zeros(nP)
+        cv = prob.cam_col[prob.cam] >= 0  # observations of a variable camera
+        self.ci = prob.cam_col[prob.cam[cv]] // 6  # ascending: index among variable cameras
+        self.pj_c = pj[cv]
+        self.Wc = np.zeros((0, 6, 3))
+        if nc:
+            A = d_cam[cv]
+            starts = np.flatnonzero(np.r_[True, self.ci[1:] != self.ci[:-1]])
+            blocks = np.add.reduceat(_gram(A, A), starts, axis=0)
+            for k, c in enumerate(self.ci[starts]):  # one dense 6x6 block per camera
+                U[6 * c:6 * c + 6, 6 * c:6 * c + 6] = blocks[k]
+            g[:6 * nc] = np.add.reduceat(_gram(A, r[cv][:, :, None])[..., 0], starts,
+                                         axis=0).ravel()
+            self.Wc = _gram(A, d_pt[cv])
+            self.indptr = np.searchsorted(self.ci, np.arange(nc + 1))
+            # Few cameras: W V^-1 W^T as one dense BLAS product beats the block-sparse one
+            # (whose cost grows with the observations per point squared, not with cameras).
+            pair_blocks = float((np.bincount(self.pj_c, minlength=npt) ** 2).sum())
+            dense_flops = 2.0 * (6 * nc) ** 2 * 3 * npt
+            self.dense = (36.0 * nc * npt * 8 < 256e6) and dense_flops < 2e3 * pair_blocks
+            if self.dense:
+                self.rows = (6 * self.ci)[:, None, None] + np.arange(6)[None, :, None]
+                self.cols = (3 * self.pj_c)[:, None, None] + np.arange(3)[None, None, :]
+                self.Wd = np.zeros((6 * nc, 3 * npt))
+                self.Wd[self.rows, self.cols] = self.Wc
+        self.Wf = None
+        if nf:
+            fo = prob.f_group[prob.cam] >= 0
+            fg = prob.f_group[prob.cam[fo]]
+            f = d_f[fo]  # (n, 2)
+            U[6 * nc:, 6 * nc:] = np.diag(np.bincount(fg, (f * f).sum(1), minlength=nf))
+            g[6 * nc:] = np.bincount(fg, (f * r[fo]).sum(1), minlength=nf)
+            both = fo & cv
+            if both.any():
+                cf = _gram(d_cam[both], d_f[both][:, :, None])[..., 0]  # (n, 6)
+                rows = (6 * (prob.cam_col[prob.cam[both]] // 6))[:, None] + np.arange(6)
+                cols = 6 * nc + prob.f_group[prob.cam[both]]
+                M = csr_matrix((cf.ravel(), (rows.ravel(), np.repeat(cols, 6))),
+                               shape=(nP, nP)).toarray()
+                U += M + M.T
+            wf = _gram(f[:, :, None], d_pt[fo])[:, 0]  # (n, 3)
+            self.Wf = csr_matrix((wf.ravel(), (np.repeat(fg, 3),
+                                               ((3 * pj[fo])[:, None] + np.arange(3)).ravel())),
+                                 shape=(nf, 3 * npt))
+        self.U, self.g = U, g
+
+    def step(self, lam: float) -> tuple[np.ndarray, np.ndarray]:
+        """Camera-side and point steps ``(6 nc + nf,)``, ``(npt, 3)`` of the system damped by
+        Marquardt's ``lam * diag`` (with a floor, so that gauge directions stay bounded)."""
+        nc, npt, nf = self.nc, self.npt, self.nf
+        S = self.U.copy()
+        S[np.diag_indices_from(S)] += lam * np.maximum(np.diag(self.U), 1e-9)
+        V = self.V.copy()
+        V[:, np.arange(3), np.arange(3)] += lam * np.maximum(
+            np.diagonal(self.V, axis1=1, axis2=2), 1e-9)
+        Vinv = np.linalg.inv(V)
+        gp = self.gp
+        Vg = np.einsum("pij,pj->pi", Vinv, gp)  # V^-1 g_p, (npt, 3)
+        b = -self.g.copy()
+        Wc_bsr = Yc_bsr = None
+        if nc:
+            Y = np.matmul(self.Wc, Vinv[self.pj_c])  # W V^-1, one 6x3 block per observation
+            shape = (6 * nc, 3 * npt)
+            if self.dense:
+                Wc_bsr = self.Wd
+                Yc_bsr = np.zeros(shape)
+                Yc_bsr[self.rows, self.cols] = Y
+                S[:6 * nc, :6 * nc] -= Yc_bsr @ self.Wd.T
+            else:
+                Wc_bsr = bsr_matrix((self.Wc, self.pj_c, self.indptr), shape=shape)
+                Yc_bsr = bsr_matrix((Y, self.pj_c, self.indptr), shape=shape)
+                S[:6 * nc, :6 * nc] -= (Yc_bsr @ Wc_bsr.T).toarray()
+            b[:6 * nc] += Wc_bsr @ Vg.ravel()
+        if nf:
+            VWf = csr_matrix(bsr_matrix((Vinv, np.arange(npt), np.arange(npt + 1)),
+                                        shape=(3 * npt,) * 2) @ self.Wf.T).T
+            ff = (self.Wf @ VWf.T).toarray()
+            S[6 * nc:, 6 * nc:] -= ff
+            if nc:
+                fc = self.Wf @ Yc_bsr.T  # W_f V^-1 W_c^T, (nf, 6 nc)
+                cf = (fc.toarray() if hasattr(fc, "toarray") else np.asarray(fc)).T
+                S[:6 * nc, 6 * nc:] -= cf
+                S[6 * nc:, :6 * nc] -= cf.T
+            b[6 * nc:] += self.Wf @ Vg.ravel()
+        try:
+            dc = cho_solve(cho_factor(S, check_finite=False), b, check_finite=False)
+        except np.linalg.LinAlgError:
+            dc = np.linalg.lstsq(S, b, rcond=None)[0]
+        wtd = np.zeros(3 * npt)
+        if nc:
+            wtd += Wc_bsr.T @ dc[:6 * nc]
+        if nf:
+            wtd += self.Wf.T @ dc[6 * nc:]
+        dp = -Vg - np.einsum("pij,pj->pi", Vinv, wtd.reshape(npt, 3))
+        return dc, dp
 
 
 def _pose_matrices(R: np.ndarray, t: np.ndarray) -> np.ndarray:
@@ -459,52 +595,12 @@ def _rescale(prob: _Problem, x: np.ndarray, spread: float) -> np.ndarray:
     return out
 
 
-def _schur_step(J: csr_matrix, r: np.ndarray, n_cam: int, n_pt: int, lam: float
-                ) -> np.ndarray:
-    """One damped Gauss-Newton step ``dx`` of ``min |J dx + r|^2 + lam |D dx|^2`` (Marquardt:
-    ``D^2 = diag(J^T J)``) by the Schur complement on the points.
-
-    Columns of ``J (M, n)``: ``[camera params (n_cam) | points (3 n_pt) | focal params]``. Each
-    row touches one point, so ``J_p^T J_p`` is block diagonal (3x3 per point) and the reduced
-    camera system is dense and small: ``(n_cam + n_focal)^2``.
-    """
-    n = J.shape[1]
-    p0, p1 = n_cam, n_cam + 3 * n_pt
-    cam_cols = np.r_[0:p0, p1:n]
-    Jc, Jp = J[:, cam_cols], J[:, p0:p1]
-    U = (Jc.T @ Jc).toarray()
-    W = (Jc.T @ Jp).tocsr()
-    Vs = (Jp.T @ Jp).tocoo()  # block diagonal: only (3k+a, 3k+b) entries
-    V = np.zeros((n_pt, 3, 3))
-    np.add.at(V, (Vs.row // 3, Vs.row % 3, Vs.col % 3), Vs.data)
-    gc, gp = Jc.T @ r, Jp.T @ r
-    # Marquardt damping with a floor, so that gauge directions (scale) stay bounded
-    dU = np.maximum(np.diag(U), 1e-9)
-    U[np.diag_indices_from(U)] += lam * dU
-    dV = np.maximum(np.diagonal(V, axis1=1, axis2=2), 1e-9)
-    V[:, np.arange(3), np.arange(3)] += lam * dV
-    Vinv = np.linalg.inv(V)
-    Vinv_m = bsr_matrix((Vinv, np.arange(n_pt), np.arange(n_pt + 1)), shape=(3 * n_pt,) * 2)
-    WV = (W @ Vinv_m).tocsr()
-    S = U - (WV @ W.T).toarray()
-    b = -gc + WV @ gp
-    try:
-        dc = cho_solve(cho_factor(S, check_finite=False), b, check_finite=False)
-    except np.linalg.LinAlgError:
-        dc = np.linalg.lstsq(S, b, rcond=None)[0]
-    dp = Vinv_m @ (-gp - W.T @ dc)
-    dx = np.empty(n)
-    dx[cam_cols] = dc
-    dx[p0:p1] = dp
-    return dx
-
-
 def _solve_lm(prob: _Problem, x0: np.ndarray, med0: float, opt: BundleOptions
               ) -> tuple[np.ndarray, np.ndarray, int, bool, str]:
     """Levenberg-Marquardt with exact Schur-complement steps and IRLS weights.
 
     Every iteration reweights the observations by ``rho'(|e|^2 / f^2)`` and takes a damped
-    Gauss-Newton step (:func:`_schur_step`), accepted when it lowers the robust cost at ``f``.
+    Gauss-Newton step (:class:`_Schur`), accepted when it lowers the robust cost at ``f``.
     Exact reduced solves keep their accuracy on ill-conditioned problems (long focal lengths,
     where rotation and translation nearly trade off) on which an iterative trust-region solve
     stalls. ``f`` anneals from ``anneal_factor`` x the median error to ``f_scale`` as in
@@ -524,9 +620,16 @@ def _solve_lm(prob: _Problem, x0: np.ndarray, med0: float, opt: BundleOptions
     while nfev < opt.max_nfev:
         e2 = (r.reshape(-1, 2) ** 2).sum(1)
         sw = np.repeat(np.sqrt(_rho(e2 / fs**2, opt.loss)[1]), 2)
-        J = prob.jacobian(x, sw)
+        d_cam, d_pt, d_f = prob.blocks(x)
+        w_obs = sw[::2, None]  # one weight per observation (both rows)
+        system = _Schur(prob, d_cam * w_obs[:, :, None], d_pt * w_obs[:, :, None],
+                        d_f * w_obs, sw * r)
         while nfev < opt.max_nfev:
-            dx = _schur_step(J, sw * r, n_cam, n_pt, lam)
+            dc, dp = system.step(lam)
+            dx = np.zeros_like(x)
+            dx[:n_cam] = dc[:n_cam]
+            dx[n_cam:n_cam + 3 * n_pt] = dp.ravel()
+            dx[n_cam + 3 * n_pt:] = dc[n_cam:]
             x_new = x + dx
             r_new = prob.residuals(x_new)
             nfev += 1
