@@ -169,6 +169,10 @@ def test_reconstruct_without_ground_truth_and_with_a_blank_image(scene, tmp_path
         (["intrinsics=500,500,160,120", "bundle.loss=bogus"], "bundle.loss"),
         (["intrinsics=500,500,160,120", "verify.min_inliers=2"], "verify.min_inliers"),
         (["intrinsics=500,500,160,120", "ba=sometimes"], "ba: 'sometimes'"),
+        (["intrinsics=500,500,160,120", "boxes=false", "refine=true"],
+         "boxes=false, but refine=true needs the boxes"),
+        (["intrinsics=500,500,160,120", "pairs.mode=nearby"], "pairs.mode"),
+        (["intrinsics=500,500,160,120", "max_image_size=8"], "max_image_size"),
     ],
 )
 def test_reconstruct_bad_input_is_one_line(scene, tmp_path, args, message):
@@ -292,3 +296,31 @@ def test_pair_selection_and_boxes_only_when_used(scene, tmp_path):
     poses = json.loads((tmp_path / "boxes" / "poses.json").read_text())
     assert poses["pair_selection"]["mode"] == "exhaustive"  # auto: few images
     assert any(e["matched_boxes"] > 0 for e in poses["edges"])
+
+
+@pytest.mark.slow
+def test_nothing_placed_still_writes_poses_and_says_why(scene, tmp_path):
+    imgs = tmp_path / "noise"
+    imgs.mkdir()
+    rng = np.random.default_rng(0)
+    for i in range(3):  # nothing to match between noise images
+        cv2.imwrite(str(imgs / f"n{i}.png"), (rng.random((240, 320)) * 255).astype(np.uint8))
+    out = tmp_path / "o"
+    r = _run(f"images={imgs}", "intrinsics=300,300,160,120", f"out_dir={out}", "pictures=2")
+    assert r.returncode == 3, r.stderr
+    assert "placed no camera" in r.stderr and "too few keypoint matches" in r.stderr
+    poses = json.loads((out / "poses.json").read_text())
+    assert poses["format"] == "posernet-poses" and poses["stage"] is None
+    assert [c["solved"] for c in poses["cameras"].values()] == [False] * 3
+    assert all("no image pair passed" in c["note"] for c in poses["cameras"].values())
+    assert {p["reason"] for p in poses["rejected_pairs"]} == {"too_few_matches"}
+    assert len(poses["rejected_pairs"]) == 3
+    assert json.loads((out / "summary.json").read_text())["cameras_placed"] == 0
+    assert sorted(p.name for p in out.glob("matches_*.png")) == ["matches_0.png",
+                                                                 "matches_1.png"]
+    # one image: a bad input, not a run
+    one = tmp_path / "one"
+    one.mkdir()
+    shutil.copy(imgs / "n0.png", one / "n0.png")
+    r = _run(f"images={one}", "intrinsics=300,300,160,120", f"out_dir={tmp_path / 'o1'}")
+    assert r.returncode == 1 and "need at least 2" in r.stderr.splitlines()[-1]

@@ -173,9 +173,12 @@ def reconstruct(
     graph = graph.with_estimate(estimate)
     clock.done("graph", graph.num_edges)
     if graph.num_edges == 0:
-        raise ValueError(
+        raise NothingPlaced(
             "no image pair passed matching and two-view verification, so no camera can be "
-            f"placed ({'; '.join(frontend.summary.lines()[1:])})")
+            "placed (" + "; ".join(line for line in frontend.summary.lines()
+                                   if line.startswith(("pairs:", "verification:"))) + ")",
+            frontend, selection,
+            clock.stages)
     weights = edge_weights(frontend, graph)
     confidence = (model is not None and bool(getattr(model, "adaptive", False))
                   and bool(getattr(model, "confidence", False)))
@@ -214,6 +217,38 @@ def _peak_mb() -> float:
         return float("nan")
     rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     return round(rss / (1024 * 1024 if sys.platform == "darwin" else 1024), 1)
+
+
+class NothingPlaced(ValueError):
+    """No image pair became an edge, so no camera can be placed. Carries what the front end
+    found (``frontend``: its summary and every rejected pair; ``pairs``: the selection;
+    ``stages``: timings) so that the caller can still report it (:func:`unplaced_json`)."""
+
+    def __init__(self, message: str, frontend: ImageFrontend, pairs: PairSelection,
+                 stages: dict[str, dict[str, float]]) -> None:
+        super().__init__(message)
+        self.frontend, self.pairs, self.stages = frontend, pairs, stages
+
+
+def unplaced_json(err: NothingPlaced, info: dict[str, Any] | None = None) -> dict[str, Any]:
+    """The ``poses.json`` record of a run that placed no camera: every camera unsolved with
+    the reason, every evaluated pair in ``rejected_pairs`` (same format as :func:`poses_json`).
+    """
+    fe = err.frontend
+    reason = "no image pair passed matching and two-view verification"
+    cams = {r.key: {"solved": False, "component": None, "camera_to_world": None,
+                    "world_to_camera": None, "q_wxyz": None, "t": None, "edges": 0,
+                    "boxes": int(fe.boxes(i).shape[0]) if fe.summary.boxes else 0,
+                    "size": list(r.size) if r.size else None,
+                    "K": [[round(float(v), 6) for v in row] for row in r.K],
+                    "dist": None if r.dist is None else [float(v) for v in r.dist],
+                    "intrinsics_source": r.intrinsics_source, "note": reason}
+            for i, r in enumerate(fe.records)}
+    return {"format": "posernet-poses", "version": 1, **(info or {}), "stage": None,
+            "positions": None, "backend": None, "frontend": fe.summary.to_dict(),
+            "pair_selection": err.pairs.as_dict(), "stages": err.stages,
+            "bundle_adjustment": {}, "cameras": cams, "edges": [],
+            "rejected_pairs": fe.rejected_pairs()}
 
 
 def gauge_fixed(poses: Tensor, solved: Tensor, component: Tensor) -> Tensor:

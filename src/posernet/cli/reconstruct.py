@@ -18,7 +18,7 @@ from __future__ import annotations
 import sys
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, NoReturn
 
 import hydra
 import torch
@@ -36,6 +36,9 @@ from .common import (
     set_threads,
 )
 from .validation import ConfigValueError
+
+#: exit status of a run that worked but placed no camera (poses.json says why)
+EXIT_NOTHING_PLACED = 3
 
 __all__ = ["main", "run"]
 
@@ -105,7 +108,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     from ..io import atomic_write_json
     from ..nn import PoserNet
     from ..pipeline import evaluate_result, result_tables
-    from ..reconstruct import poses_json, reconstruct, write_colmap_models
+    from ..reconstruct import NothingPlaced, poses_json, reconstruct, write_colmap_models
     from ..sync import backend_from_config
 
     check_config(cfg, "reconstruct")  # out_dir included: made only once there is output
@@ -116,6 +119,9 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     records = records_for_images(cfg.images, OmegaConf.to_object(cfg.intrinsics)
                                  if OmegaConf.is_config(cfg.intrinsics) else cfg.intrinsics,
                                  cfg.get("pattern"), cfg.get("gt_poses"))
+    if len(records) < 2:
+        raise ValueError(f"images: {cfg.images} holds {len(records)} image(s); need at least "
+                         "2 to place cameras")
     model, ckpt = None, None
     if cfg.refine:
         ckpt = Path(cfg.ckpt_path) if cfg.get("ckpt_path") else default_checkpoint()
@@ -147,13 +153,17 @@ def run(cfg: DictConfig) -> dict[str, Any]:
           f"({'with' if has_gt else 'without'} ground-truth poses); matcher "
           f"{getattr(frontend.matcher, 'name', type(frontend.matcher).__name__)}")
     bundle = instantiate(cfg.bundle) if cfg.ba else None
-    rec = reconstruct(frontend, model, backend, device=device, name=Path(cfg.images).name,
-                      estimate=str(cfg.estimate), progress=bool(cfg.progress), guard=guard,
-                      bundle_adjust=bool(cfg.ba), bundle=bundle, pairs=instantiate(cfg.pairs))
-    print("[2/3] front end: " + "\n      ".join(
-        [*(rec.pairs.lines() if rec.pairs else []), *frontend.summary.lines()]))
     info: dict[str, Any] = {"images": str(cfg.images), "estimate": str(cfg.estimate),
                             "checkpoint": str(ckpt) if ckpt else None, "guard": guard}
+    try:
+        rec = reconstruct(frontend, model, backend, device=device, name=Path(cfg.images).name,
+                          estimate=str(cfg.estimate), progress=bool(cfg.progress), guard=guard,
+                          bundle_adjust=bool(cfg.ba), bundle=bundle,
+                          pairs=instantiate(cfg.pairs))
+    except NothingPlaced as err:
+        _report_nothing_placed(err, out, info, int(cfg.pictures), t0)
+    print("[2/3] front end: " + "\n      ".join(
+        [*(rec.pairs.lines() if rec.pairs else []), *frontend.summary.lines()]))
     if ckpt is not None and bool(cfg.get("check_inputs", True)):
         line, info["input_check"] = guard_check(ckpt, [rec.graph], rec.result)
         if line:
@@ -199,6 +209,39 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     print(f"wrote {files['poses']}{colmap} and pictures in {out} "
           f"({time.perf_counter() - t0:.0f} s)")
     return files
+
+
+def _report_nothing_placed(err: Any, out: Path, info: dict[str, Any], pictures: int,
+                           t0: float) -> NoReturn:
+    """A run that placed no camera still writes poses.json (every camera unsolved, every pair
+    with its rejection reason), summary.json and pictures of the pairs with the most matches
+    (to see why), then exits with :data:`EXIT_NOTHING_PLACED`."""
+
+    from ..frontend.features import draw_matches
+    from ..frontend.images import read_image
+    from ..io import atomic_write_json
+    from ..reconstruct import unplaced_json
+
+    fe = err.frontend
+    print("[2/3] front end: " + "\n      ".join([*err.pairs.lines(), *fe.summary.lines()]))
+    out.mkdir(parents=True, exist_ok=True)
+    record = unplaced_json(err, info)
+    atomic_write_json(out / "poses.json", record, indent=1)
+    atomic_write_json(out / "summary.json", {
+        **info, "frontend": fe.summary.to_dict(), "pair_selection": record["pair_selection"],
+        "stages": err.stages, "cameras_placed": 0, "edges": 0,
+        "rejected_pairs": dict(fe.summary.rejected),
+        "seconds_total": round(time.perf_counter() - t0, 2)})
+    best = sorted(fe.matches.items(), key=lambda kv: -len(kv[1]))[:max(pictures, 0)]
+    for n, ((a, b), m) in enumerate(best):
+        ra, rb, pr = fe.records[a], fe.records[b], fe.pair(a, b)
+        draw_matches(read_image(ra.path), read_image(rb.path), m, out / f"matches_{n}.png",
+                     max_lines=80, title=f"{ra.key} <-> {rb.key}: {len(m)} matches, rejected "
+                     f"({pr.reason or pr.status})")
+    print(f"posernet-reconstruct: placed no camera: {err}; wrote {out / 'poses.json'} (every "
+          f"camera unsolved, every pair with its reason){' and pictures' if best else ''}",
+          file=sys.stderr)
+    raise SystemExit(EXIT_NOTHING_PLACED)
 
 
 def _needs_boxes(cfg: DictConfig) -> bool:
