@@ -82,3 +82,66 @@ def test_pycolmap_reads_it(tmp_path):
     assert r.compute_mean_reprojection_error() < 2.0  # synthetic noise 0.5 px
     img = r.images[2]
     assert np.allclose(img.cam_from_world().matrix(), s.w2c[1][:3], atol=1e-8)
+
+
+def _record(n: int = 4, seed: int = 0) -> dict:
+    """A poses.json ``cameras`` record: components 0 (3 cameras) and 1 (1), one unsolved."""
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(seed)
+    cams = {}
+    for i in range(n):
+        T = np.eye(4)
+        T[:3, :3] = Rotation.from_rotvec(rng.normal(size=3) * 0.3).as_matrix()
+        T[:3, 3] = rng.normal(size=3)
+        cams[f"{1305031102.1 + i:.6f}.png"] = {
+            "solved": True, "component": 0 if i < 3 else 1, "camera_to_world": T.tolist(),
+            "K": K.tolist(), "size": [640, 480], "dist": [0.1, -0.05] if i == 1 else None}
+    cams["late.png"] = {"solved": False, "component": None, "camera_to_world": None,
+                        "K": K.tolist(), "size": [640, 480], "dist": None}
+    return cams
+
+
+def test_nerfstudio_transforms_of_the_largest_component(tmp_path):
+    import json
+
+    from posernet.export import largest_component, write_nerfstudio
+
+    cams = _record()
+    assert largest_component(cams) == list(cams)[:3]
+    images = tmp_path / "photos"
+    path = write_nerfstudio(tmp_path / "out" / "transforms.json", cams, images)
+    data = json.loads(path.read_text())
+    assert data["camera_model"] == "OPENCV" and len(data["frames"]) == 3
+    f0 = data["frames"][0]
+    assert f0["file_path"] == "../photos/" + next(iter(cams))
+    # OpenGL axes: the camera's viewing direction (+z in OpenCV) is -z of transform_matrix
+    c2w = np.asarray(cams[next(iter(cams))]["camera_to_world"])
+    M = np.asarray(f0["transform_matrix"])
+    np.testing.assert_allclose(M[:3, 3], c2w[:3, 3])
+    np.testing.assert_allclose(-M[:3, 2], c2w[:3, 2])
+    np.testing.assert_allclose(-M[:3, 1], c2w[:3, 1])
+    assert (f0["fl_x"], f0["fl_y"], f0["cx"], f0["cy"], f0["w"], f0["h"]) == (
+        500.0, 510.0, 320.0, 240.0, 640, 480)
+    assert data["frames"][1]["k1"] == 0.1 and data["frames"][1]["k2"] == -0.05
+    with pytest.raises(ValueError, match="no solved camera"):
+        write_nerfstudio(tmp_path / "t.json", {"a.png": cams["late.png"]}, images)
+
+
+def test_tum_trajectory_round_trip(tmp_path):
+    import torch
+
+    from posernet.export import write_tum
+    from posernet.geometry import pose_vec_to_matrix
+
+    cams = _record()
+    path = write_tum(tmp_path / "traj.txt", cams)
+    rows = [ln.split() for ln in path.read_text().splitlines() if not ln.startswith("#")]
+    assert len(rows) == 3
+    names = list(cams)[:3]
+    for row, name in zip(rows, names, strict=True):
+        assert float(row[0]) == pytest.approx(float(name[:-4]))  # TUM timestamp from the name
+        tx, ty, tz, qx, qy, qz, qw = map(float, row[1:])
+        T = pose_vec_to_matrix(torch.tensor([qw, qx, qy, qz, tx, ty, tz], dtype=torch.float64))
+        np.testing.assert_allclose(T.numpy(), np.asarray(cams[name]["camera_to_world"]),
+                                   atol=1e-7)

@@ -1,4 +1,7 @@
-"""A reconstruction in COLMAP's sparse text format, for the tools that start from one.
+"""A reconstruction in the formats other tools read: COLMAP's sparse text model, nerfstudio's
+``transforms.json`` and a TUM RGB-D trajectory (for evo and the TUM / ETH3D evaluation tools).
+
+COLMAP:
 
 ``cameras.txt``, ``images.txt`` and ``points3D.txt`` (COLMAP's documented text model) hold the
 bundle-adjusted cameras and the triangulated points: multi-view stereo, Gaussian splatting and
@@ -8,6 +11,11 @@ keypoints that observe a point (``POINT2D_IDX`` counts within that list); ids st
 Poses are COLMAP's world-to-camera (quaternion ``w x y z``, translation), the same frame as
 ``poses.json`` (the component's first camera at the identity); the scale is the
 reconstruction's (arbitrary).
+
+nerfstudio (:func:`write_nerfstudio`) and TUM (:func:`write_tum`) are written from a
+``poses.json`` record (its ``cameras``: ``camera_to_world``, ``K``, ``size``, ``dist``,
+``component``) and hold the largest component only: both formats describe one coordinate frame,
+and separate components have unrelated frames and scales.
 """
 
 from __future__ import annotations
@@ -23,7 +31,11 @@ import torch
 from .geometry import matrix_to_pose_vec
 from .io import atomic_write_text
 
-__all__ = ["colmap_camera", "write_colmap_text"]
+__all__ = ["colmap_camera", "largest_component", "write_colmap_text", "write_nerfstudio",
+           "write_tum"]
+
+#: OpenCV camera axes (x right, y down, z forward) -> OpenGL / nerfstudio (x right, y up, z back)
+_CV_TO_GL = np.diag([1.0, -1.0, -1.0, 1.0])
 
 
 def colmap_camera(K: np.ndarray, dist: np.ndarray | None) -> tuple[str, list[float]]:
@@ -132,3 +144,93 @@ def write_colmap_text(
     return [atomic_write_text(out / "cameras.txt", "\n".join(cam_lines) + "\n"),
             atomic_write_text(out / "images.txt", "\n".join(img_lines) + "\n"),
             atomic_write_text(out / "points3D.txt", "\n".join(pt_lines) + "\n")]
+
+
+def largest_component(cameras: dict[str, dict]) -> list[str]:
+    """Names of the solved cameras of the largest component of a ``poses.json`` ``cameras``
+    record (ties: the smaller component id), in the record's order."""
+    solved = {k: c for k, c in cameras.items()
+              if c.get("solved") and c.get("camera_to_world") is not None}
+    if not solved:
+        return []
+    sizes: dict[int, int] = {}
+    for c in solved.values():
+        sizes[int(c.get("component") or 0)] = sizes.get(int(c.get("component") or 0), 0) + 1
+    best = min(sizes, key=lambda comp: (-sizes[comp], comp))
+    return [k for k, c in solved.items() if int(c.get("component") or 0) == best]
+
+
+def write_nerfstudio(path: str | os.PathLike[str], cameras: dict[str, dict],
+                     image_dir: str | os.PathLike[str]) -> Path:
+    """nerfstudio's ``transforms.json`` for the largest component of a ``poses.json``
+    ``cameras`` record: per frame ``file_path`` (relative to ``path``'s folder),
+    ``transform_matrix`` (camera to world in OpenGL axes), intrinsics ``fl_x, fl_y, cx, cy,
+    w, h`` and OpenCV distortion ``k1, k2, p1, p2`` (``k3`` when given); ``camera_model``
+    OPENCV. ``image_dir``: the folder the record's names are relative to."""
+    import json
+
+    from .io import atomic_write_text
+
+    out = Path(path)
+    names = largest_component(cameras)
+    if not names:
+        raise ValueError(f"{out}: no solved camera to export")
+    frames = []
+    for name in names:
+        c = cameras[name]
+        K = np.asarray(c["K"], np.float64)
+        d = np.zeros(5) if c.get("dist") is None else np.pad(
+            np.asarray(c["dist"], np.float64).reshape(-1), (0, 5))[:5]
+        w, h = (c.get("size") or [None, None])[:2]
+        rel = os.path.relpath(os.path.abspath(Path(image_dir) / name),
+                              os.path.abspath(out.parent))
+        frame = {"file_path": Path(rel).as_posix(),
+                 "transform_matrix": (np.asarray(c["camera_to_world"]) @ _CV_TO_GL).tolist(),
+                 "fl_x": float(K[0, 0]), "fl_y": float(K[1, 1]), "cx": float(K[0, 2]),
+                 "cy": float(K[1, 2]), "w": w, "h": h, "k1": float(d[0]), "k2": float(d[1]),
+                 "p1": float(d[2]), "p2": float(d[3])}
+        if d[4]:
+            frame["k3"] = float(d[4])
+        frames.append(frame)
+    body = {"camera_model": "OPENCV", "frames": frames,
+            "posernet": "largest component of poses.json; positions up to one similarity "
+                        "(no metric scale)"}
+    return atomic_write_text(out, json.dumps(body, indent=1) + "\n")
+
+
+def _timestamp(name: str, index: int) -> float:
+    """TUM-style timestamp from a file name (``1305031102.175304.png``), else ``index``."""
+    stem = Path(name).name
+    for suffix in (".color.png", ".color.jpg"):
+        stem = stem.removesuffix(suffix)
+    stem = stem.rsplit(".", 1)[0] if "." in stem else stem
+    try:
+        return float(stem)
+    except ValueError:
+        return float(index)
+
+
+def write_tum(path: str | os.PathLike[str], cameras: dict[str, dict]) -> Path:
+    """TUM RGB-D trajectory text (``timestamp tx ty tz qx qy qz qw``, camera to world) of the
+    largest component of a ``poses.json`` ``cameras`` record, one line per camera in name
+    order; timestamps from TUM-style file names, else the camera's index in that order."""
+    from .io import atomic_write_text
+
+    names = largest_component(cameras)
+    if not names:
+        raise ValueError(f"{path}: no solved camera to export")
+    names = sorted(names)
+    stamps = [_timestamp(n, i) for i, n in enumerate(names)]
+    order = np.argsort(stamps, kind="stable")
+    c2w = torch.as_tensor(np.stack([np.asarray(cameras[n]["camera_to_world"], np.float64)
+                                    for n in names]))
+    q = matrix_to_pose_vec(c2w)[:, :4].numpy()  # w x y z
+    lines = ["# posernet camera-to-world poses (largest component; positions up to one "
+             "similarity), TUM format: timestamp tx ty tz qx qy qz qw",
+             "# images: " + " ".join(names[i] for i in order)]
+    for i in order.tolist():
+        t = c2w[i, :3, 3].numpy()
+        w, x, y, z = q[i]
+        lines.append(f"{stamps[i]:.6f} {t[0]:.9g} {t[1]:.9g} {t[2]:.9g} "
+                     f"{x:.9g} {y:.9g} {z:.9g} {w:.9g}")
+    return atomic_write_text(path, "\n".join(lines) + "\n")

@@ -104,35 +104,46 @@ def _on_sigint(signum: int, frame: Any) -> None:
 
 
 def run_app(prog: str, config_name: str, app: Callable[[], Any], *,
-            list_args: tuple[str, ...] = ()) -> None:
+            list_args: tuple[str, ...] = (),
+            direct: Callable[[Any], Any] | None = None) -> None:
     """Console entry point of a command: check the config (before Hydra makes a run folder),
-    then run the Hydra ``app``; Ctrl-C anywhere is one line and exit status 130."""
+    then run the Hydra ``app``; Ctrl-C anywhere is one line and exit status 130.
+
+    ``direct(cfg)``: for a command whose Hydra job makes no run folder, changes no directory
+    and configures no logging (``posernet-reconstruct``), a plain run (not ``--help``, ``-m``,
+    ...) calls it with the config the check already composed instead of letting ``app``
+    compose it twice more (about 0.3 s of a few-second run)."""
     if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
         signal.signal(signal.SIGINT, _on_sigint)
     try:
         if list_args:
             sys.argv = quote_list_args(sys.argv, list_args)
-        preflight(prog, config_name)
-        app()
+        cfg = preflight(prog, config_name)
+        if direct is not None and cfg is not None:
+            direct(cfg)
+        else:
+            app()
     except KeyboardInterrupt:
         interrupted(prog)
 
 
-def preflight(prog: str, config_name: str, argv: list[str] | None = None) -> None:
+def preflight(prog: str, config_name: str, argv: list[str] | None = None) -> Any:
     """Compose the config from the command line as Hydra will and :func:`check_config` it, so
     that a bad value, an unknown key or group option, or an unwritable output is one line
     before Hydra creates a run folder. Skipped for Hydra's own modes (``--help``, ``--cfg``,
-    ``-m``, another config dir, ...): the command checks its config again when it starts."""
+    ``-m``, another config dir, ...): the command checks its config again when it starts.
+    Returns the checked config without its ``hydra`` node (what a Hydra task receives), or
+    None when skipped."""
     from hydra._internal.utils import get_args_parser
 
     try:
         args = get_args_parser().parse_args(sys.argv[1:] if argv is None else argv)
     except SystemExit:  # Hydra reports its own usage errors
-        return
+        return None
     if (args.help or args.hydra_help or args.cfg or args.info or args.shell_completion
             or args.multirun or args.config_path or args.config_name or args.config_dir
             or args.experimental_rerun or args.run):
-        return
+        return None
     from hydra import compose, initialize_config_dir
     from hydra.core.hydra_config import HydraConfig
     from hydra.errors import HydraException
@@ -150,7 +161,7 @@ def preflight(prog: str, config_name: str, argv: list[str] | None = None) -> Non
         print(f"{prog}: error: {hydra_error_message(exc, config_name)}", file=sys.stderr)
         raise SystemExit(EXIT_USER_ERROR) from None
     if cfg.hydra.get("mode") == RunMode.MULTIRUN:  # e.g. +experiment=depth_sweep
-        return
+        return None
     run_dir = Path(str(cfg.hydra.run.dir)).absolute()
     with read_write(cfg.hydra), open_dict(cfg.hydra):
         cfg.hydra.runtime.output_dir = str(run_dir)
@@ -166,6 +177,9 @@ def preflight(prog: str, config_name: str, argv: list[str] | None = None) -> Non
         raise SystemExit(EXIT_USER_ERROR) from None
     finally:
         hydra_config.cfg = before
+    with read_write(cfg), open_dict(cfg):
+        del cfg["hydra"]
+    return cfg
 
 
 #: what an unknown key usually meant, by (config name, key)

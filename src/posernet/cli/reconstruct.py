@@ -2,15 +2,18 @@
 
     posernet-reconstruct images=photos/ intrinsics=585,585,320,240 out_dir=out
 
-Runs ROI proposals -> keypoint matching -> box matching -> 5-point (KP) with two-view
-verification -> PoserNet (shipped checkpoint, with ``refine=true``; off by default, see
-``posernet/conf/reconstruct.yaml``) -> robust motion averaging (``sync=``) -> tracks,
-triangulation and bundle adjustment (``ba=true``), then writes into ``out_dir``: ``poses.json``
-(format ``posernet-poses``), ``sparse/<k>/`` (the bundle-adjusted cameras and points as COLMAP
-text models, one per component), ``summary.json`` (counts and per-stage timings),
-``matches_<k>.png`` (image pairs with their matched boxes) and ``cameras.png`` (the recovered
-cameras in 3D). With a pose file per image (``<name>.pose.txt``, 7-Scenes layout, or
-``gt_poses=DIR``) it also prints and writes the error tables (``table.md``, ``abs_table.md``).
+Runs pair selection -> keypoint matching (ROI proposals and box matching when a stage uses
+boxes) -> 5-point (KP) with two-view verification -> PoserNet (shipped checkpoint, with
+``refine=true``; off by default, see ``posernet/conf/reconstruct.yaml``) -> robust motion
+averaging (``sync=``) -> tracks, triangulation and bundle adjustment (``ba=true``), then
+writes into ``out_dir``: ``poses.json`` (format ``posernet-poses``), ``sparse/<k>/`` (the
+bundle-adjusted cameras and points as COLMAP text models, one per component),
+``transforms.json`` (nerfstudio) and ``trajectory_tum.txt`` (TUM RGB-D trajectory) of the
+largest component, ``summary.json`` (counts and per-stage timings), ``matches_<k>.png``
+(image pairs with their matches) and ``cameras.png`` (the recovered cameras in 3D). With a
+pose file per image (``<name>.pose.txt``, 7-Scenes layout, or ``gt_poses=DIR``) it also
+prints and writes the error tables (``table.md``, ``abs_table.md``). A run that places no
+camera still writes ``poses.json`` and ``summary.json`` and exits with status 3.
 """
 
 from __future__ import annotations
@@ -172,6 +175,12 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     record = poses_json(rec, info)  # built once: poses.json and the summary share it
     files: dict[str, Any] = {"poses": atomic_write_json(out / "poses.json", record, indent=1)}
     files["colmap"] = write_colmap_models(out / "sparse", rec)
+    if solved_any(record):
+        from ..export import write_nerfstudio, write_tum
+
+        files["nerfstudio"] = write_nerfstudio(out / "transforms.json", record["cameras"],
+                                               cfg.images)
+        files["tum"] = write_tum(out / "trajectory_tum.txt", record["cameras"])
     solved = sum(c["solved"] for c in record["cameras"].values())
     print(f"[3/3] {'PoserNet + ' if model is not None else ''}{backend!r}"
           f"{' + bundle adjustment' if bundle is not None else ''}: {solved} of "
@@ -206,9 +215,14 @@ def run(cfg: DictConfig) -> dict[str, Any]:
         files["evaluation"] = ev
     colmap = (f", COLMAP model{'s' if len(files['colmap']) > 1 else ''} in "
               + ", ".join(str(p) for p in files["colmap"])) if files["colmap"] else ""
-    print(f"wrote {files['poses']}{colmap} and pictures in {out} "
+    more = ", nerfstudio transforms.json, TUM trajectory_tum.txt" if "tum" in files else ""
+    print(f"wrote {files['poses']}{colmap}{more} and pictures in {out} "
           f"({time.perf_counter() - t0:.0f} s)")
     return files
+
+
+def solved_any(record: dict[str, Any]) -> bool:
+    return any(c.get("solved") for c in record["cameras"].values())
 
 
 def _report_nothing_placed(err: Any, out: Path, info: dict[str, Any], pictures: int,
@@ -264,7 +278,12 @@ def _hydra_main(cfg: DictConfig) -> None:
 
 def main() -> None:
     """Console-script entry point (``posernet-reconstruct``)."""
-    run_app("posernet-reconstruct", "reconstruct", _hydra_main, list_args=("intrinsics",))
+    run_app("posernet-reconstruct", "reconstruct", _hydra_main, list_args=("intrinsics",),
+            direct=_direct)
+
+
+def _direct(cfg: DictConfig) -> None:
+    run_task("posernet-reconstruct", run, cfg, errors=(ValueError,))
 
 
 if __name__ == "__main__":
