@@ -208,3 +208,23 @@ def test_guessed_intrinsics_from_exif_or_the_prior(tmp_path):
         guess_intrinsics(tmp_path / "bad.jpg")
     records = records_for_images(tmp_path, "auto", pattern="*.png")
     assert [r.intrinsics_source for r in records] == ["prior"]
+
+
+def test_unusable_images_are_named_or_skipped(tmp_path):
+    from posernet.frontend.images import image_problem, records_for_images
+
+    good = np.full((32, 48, 3), 128, np.uint8)
+    good[8:24, 8:40] = 30
+    cv2.imwrite(str(tmp_path / "a.png"), good)
+    cv2.imwrite(str(tmp_path / "b.jpg"), good)
+    (tmp_path / "c.png").write_bytes(b"\x89PNG\r\n\x1a\n truncated")
+    (tmp_path / "d.jpg").write_bytes(b"")
+    assert image_problem(tmp_path / "a.png") is None and image_problem(tmp_path / "b.jpg") is None
+    assert image_problem(tmp_path / "c.png") == "not an image file OpenCV can decode"
+    assert image_problem(tmp_path / "d.jpg") == "empty file"
+    with pytest.raises(ImageError, match=r"2 unusable image\(s\).*c\.png.*d\.jpg"):
+        records_for_images(tmp_path, "50,50,24,16", gt_poses="none")
+    skipped: list = []
+    recs = records_for_images(tmp_path, "50,50,24,16", gt_poses="none", skipped=skipped)
+    assert [r.key for r in recs] == ["a.png", "b.jpg"]
+    assert skipped == [("c.png", "not an image file OpenCV can decode"), ("d.jpg", "empty file")]

@@ -234,10 +234,24 @@ def test_reconstruct_unreadable_image(scene, tmp_path):
     for p in sorted((scene / "seq-01").glob("*.color.png"))[:3]:
         shutil.copy(p, imgs / p.name)
     (imgs / "broken.png").write_bytes(b"\x89PNG not really")
+    (imgs / "empty.jpg").write_bytes(b"")
+    # skipped with one line each, listed in poses.json; the other images still reconstruct
     r = _run(f"images={imgs}", f"intrinsics={_intr(scene)}", f"out_dir={tmp_path / 'o'}",
-             "matcher=sift")
+             "matcher=sift", "pictures=0")
+    assert r.returncode == 0, r.stderr
+    lines = [ln for ln in r.stderr.splitlines() if "skipped" in ln]
+    assert len(lines) == 2 and "broken.png: not an image file" in lines[0]
+    assert "empty.jpg: empty file" in lines[1]
+    poses = json.loads((tmp_path / "o" / "poses.json").read_text())
+    assert [s["file"] for s in poses["skipped_images"]] == ["broken.png", "empty.jpg"]
+    assert sorted(poses["cameras"]) == sorted(p.name for p in imgs.glob("*.color.png"))
+    # strict=true: nothing runs, one line naming both
+    r = _run(f"images={imgs}", f"intrinsics={_intr(scene)}", f"out_dir={tmp_path / 's'}",
+             "strict=true")
     assert r.returncode == 1
-    assert "broken.png" in r.stderr.splitlines()[-1]
+    last = r.stderr.splitlines()[-1]
+    assert "2 unusable image(s)" in last and "broken.png" in last and "empty.jpg" in last
+    assert not (tmp_path / "s").exists()
 
 
 def test_gauge_fixed_puts_each_component_first_camera_at_identity():

@@ -119,9 +119,13 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     set_threads(cfg.get("num_threads"))
     device = resolve_device(cfg.device)
     out = Path(cfg.out_dir)
+    skipped: list[tuple[str, str]] | None = None if cfg.get("strict", False) else []
     records = records_for_images(cfg.images, OmegaConf.to_object(cfg.intrinsics)
                                  if OmegaConf.is_config(cfg.intrinsics) else cfg.intrinsics,
-                                 cfg.get("pattern"), cfg.get("gt_poses"))
+                                 cfg.get("pattern"), cfg.get("gt_poses"), skipped=skipped)
+    for name, why in skipped or []:
+        print(f"posernet-reconstruct: skipped {name}: {why} (strict=true to stop instead)",
+              file=sys.stderr)
     if len(records) < 2:
         raise ValueError(f"images: {cfg.images} holds {len(records)} image(s); need at least "
                          "2 to place cameras")
@@ -157,7 +161,9 @@ def run(cfg: DictConfig) -> dict[str, Any]:
           f"{getattr(frontend.matcher, 'name', type(frontend.matcher).__name__)}")
     bundle = instantiate(cfg.bundle) if cfg.ba else None
     info: dict[str, Any] = {"images": str(cfg.images), "estimate": str(cfg.estimate),
-                            "checkpoint": str(ckpt) if ckpt else None, "guard": guard}
+                            "checkpoint": str(ckpt) if ckpt else None, "guard": guard,
+                            "skipped_images": [{"file": n, "reason": w}
+                                               for n, w in skipped or []]}
     try:
         rec = reconstruct(frontend, model, backend, device=device, name=Path(cfg.images).name,
                           estimate=str(cfg.estimate), progress=bool(cfg.progress), guard=guard,

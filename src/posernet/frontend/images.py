@@ -36,6 +36,7 @@ __all__ = [
     "ImageError",
     "ImageRecord",
     "guess_intrinsics",
+    "image_problem",
     "intrinsics_matrix",
     "list_images",
     "parse_intrinsics",
@@ -100,6 +101,22 @@ def list_images(folder: str | os.PathLike[str], pattern: str | None = None) -> l
         what = f"matching {pattern!r}" if pattern else f"({', '.join(IMAGE_SUFFIXES)})"
         raise ImageError(f"no image files {what} in {root}")
     return files
+
+
+def image_problem(path: str | os.PathLike[str]) -> str | None:
+    """Why ``path`` cannot be used as an image (``None`` when it can): unreadable, empty, or
+    not decodable by OpenCV. Decodes at 1/8 size (JPEG decodes that way cheaply), so a folder
+    is checked before any heavy work."""
+    try:
+        data = np.fromfile(Path(path), dtype=np.uint8)
+    except OSError as exc:
+        return f"cannot be read ({exc.strerror or exc})"
+    if data.size == 0:
+        return "empty file"
+    img = cv2.imdecode(data, cv2.IMREAD_REDUCED_GRAYSCALE_8)
+    if img is None or img.size == 0:
+        return "not an image file OpenCV can decode"
+    return None
 
 
 def read_image(path: str | os.PathLike[str]) -> np.ndarray:
@@ -319,8 +336,13 @@ def records_for_images(
     intrinsics: Any,
     pattern: str | None = None,
     gt_poses: str | None = "auto",
+    skipped: list[tuple[str, str]] | None = None,
 ) -> list[ImageRecord]:
     """Records of the images in ``folder`` with their intrinsics and, optionally, poses.
+
+    Every file is checked first (:func:`image_problem`): with a ``skipped`` list, unusable
+    files are left out and appended to it as ``(name, reason)``; without one, they raise
+    :class:`ImageError` naming each of them.
 
     ``intrinsics``: a spec for :func:`parse_intrinsics`, or ``"auto"`` / ``None`` to guess
     them per image (:func:`guess_intrinsics`).
@@ -331,6 +353,15 @@ def records_for_images(
     """
     root = Path(folder)
     files = list_images(root, pattern)
+    problems = [image_problem(p) for p in files]
+    bad = [(str(p.relative_to(root)), why) for p, why in zip(files, problems, strict=True)
+           if why]
+    if bad and skipped is None:
+        raise ImageError(f"{len(bad)} unusable image(s) in {root}: "
+                         + "; ".join(f"{k}: {why}" for k, why in bad))
+    if bad:
+        skipped.extend(bad)
+        files = [p for p, why in zip(files, problems, strict=True) if not why]
     keys = [str(p.relative_to(root)) for p in files]
     if intrinsics is None or (isinstance(intrinsics, str) and intrinsics.lower() == "auto"):
         records = []
