@@ -279,9 +279,13 @@ def test_same_command_again_resumes_from_the_cache(scene, tmp_path):
     assert first.returncode == 0, first.stderr
     assert "reused from the cache" not in first.stdout
     poses = json.loads((tmp_path / "out" / "poses.json").read_text())
-    again = _run(*args)
+    again = _run(*args)  # a finished run is not replaced silently
+    assert again.returncode == 1 and "holds a finished run (poses.json)" in again.stderr
+    assert "overwrite=true" in again.stderr.splitlines()[-1]
+    again = _run(*args, "overwrite=true")
     assert again.returncode == 0, again.stderr
     assert "reused from the cache: 8 images, 28 pairs" in again.stdout
+    assert "replaced the previous outputs" in again.stdout
     assert json.loads((tmp_path / "out" / "poses.json").read_text())["cameras"] == poses["cameras"]
     # without the cache nothing is reused, and the result is the same
     fresh = _run(*args[:2], f"out_dir={tmp_path / 'fresh'}", "pictures=0", "cache=false")
@@ -338,3 +342,27 @@ def test_nothing_placed_still_writes_poses_and_says_why(scene, tmp_path):
     shutil.copy(imgs / "n0.png", one / "n0.png")
     r = _run(f"images={one}", "intrinsics=300,300,160,120", f"out_dir={tmp_path / 'o1'}")
     assert r.returncode == 1 and "need at least 2" in r.stderr.splitlines()[-1]
+
+
+@pytest.mark.slow
+def test_out_dir_with_other_files_or_an_interrupted_run(scene, tmp_path):
+    args = (f"images={scene / 'seq-01'}", f"intrinsics={_intr(scene)}", "pictures=0")
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "notes.txt").write_text("mine")
+    r = _run(*args, f"out_dir={other}")
+    assert r.returncode == 1 and "1 other file(s), e.g. notes.txt" in r.stderr
+    r = _run(*args, f"out_dir={other}", "overwrite=true")
+    assert r.returncode == 0, r.stderr
+    assert (other / "notes.txt").read_text() == "mine"  # never removes unknown files
+    # only a cache left (an interrupted run): resumed without overwrite
+    for p in other.iterdir():
+        if p.name != "cache":
+            shutil.rmtree(p) if p.is_dir() else p.unlink()
+    r = _run(*args, f"out_dir={other}")
+    assert r.returncode == 0, r.stderr
+    assert "reused from the cache: 8 images" in r.stdout
+    # a stale output of the earlier run does not survive a replacement
+    (other / "matches_9.png").write_bytes(b"old")
+    r = _run(*args, f"out_dir={other}", "overwrite=true")
+    assert r.returncode == 0 and not (other / "matches_9.png").exists()

@@ -84,7 +84,7 @@ def _image_demo(cfg: DictConfig, out: Path) -> dict[str, Any]:
     intr = ",".join(f"{v:g}" for v in render_intrinsics(folder))
     rcfg = compose("reconstruct", [
         f"images={quote_value(folder / 'seq-01')}", f"intrinsics='{intr}'",
-        "pattern=*.color.png", f"out_dir={quote_value(out / 'reconstruct')}",
+        "pattern=*.color.png", f"out_dir={quote_value(out / 'reconstruct')}", "overwrite=true",
         f"matcher={im.matcher}", f"refine={im.refine}",
         f"device={cfg.device}", f"num_threads={cfg.num_threads}", f"digits={cfg.digits}"])
     print("[images] posernet-reconstruct on the rendered images")

@@ -119,6 +119,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     set_threads(cfg.get("num_threads"))
     device = resolve_device(cfg.device)
     out = Path(cfg.out_dir)
+    replace = _claim_out_dir(out, bool(cfg.get("overwrite", False)))
     skipped: list[tuple[str, str]] | None = None if cfg.get("strict", False) else []
     records = records_for_images(cfg.images, OmegaConf.to_object(cfg.intrinsics)
                                  if OmegaConf.is_config(cfg.intrinsics) else cfg.intrinsics,
@@ -170,6 +171,8 @@ def run(cfg: DictConfig) -> dict[str, Any]:
                           bundle_adjust=bool(cfg.ba), bundle=bundle,
                           pairs=instantiate(cfg.pairs))
     except NothingPlaced as err:
+        if replace:
+            _clear_outputs(out)
         _report_nothing_placed(err, out, info, int(cfg.pictures), t0)
     print("[2/3] front end: " + "\n      ".join(
         [*(rec.pairs.lines() if rec.pairs else []), *frontend.summary.lines()]))
@@ -178,6 +181,8 @@ def run(cfg: DictConfig) -> dict[str, Any]:
         if line:
             print(f"posernet-reconstruct: {line}", file=sys.stderr)
     out.mkdir(parents=True, exist_ok=True)
+    if replace:
+        _clear_outputs(out)
     record = poses_json(rec, info)  # built once: poses.json and the summary share it
     files: dict[str, Any] = {"poses": atomic_write_json(out / "poses.json", record, indent=1)}
     files["colmap"] = write_colmap_models(out / "sparse", rec)
@@ -225,6 +230,47 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     print(f"wrote {files['poses']}{colmap}{more} and pictures in {out} "
           f"({time.perf_counter() - t0:.0f} s)")
     return files
+
+
+#: what a run writes into out_dir (removed before a run replaces an earlier one there)
+_OUTPUTS = ("poses.json", "summary.json", "cameras.png", "matches_*.png", "table.md",
+            "table.csv", "abs_table.md", "abs_table.csv", "transforms.json",
+            "trajectory_tum.txt", "sparse")
+
+
+def _claim_out_dir(out: Path, overwrite: bool) -> bool:
+    """Check ``out`` before any work: new, empty, or holding only an interrupted run's
+    ``cache/`` (resumed) is fine; a finished run (``poses.json``) or other files need
+    ``overwrite=true``, else a one-line error. Returns whether earlier outputs must be removed
+    (:func:`_clear_outputs`, just before the new ones are written, so that a run that fails
+    early loses nothing)."""
+    if not out.is_dir():
+        return False
+    entries = [p for p in out.iterdir() if p.name != "cache"]
+    if not entries:
+        return False
+    if not overwrite:
+        what = ("a finished run (poses.json)" if (out / "poses.json").is_file()
+                else f"{len(entries)} other file(s), e.g. {sorted(p.name for p in entries)[0]}")
+        raise ValueError(f"out_dir: {out} holds {what}; overwrite=true replaces its outputs "
+                         "(the feature/match cache is reused), or choose another out_dir")
+    return True
+
+
+def _clear_outputs(out: Path) -> None:
+    """Remove an earlier run's outputs from ``out`` (never its cache or unknown files)."""
+    import shutil
+
+    removed = 0
+    for pattern in _OUTPUTS:
+        for p in out.glob(pattern):
+            if p.is_dir():
+                shutil.rmtree(p)
+            else:
+                p.unlink()
+            removed += 1
+    print(f"out_dir: replaced the previous outputs in {out} ({removed} removed; its cache "
+          "was reused)")
 
 
 def solved_any(record: dict[str, Any]) -> bool:

@@ -375,7 +375,7 @@ COMMANDS: dict[str, Command] = {
               "gt_poses": path(null=True), "out_dir": path(), "refine": boolean(), "ba": boolean(),
               "guard": boolean(), "check_inputs": boolean(), "cache": boolean(),
               "boxes": auto_or_bool(), "max_image_size": integer(32, null=True),
-              "strict": boolean(),
+              "strict": boolean(), "overwrite": boolean(),
               "ckpt_path": path(null=True), "estimate": ESTIMATE, "kp_top_pairs": integer(0),
               "edge_rule": choice("verified", "boxes"),
               "seed": SEED, "workers": integer(0), "pictures": integer(0), "device": DEVICE,
