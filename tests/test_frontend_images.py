@@ -228,3 +228,46 @@ def test_unusable_images_are_named_or_skipped(tmp_path):
     recs = records_for_images(tmp_path, "50,50,24,16", gt_poses="none", skipped=skipped)
     assert [r.key for r in recs] == ["a.png", "b.jpg"]
     assert skipped == [("c.png", "not an image file OpenCV can decode"), ("d.jpg", "empty file")]
+
+
+def test_ground_truth_from_a_tum_trajectory_or_a_colmap_model(tmp_path):
+    from posernet.export import write_colmap_text, write_tum
+    from posernet.frontend.images import read_colmap_images, read_tum_trajectory
+    from posernet.sfm.synthetic import make_scene
+
+    sc = make_scene(num_cameras=4, num_points=60, seed=2)
+    c2w = np.linalg.inv(sc.w2c)
+    imgs = tmp_path / "rgb"
+    imgs.mkdir()
+    img = np.full((32, 48, 3), 90, np.uint8)
+    img[4:20, 6:30] = 200
+    names = [f"{1305031102.1 + 0.5 * i:.6f}.png" for i in range(4)]
+    for n in names:
+        cv2.imwrite(str(imgs / n), img)
+    # TUM trajectory (written by our exporter, read back) with the stamps 5 ms off
+    cams = {f"{1305031102.1 + 0.5 * i + 0.005:.6f}.png": {
+        "solved": True, "component": 0, "camera_to_world": c2w[i].tolist()} for i in range(4)}
+    traj = write_tum(tmp_path / "groundtruth.txt", cams)
+    t, poses = read_tum_trajectory(traj)
+    assert np.all(np.diff(t) > 0)
+    np.testing.assert_allclose(poses, c2w, atol=1e-7)
+    recs = records_for_images(imgs, "50,50,24,16", gt_poses=str(traj))
+    np.testing.assert_allclose(np.stack([r.c2w for r in recs]), c2w, atol=1e-7)
+    # an image 1 s away from every ground-truth pose: named
+    cv2.imwrite(str(imgs / "1305031110.000000.png"), img)
+    with pytest.raises(ImageError, match=r"no pose within 20 ms of 1 image.*1305031110"):
+        records_for_images(imgs, "50,50,24,16", gt_poses=str(traj))
+    (imgs / "1305031110.000000.png").unlink()
+    # a malformed line is named
+    bad = tmp_path / "bad.txt"
+    bad.write_text("# header\n1305031102.1 1 2 3 0 0 0\n")
+    with pytest.raises(ImageError, match="line 2"):
+        read_tum_trajectory(bad)
+    # COLMAP text model as ground truth, matched by name
+    model = tmp_path / "model"
+    write_colmap_text(model, names, None, [(48, 32)] * 4, sc.K, [None] * 4, sc.w2c,
+                      np.arange(4), sc.uv, sc.points, sc.obs_image, sc.obs_kp, sc.obs_point)
+    got = read_colmap_images(model)
+    np.testing.assert_allclose(np.stack([got[n] for n in names]), c2w, atol=1e-6)
+    recs = records_for_images(imgs, "50,50,24,16", gt_poses=str(model))
+    np.testing.assert_allclose(np.stack([r.c2w for r in recs]), c2w, atol=1e-6)

@@ -200,14 +200,10 @@ def write_nerfstudio(path: str | os.PathLike[str], cameras: dict[str, dict],
 
 def _timestamp(name: str, index: int) -> float:
     """TUM-style timestamp from a file name (``1305031102.175304.png``), else ``index``."""
-    stem = Path(name).name
-    for suffix in (".color.png", ".color.jpg"):
-        stem = stem.removesuffix(suffix)
-    stem = stem.rsplit(".", 1)[0] if "." in stem else stem
-    try:
-        return float(stem)
-    except ValueError:
-        return float(index)
+    from .frontend.images import image_timestamp
+
+    t = image_timestamp(name)
+    return float(index) if t is None else t
 
 
 def write_tum(path: str | os.PathLike[str], cameras: dict[str, dict]) -> Path:

@@ -35,13 +35,17 @@ __all__ = [
     "IMAGE_SUFFIXES",
     "ImageError",
     "ImageRecord",
+    "associate",
     "guess_intrinsics",
     "image_problem",
+    "image_timestamp",
     "intrinsics_matrix",
     "list_images",
     "parse_intrinsics",
+    "read_colmap_images",
     "read_image",
     "read_pose_file",
+    "read_tum_trajectory",
     "records_for_images",
 ]
 
@@ -320,6 +324,96 @@ def read_pose_file(path: str | os.PathLike[str]) -> np.ndarray:
     return out
 
 
+def _quat_to_matrix(q_wxyz: np.ndarray) -> np.ndarray:
+    """``(N, 3, 3)`` rotations of unit quaternions ``(N, 4)`` (w, x, y, z; normalised here)."""
+    q = q_wxyz / np.linalg.norm(q_wxyz, axis=1, keepdims=True)
+    w, x, y, z = q.T
+    return np.stack([
+        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], 1),
+        np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], 1),
+        np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], 1)], 1)
+
+
+def read_tum_trajectory(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarray]:
+    """A TUM RGB-D trajectory file (``groundtruth.txt``: ``timestamp tx ty tz qx qy qz qw``
+    per line, camera to world, ``#`` comments) -> timestamps ``(N,)`` and ``c2w (N, 4, 4)``,
+    sorted by time; a clear error naming the file and line otherwise."""
+    p = Path(path)
+    try:
+        text = p.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as e:
+        raise ImageError(f"cannot read trajectory {p}: {e}") from None
+    rows = []
+    for n, line in enumerate(text.splitlines(), 1):
+        if not line.strip() or line.lstrip().startswith("#"):
+            continue
+        vals = line.replace(",", " ").split()
+        try:
+            row = [float(v) for v in vals]
+        except ValueError:
+            row = []
+        if len(row) != 8 or not np.isfinite(row).all():
+            raise ImageError(f"trajectory {p} line {n}: expected 'timestamp tx ty tz qx qy qz "
+                             f"qw', got {line.strip()[:60]!r}")
+        rows.append(row)
+    if not rows:
+        raise ImageError(f"trajectory {p} holds no pose")
+    a = np.array(rows)
+    a = a[np.argsort(a[:, 0], kind="stable")]
+    c2w = np.tile(np.eye(4), (len(a), 1, 1))
+    c2w[:, :3, :3] = _quat_to_matrix(a[:, [7, 4, 5, 6]])
+    c2w[:, :3, 3] = a[:, 1:4]
+    return a[:, 0], c2w
+
+
+def image_timestamp(name: str) -> float | None:
+    """The timestamp in a TUM-style image name (``rgb/1305031102.175304.png``), or None."""
+    stem = Path(name).name
+    for suffix in (".color.png", ".color.jpg"):
+        stem = stem.removesuffix(suffix)
+    stem = stem.rsplit(".", 1)[0] if stem.count(".") >= 1 else stem
+    try:
+        return float(stem)
+    except ValueError:
+        return None
+
+
+def associate(stamps: np.ndarray, gt_stamps: np.ndarray, max_diff: float = 0.02) -> np.ndarray:
+    """Index into sorted ``gt_stamps`` of the nearest ground-truth time for each of ``stamps``
+    (``-1`` where the nearest is more than ``max_diff`` seconds away; TUM's association rule)."""
+    stamps = np.asarray(stamps, np.float64)
+    j = np.clip(np.searchsorted(gt_stamps, stamps), 1, max(len(gt_stamps) - 1, 1))
+    left = np.abs(stamps - gt_stamps[j - 1])
+    right = np.abs(gt_stamps[np.minimum(j, len(gt_stamps) - 1)] - stamps)
+    best = np.where(left <= right, j - 1, np.minimum(j, len(gt_stamps) - 1))
+    return np.where(np.abs(gt_stamps[best] - stamps) <= max_diff, best, -1)
+
+
+def read_colmap_images(folder: str | os.PathLike[str]) -> dict[str, np.ndarray]:
+    """Camera-to-world poses by image name from a COLMAP text model's ``images.txt`` (in
+    ``folder`` or ``folder/images.txt`` itself)."""
+    p = Path(folder)
+    p = p / "images.txt" if p.is_dir() else p
+    try:
+        lines = [ln for ln in p.read_text(encoding="utf-8").splitlines()
+                 if ln.strip() and not ln.startswith("#")]
+    except (OSError, UnicodeDecodeError) as e:
+        raise ImageError(f"cannot read COLMAP model {p}: {e}") from None
+    out = {}
+    for head in lines[0::2]:  # each image: a pose line, then its 2D points line
+        f = head.split()
+        try:
+            q = np.array([float(v) for v in f[1:5]])[None]
+            t = np.array([float(v) for v in f[5:8]])
+            name = f[9]
+        except (ValueError, IndexError):
+            raise ImageError(f"COLMAP model {p}: bad image line {head[:60]!r}") from None
+        w2c = np.eye(4)
+        w2c[:3, :3], w2c[:3, 3] = _quat_to_matrix(q)[0], t
+        out[name] = np.linalg.inv(w2c)
+    return out
+
+
 def _pose_path(image: Path, pose_dir: Path | None) -> Path:
     name = image.name
     for suffix in (".color.png", ".color.jpg"):
@@ -329,6 +423,33 @@ def _pose_path(image: Path, pose_dir: Path | None) -> Path:
     else:
         name = image.stem + ".pose.txt"
     return (pose_dir or image.parent) / name
+
+
+def _external_gt(records: list[ImageRecord], src: Path) -> list[ImageRecord]:
+    """Ground truth from a COLMAP model or a TUM trajectory file for every record."""
+    if src.is_dir() or src.name == "images.txt":
+        poses = read_colmap_images(src)
+        missing = [r.key for r in records if r.key not in poses and r.path.name not in poses]
+        if missing:
+            raise ImageError(f"gt_poses: {src} has no pose for {len(missing)} image(s), e.g. "
+                             f"{missing[0]}")
+        for r in records:
+            r.c2w = poses.get(r.key, poses.get(r.path.name))
+        return records
+    gt_t, gt_c2w = read_tum_trajectory(src)
+    stamps = [image_timestamp(r.key) for r in records]
+    if any(s is None for s in stamps):
+        bad = next(r.key for r, s in zip(records, stamps, strict=True) if s is None)
+        raise ImageError(f"gt_poses: {src} is a trajectory, but {bad} has no timestamp in its "
+                         "name (TUM style: 1305031102.175304.png)")
+    idx = associate(np.array(stamps), gt_t)
+    if (idx < 0).any():
+        k = int(np.flatnonzero(idx < 0)[0])
+        raise ImageError(f"gt_poses: {src} has no pose within 20 ms of {int((idx < 0).sum())} "
+                         f"image(s), e.g. {records[k].key}")
+    for r, i in zip(records, idx.tolist(), strict=True):
+        r.c2w = gt_c2w[i].copy()
+    return records
 
 
 def records_for_images(
@@ -349,7 +470,10 @@ def records_for_images(
 
     ``gt_poses``: ``"auto"`` uses ``<name>.pose.txt`` files beside the images when every image
     has one (7-Scenes layout: ``frame-000000.color.png`` -> ``frame-000000.pose.txt``),
-    ``"none"``/``None`` ignores them, a folder path requires one per image there.
+    ``"none"``/``None`` ignores them; a folder requires one pose file per image there, a COLMAP
+    text model (a folder with ``images.txt``) one image entry per image (matched by name), and
+    a TUM trajectory file (``groundtruth.txt``) a pose within 20 ms of each image's
+    timestamp (from TUM-style names, ``1305031102.175304.png``).
     """
     root = Path(folder)
     files = list_images(root, pattern)
@@ -376,6 +500,8 @@ def records_for_images(
     if mode.lower() == "none":
         return records
     pose_dir = None if mode == "auto" else Path(mode)
+    if pose_dir is not None and (pose_dir.is_file() or (pose_dir / "images.txt").is_file()):
+        return _external_gt(records, pose_dir)
     if pose_dir is not None and not pose_dir.is_dir():
         raise ImageError(f"gt_poses folder not found: {pose_dir}")
     paths = [_pose_path(r.path, pose_dir) for r in records]
