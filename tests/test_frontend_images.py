@@ -271,3 +271,30 @@ def test_ground_truth_from_a_tum_trajectory_or_a_colmap_model(tmp_path):
     np.testing.assert_allclose(np.stack([got[n] for n in names]), c2w, atol=1e-6)
     recs = records_for_images(imgs, "50,50,24,16", gt_poses=str(model))
     np.testing.assert_allclose(np.stack([r.c2w for r in recs]), c2w, atol=1e-6)
+
+
+def test_given_intrinsics_must_fit_the_images(tmp_path):
+    from posernet.frontend.images import image_size
+
+    img = np.full((48, 64, 3), 90, np.uint8)
+    img[8:30, 10:40] = 200
+    cv2.imwrite(str(tmp_path / "a.png"), img)
+    cv2.imwrite(str(tmp_path / "b.jpg"), img)
+    assert image_size(tmp_path / "a.png") == (64, 48) == image_size(tmp_path / "b.jpg")
+    assert records_for_images(tmp_path, "60,60,32,24", gt_poses="none")  # fits
+    with pytest.raises(ImageError, match=r"a\.png: principal point \(320, 240\) lies outside "
+                                         r"the 64x48 image"):
+        records_for_images(tmp_path, "60,60,320,240", gt_poses="none")
+    with pytest.raises(ImageError, match="fx=0.5 px is implausible for a 64x48 image"):
+        records_for_images(tmp_path, "0.5,0.5,32,24", gt_poses="none")
+    spec = tmp_path / "k.json"
+    spec.write_text(json.dumps({"default": {"fx": 60, "fy": 60, "cx": 32, "cy": 24},
+                                "images": {"a.png": {"fx": 61, "fy": 61, "cx": 32, "cy": 24},
+                                           "zz.png": {"fx": 1, "fy": 1, "cx": 1, "cy": 1}}}))
+    with pytest.raises(ImageError, match="not among the images: zz.png"):
+        records_for_images(tmp_path, str(spec), gt_poses="none")
+    # one shared K for images of different sizes
+    cv2.imwrite(str(tmp_path / "c.png"), cv2.resize(img, (128, 96)))
+    with pytest.raises(ImageError, match="one camera matrix for images of 2 sizes"):
+        records_for_images(tmp_path, "60,60,32,24", gt_poses="none")
+    assert len(records_for_images(tmp_path, "auto", gt_poses="none")) == 3  # guessed per image

@@ -36,8 +36,10 @@ __all__ = [
     "ImageError",
     "ImageRecord",
     "associate",
+    "check_intrinsics",
     "guess_intrinsics",
     "image_problem",
+    "image_size",
     "image_timestamp",
     "intrinsics_matrix",
     "list_images",
@@ -105,6 +107,47 @@ def list_images(folder: str | os.PathLike[str], pattern: str | None = None) -> l
         what = f"matching {pattern!r}" if pattern else f"({', '.join(IMAGE_SUFFIXES)})"
         raise ImageError(f"no image files {what} in {root}")
     return files
+
+
+def check_intrinsics(K: np.ndarray, size: tuple[int, int], where: str) -> None:
+    """Raise :class:`ImageError` (naming ``where``) when ``K (3, 3)`` cannot belong to an
+    image of ``size`` (W, H): the principal point outside the image, or a focal length
+    outside 0.1-30 times the longer side (a field of view from about 2 to 160 degrees; a
+    focal length given in mm rather than pixels falls below it)."""
+    w, h = size
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    if not (0 <= cx <= w and 0 <= cy <= h):
+        raise ImageError(f"{where}: principal point ({cx:g}, {cy:g}) lies outside the {w}x{h} "
+                         "image (intrinsics are in pixels of this image)")
+    long = max(w, h)
+    for name, f in (("fx", fx), ("fy", fy)):
+        if not 0.1 * long <= f <= 30 * long:
+            raise ImageError(f"{where}: focal length {name}={f:g} px is implausible for a "
+                             f"{w}x{h} image (expected {0.1 * long:g}-{30 * long:g} px; in "
+                             "pixels, not mm)")
+
+
+def image_size(path: str | os.PathLike[str]) -> tuple[int, int] | None:
+    """``(W, H)`` of an image file read from its header (PNG, JPEG), or None."""
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(1 << 16)
+    except OSError:
+        return None
+    if head[:8] == b"\x89PNG\r\n\x1a\n" and len(head) >= 24:
+        return int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")
+    if head[:2] == b"\xff\xd8":  # JPEG: walk the markers to a start-of-frame
+        i = 2
+        while i + 9 < len(head):
+            if head[i] != 0xFF:
+                return None
+            marker, seg = head[i + 1], int.from_bytes(head[i + 2:i + 4], "big")
+            if marker in (0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD,
+                          0xCE, 0xCF):
+                return (int.from_bytes(head[i + 7:i + 9], "big"),
+                        int.from_bytes(head[i + 5:i + 7], "big"))
+            i += 2 + seg
+    return None
 
 
 def image_problem(path: str | os.PathLike[str]) -> str | None:
@@ -273,6 +316,12 @@ def _intrinsics_file(path: Path, keys: Sequence[str]) -> list[tuple[np.ndarray, 
             if entry is None:
                 raise ImageError(f"{path}: no intrinsics for image {key!r} and no 'default'")
             out.append(intrinsics_matrix(entry, f"{path} [{key}]"))
+        known = set(keys) | {Path(k).name for k in keys}
+        unknown = sorted(str(k) for k in per if str(k) not in known)
+        if unknown:  # a typo would otherwise give its image the default silently
+            raise ImageError(f"{path}: 'images' names {len(unknown)} file(s) that are not among "
+                             f"the images: {', '.join(unknown[:5])}"
+                             + (" ..." if len(unknown) > 5 else ""))
         return out
     shared = intrinsics_matrix(data, str(path))
     return [shared] * len(keys)
@@ -478,6 +527,7 @@ def records_for_images(
     root = Path(folder)
     files = list_images(root, pattern)
     problems = [image_problem(p) for p in files]
+    listed = [str(p.relative_to(root)) for p in files]  # skipped ones too (intrinsics files)
     bad = [(str(p.relative_to(root)), why) for p, why in zip(files, problems, strict=True)
            if why]
     if bad and skipped is None:
@@ -493,9 +543,22 @@ def records_for_images(
             K, source = guess_intrinsics(p)
             records.append(ImageRecord(path=p, key=k, K=K, intrinsics_source=source))
     else:
-        cams = parse_intrinsics(intrinsics, keys)
+        by_key = dict(zip(listed, parse_intrinsics(intrinsics, listed), strict=True))
+        cams = [by_key[k] for k in keys]
         records = [ImageRecord(path=p, key=k, K=K, dist=d)
                    for p, k, (K, d) in zip(files, keys, cams, strict=True)]
+        sizes = {}
+        for r in records:  # given intrinsics must fit the image they are for
+            size = image_size(r.path)
+            if size is not None:
+                check_intrinsics(r.K, size, f"intrinsics for {r.key}")
+                sizes.setdefault(size, r.key)
+        shared = all(np.array_equal(r.K, records[0].K) for r in records)
+        if shared and len(sizes) > 1:
+            eg = ", ".join(f"{w}x{h} ({k})" for (w, h), k in list(sizes.items())[:3])
+            raise ImageError(f"intrinsics: one camera matrix for images of {len(sizes)} sizes "
+                             f"({eg}); give per-image intrinsics in a JSON file, or "
+                             "intrinsics=auto")
     mode = "none" if gt_poses is None else str(gt_poses)
     if mode.lower() == "none":
         return records
