@@ -5,6 +5,7 @@ are in test_failures.py."""
 from __future__ import annotations
 
 import signal
+import sys
 from pathlib import Path
 
 import pytest
@@ -325,3 +326,42 @@ def test_multiline_messages_become_one_line(capsys):
     report_error("posernet-x", exc.value)
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "full_key" not in err
+
+
+# ------------------------------------------------------------------------- --help
+
+
+@pytest.mark.parametrize(("prog", "name"), [
+    ("posernet-reconstruct", "reconstruct"), ("posernet-train", "train"),
+    ("posernet-eval", "eval"), ("posernet-refine", "refine"),
+    ("posernet-make-data", "make_data"), ("posernet-demo", "demo")])
+def test_help_is_written_from_the_commands_own_config(prog, name):
+    from posernet.cli import CONFIG_DIR
+    from posernet.cli.help import command_help
+
+    text = command_help(prog, CONFIG_DIR, name)
+    assert text.startswith(f"usage: {prog}") and "options (key, default, meaning):" in text
+    assert "???" not in text and "hydra.run" not in text
+    if name == "reconstruct":
+        assert text.splitlines()[0] == "usage: posernet-reconstruct images=... [key=value ...]"
+        assert "\nrequired:\n  images" in text
+        # only this command's groups, each with its choices, default first
+        assert "  matcher                  sift, auto, xfeat, xfeat_lighterglue" in text
+        assert "trainer" not in text and "callbacks" not in text
+        # meanings from the comment beside an option, or the block right above it
+        line = next(ln for ln in text.splitlines() if ln.strip().startswith("pairs.mode "))
+        assert "exhaustive up to auto_max" in line
+        line = next(ln for ln in text.splitlines() if ln.strip().startswith("boxes "))
+        assert "only when a stage uses them" in line
+    if name == "train":
+        assert "  trainer" in text and "gpu" in text
+
+
+def test_help_flag_prints_it_and_exits_0(capsys, monkeypatch):
+    from posernet.cli.common import run_app
+
+    monkeypatch.setattr(sys, "argv", ["posernet-reconstruct", "--help"])
+    with pytest.raises(SystemExit) as exc:
+        run_app("posernet-reconstruct", "reconstruct", lambda: pytest.fail("app ran"))
+    assert exc.value.code == 0
+    assert capsys.readouterr().out.startswith("usage: posernet-reconstruct images=...")

@@ -115,6 +115,12 @@ def run_app(prog: str, config_name: str, app: Callable[[], Any], *,
     compose it twice more (about 0.3 s of a few-second run)."""
     if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
         signal.signal(signal.SIGINT, _on_sigint)
+    if any(a in ("--help", "-h") for a in sys.argv[1:]):
+        from . import CONFIG_DIR
+        from .help import command_help
+
+        print(command_help(prog, CONFIG_DIR, config_name), end="")
+        raise SystemExit(0)
     try:
         if list_args:
             sys.argv = quote_list_args(sys.argv, list_args)
