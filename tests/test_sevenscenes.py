@@ -235,12 +235,20 @@ def test_empty_sequence(copy: Path) -> None:
         SevenScenesScene(copy)
 
 
-@pytest.mark.parametrize("suffix", [".depth.png", ".pose.txt"])
-def test_frame_file_missing(copy: Path, suffix: str) -> None:
-    missing = copy / "seq-03" / f"frame-000001{suffix}"
+def test_frame_pose_missing(copy: Path) -> None:
+    missing = copy / "seq-03" / "frame-000001.pose.txt"
     missing.unlink()
     with pytest.raises(SevenScenesError, match=_esc(missing) + " is missing"):
         SevenScenesScene(copy)
+
+
+def test_depth_images_are_optional(copy: Path) -> None:
+    """RGB-only data in the 7-Scenes layout: graphs never read depth."""
+    for p in copy.rglob("*.depth.png"):
+        p.unlink()
+    scene = SevenScenesScene(copy)
+    frames = scene.frames("test")
+    assert frames and all(f.depth is None for f in frames)
 
 
 @pytest.mark.parametrize(

@@ -58,7 +58,7 @@ class SevenScenesFrame:
     sequence: str
     index: int
     color: Path
-    depth: Path
+    depth: Path | None  # None: no depth image (building graphs never reads depth)
     pose: Path
 
     @property
@@ -184,7 +184,8 @@ class SevenScenesScene:
         }
 
     def _scan(self, split: str, seq: str) -> list[SevenScenesFrame]:
-        """Frames of one sequence folder, by number; each needs its depth and pose file."""
+        """Frames of one sequence folder, by number; each needs its pose file (its depth image
+        is optional: RGB-only data in this layout builds graphs the same way)."""
         folder = self.path / seq
         names = {e.name for e in os.scandir(folder)}
         found = []
@@ -196,12 +197,11 @@ class SevenScenesScene:
             raise SevenScenesError(f"sequence folder {folder} holds no frame-*.color.png images")
         frames = []
         for idx, stem in sorted(found):
-            for suffix in (".depth.png", ".pose.txt"):
-                if stem + suffix not in names:
-                    raise SevenScenesError(
-                        f"frame {folder / (stem + '.color.png')}: {folder / (stem + suffix)} "
-                        f"is missing"
-                    )
+            if stem + ".pose.txt" not in names:
+                raise SevenScenesError(
+                    f"frame {folder / (stem + '.color.png')}: "
+                    f"{folder / (stem + '.pose.txt')} is missing"
+                )
             frames.append(
                 SevenScenesFrame(
                     scene=self.name,
@@ -209,7 +209,8 @@ class SevenScenesScene:
                     sequence=seq,
                     index=idx,
                     color=folder / f"{stem}.color.png",
-                    depth=folder / f"{stem}.depth.png",
+                    depth=(folder / f"{stem}.depth.png"
+                           if stem + ".depth.png" in names else None),
                     pose=folder / f"{stem}.pose.txt",
                 )
             )
