@@ -387,3 +387,14 @@ def test_sift_detects_again_on_sparse_images(pair):
     for bad in (-1, 2.5, True):
         with pytest.raises(ValueError, match="min_features"):
             SiftMatcher(min_features=bad)
+
+
+def test_matcher_names_match_the_command_line():
+    from posernet.frontend.features import make_matcher
+
+    assert isinstance(make_matcher("sift"), SiftMatcher)
+    if F.xfeat_available():
+        a, b = make_matcher("xfeat_lighterglue"), make_matcher("xfeat+lighterglue")
+        assert repr(a) == repr(b)
+    with pytest.raises(F.MatcherError, match="unknown matcher 'orb'"):
+        make_matcher("orb")

@@ -24,7 +24,7 @@ from pathlib import Path
 from typing import Any
 
 __all__ = ["CHECKPOINT_TAG", "DEFAULT_CHECKPOINT", "CheckpointError", "default_checkpoint",
-           "network_hparams", "read_checkpoint"]
+           "network_hparams", "read_checkpoint", "resolve_checkpoint", "shipped_checkpoints"]
 
 DEFAULT_CHECKPOINT = "posernet_synthetic_kp.ckpt"
 
@@ -43,6 +43,27 @@ def default_checkpoint(name: str = DEFAULT_CHECKPOINT) -> Path:
         shipped = sorted(p.name for p in path.parent.glob("*.ckpt"))
         raise FileNotFoundError(f"shipped checkpoint {name!r} not found in {path.parent} "
                                 f"(shipped: {shipped or 'none'}); pass ckpt_path=... instead")
+    return path
+
+
+def shipped_checkpoints() -> list[str]:
+    """File names of the checkpoints shipped inside the package (also in a wheel install)."""
+    return sorted(p.name for p in Path(__file__).resolve().parent.glob("*.ckpt"))
+
+
+def resolve_checkpoint(value: str | os.PathLike[str] | None) -> Path:
+    """The checkpoint a command option names: ``None`` or ``"shipped"`` -> the default shipped
+    one; ``"shipped:NAME"`` or a shipped file name (``posernet_synthetic_kp_v1.ckpt``, when no
+    such file exists where it is run) -> that shipped checkpoint; anything else a path. The same
+    rule for ``ckpt_path`` and ``init_from`` of every command."""
+    if value is None or str(value) in ("", "shipped"):
+        return default_checkpoint()
+    text = str(value)
+    if text.startswith("shipped:"):
+        return default_checkpoint(text.split(":", 1)[1])
+    path = Path(text)
+    if not path.exists() and path.name == text and text in shipped_checkpoints():
+        return default_checkpoint(text)
     return path
 
 

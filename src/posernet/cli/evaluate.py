@@ -65,7 +65,9 @@ def evaluate(cfg: DictConfig) -> dict[str, Any]:
     set_threads(cfg.get("num_threads"))
     device = torch.device(resolve_device(cfg.device))
     # The bare network: evaluating needs neither Lightning nor the optimiser state.
-    module = PoserNet.from_checkpoint(cfg.ckpt_path, map_location=device)
+    from ..checkpoints import resolve_checkpoint
+
+    module = PoserNet.from_checkpoint(resolve_checkpoint(cfg.ckpt_path), map_location=device)
     batches, source = _test_batches(cfg)
     sync_name = str(cfg.sync.get("name", "none")) if cfg.get("sync") else "none"
     sync = _sync_backend(cfg) if sync_name != "none" else None

@@ -105,7 +105,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     """Run the reconstruct job described by ``cfg``; returns the written files and tables."""
     from hydra.utils import instantiate
 
-    from ..checkpoints import default_checkpoint
+    from ..checkpoints import resolve_checkpoint
     from ..frontend.images import records_for_images
     from ..frontend.pipeline import ImageFrontend
     from ..io import atomic_write_json
@@ -132,7 +132,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
                          "2 to place cameras")
     model, ckpt = None, None
     if cfg.refine:
-        ckpt = Path(cfg.ckpt_path) if cfg.get("ckpt_path") else default_checkpoint()
+        ckpt = resolve_checkpoint(cfg.get("ckpt_path"))
         model = PoserNet.from_checkpoint(ckpt, map_location=device)
     guard = guard_option(cfg, model, ckpt)
     backend = backend_from_config(OmegaConf.to_container(cfg.sync, resolve=True))

@@ -33,7 +33,7 @@ __all__ = ["main", "refine"]
 
 def refine(cfg: DictConfig) -> dict[str, Any]:
     """Run the refine job described by ``cfg``; returns the output paths and tables."""
-    from ..checkpoints import default_checkpoint
+    from ..checkpoints import resolve_checkpoint
     from ..io import atomic_write_json
     from ..nn import PoserNet
     from ..pipeline import (
@@ -48,7 +48,7 @@ def refine(cfg: DictConfig) -> dict[str, Any]:
     check_config(cfg, "refine")
     set_threads(cfg.get("num_threads"))
     device = resolve_device(cfg.device)
-    ckpt = Path(cfg.ckpt_path) if cfg.get("ckpt_path") else default_checkpoint()
+    ckpt = resolve_checkpoint(cfg.get("ckpt_path"))
     model = PoserNet.from_checkpoint(ckpt, map_location=device)
     backend = backend_from_config(OmegaConf.to_container(cfg.sync, resolve=True)) \
         if cfg.get("sync") else None

