@@ -72,6 +72,20 @@ ROWS = [
         r"out_dir: '/proc/posernet-x' is not a writable folder"),
     Row("train", "data.root={data} trainer=gpu hydra.run.dir={run}",
         r"trainer\.accelerator=gpu but CUDA is not available$"),
+    Row("train", "data.root={data} trainer.devices=0 hydra.run.dir={run}",
+        r"trainer\.devices: 0 is not an integer >= 1"),
+    Row("train", "data.root={data} trainer.accelerator=tpu hydra.run.dir={run}",
+        r"trainer\.accelerator: 'tpu' is not one of auto, cpu, gpu, cuda, mps$"),
+    Row("train", "data.root={data} +trainer.precision=abc hydra.run.dir={run}",
+        r"trainer\.precision: 'abc' is not one of 64, 32"),
+    Row("train", "data.root={data} optimized_metric=val/rot_err hydra.run.dir={run}",
+        r"optimized_metric: 'val/rot_err' is not a metric the training logs"),
+    Row("train", "data.root={data} trainer.max_epochs=0 hydra.run.dir={run}",
+        r"trainer\.max_epochs: 0 is not an integer >= 1 \(or -1: no limit\)"),
+    Row("train", "data.root={data} +foo=1 hydra.run.dir={run}",
+        r"foo: no such option of posernet-train \(see posernet-train --help\)$"),
+    Row("train", "data.root={data} seed=abc hydra.run.dir={run}",
+        r"^seed: 'abc' is not an integer >= 0$"),
     # eval
     Row("eval", "data.root={data} out_dir={out} hydra.run.dir={run}",
         r"ckpt_path: a value is required"),
@@ -176,9 +190,10 @@ def test_bad_input_is_one_line_exit_1_and_writes_nothing(k: int, results) -> Non
     assert lines and lines[-1].startswith(prefix), r.stderr
     assert re.search(row.message, lines[-1][len(prefix):]), lines[-1]
     assert not paths["out"].exists(), sorted(paths["out"].rglob("*"))
-    if not row.started:  # found before any work: that line is all, not even a run folder
+    # a run folder holding only Hydra's log is removed after a user error too
+    assert not paths["run"].exists(), sorted(paths["run"].rglob("*"))
+    if not row.started:  # found before any work: that line is all
         assert len(lines) == 1, r.stderr
-        assert not paths["run"].exists(), sorted(paths["run"].rglob("*"))
         assert list(paths["tmp"].iterdir()) == []  # the working folder too
 
 

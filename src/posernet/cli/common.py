@@ -94,7 +94,27 @@ def run_task(prog: str, task: Callable[[Any], T], cfg: Any, *,
         raise
     except (*user_errors(), *errors) as exc:
         report_error(prog, exc)
+        _discard_empty_run_dir()
         raise SystemExit(EXIT_USER_ERROR) from None
+
+
+def _discard_empty_run_dir() -> None:
+    """After a user error inside a Hydra job: remove the run folder Hydra made for it when it
+    holds nothing but Hydra's own files (its log, ``.hydra/``), so a bad input leaves nothing
+    behind. A folder with anything else in it (outputs, a resumed run) is kept."""
+    import shutil
+
+    try:
+        from hydra.core.hydra_config import HydraConfig
+
+        run_dir = Path(HydraConfig.get().runtime.output_dir)
+    except Exception:  # not inside a Hydra job
+        return
+    if not run_dir.is_dir() or run_dir.resolve() == Path.cwd().resolve():
+        return
+    entries = list(run_dir.iterdir())
+    if all(p.name == ".hydra" or p.suffix == ".log" for p in entries):
+        shutil.rmtree(run_dir, ignore_errors=True)
 
 
 def _on_sigint(signum: int, frame: Any) -> None:
@@ -150,14 +170,21 @@ def preflight(prog: str, config_name: str, argv: list[str] | None = None) -> Any
             or args.multirun or args.config_path or args.config_name or args.config_dir
             or args.experimental_rerun or args.run):
         return None
+    from . import CONFIG_DIR
+
+    for ov in args.overrides:  # "+foo=1": a new top-level key nothing reads
+        key = ov.split("=", 1)[0]
+        if key.startswith("+") and "." not in key and "@" not in key and \
+                not (Path(CONFIG_DIR) / key.lstrip("+")).is_dir():
+            print(f"{prog}: error: {key.lstrip('+')}: no such option of {prog} "
+                  f"(see {prog} --help)", file=sys.stderr)
+            raise SystemExit(EXIT_USER_ERROR)
     from hydra import compose, initialize_config_dir
     from hydra.core.hydra_config import HydraConfig
     from hydra.errors import HydraException
     from hydra.types import RunMode
     from omegaconf import open_dict, read_write
     from omegaconf.errors import OmegaConfBaseException
-
-    from . import CONFIG_DIR
 
     try:
         with initialize_config_dir(config_dir=CONFIG_DIR, version_base="1.3",

@@ -175,12 +175,20 @@ DATA: Schema = {
 
 #: the Lightning Trainer arguments of posernet/conf/trainer/*.yaml (others pass through unchecked)
 TRAINER: Schema = {
-    "accelerator": choice("auto", "cpu", "gpu", "cuda", "mps", "tpu"),
-    "devices": one_of(integer(-1), choice("auto"),
+    "accelerator": choice("auto", "cpu", "gpu", "cuda", "mps"),
+    "devices": one_of(Rule("", lambda v: _is_int(v) and (v == -1 or v >= 1)), choice("auto"),
                       Rule("a list of integers", lambda v: isinstance(v, list) and bool(v)
                            and all(_is_int(x) for x in v)),
-                      expected="an integer, a list of integers or auto"),
-    "strategy": text(), "max_epochs": integer(-1, null=True), "min_epochs": integer(0, null=True),
+                      expected="an integer >= 1 (or -1: all), a list of integers or auto"),
+    "precision": one_of(choice("64", "32", "16", "bf16", "64-true", "32-true", "16-true",
+                               "bf16-true", "16-mixed", "bf16-mixed"),
+                        Rule("", lambda v: _is_int(v) and v in (16, 32, 64)),
+                        expected="one of 64, 32, 16, bf16, 64-true, 32-true, 16-true, bf16-true, "
+                                 "16-mixed, bf16-mixed"),
+    "strategy": text(),
+    "max_epochs": Rule("an integer >= 1 (or -1: no limit)",
+                       lambda v: _is_int(v) and (v == -1 or v >= 1), True),
+    "min_epochs": integer(0, null=True),
     "max_steps": integer(-1), "fast_dev_run": one_of(boolean(), integer(0)),
     "gradient_clip_val": number(0, null=True),
     "gradient_clip_algorithm": choice("norm", "value", null=True),
@@ -345,7 +353,13 @@ def _check_dataset(cfg: Any) -> None:
 COMMANDS: dict[str, Command] = {
     "train": Command(
         keys={"seed": SEED, "ckpt_path": path(null=True), "init_from": path(null=True),
-              "optimized_metric": text(), "test_after_training": boolean(),
+              "optimized_metric": Rule(
+                  "a metric the training logs (val/loss, val/loss_<term>, val/rot_err_deg, "
+                  "val/tdir_err_deg, val/abs_rot_err_deg, val/abs_pos_err, their _init)",
+                  lambda v: isinstance(v, str) and re.fullmatch(
+                      r"(val|train)/(loss(_\w+)?|(abs_)?(rot|tdir)_err_deg(_init)?"
+                      r"|abs_pos_err(_init)?)", v) is not None),
+              "test_after_training": boolean(),
               "num_threads": THREADS, "out_dir": path()},
         groups={"data": DATA, "model": MODEL, "trainer": TRAINER, "sync": SYNC},
         outputs=_outputs(("out_dir", "dir")), devices=("trainer.accelerator",),
@@ -440,7 +454,22 @@ def _check_schema(cfg: Any, schema: Schema, prefix: str = "") -> None:
         if value is _MISSING:
             raise ConfigValueError(f"{full}: a value is required ({full}=<{rule.expected}>)")
         if not rule.ok(value):
-            raise ConfigValueError(f"{full}: {value!r} is not {rule.describe()}")
+            raise ConfigValueError(f"{_source_key(cfg, full)}: {value!r} is not "
+                                   f"{rule.describe()}")
+
+
+def _source_key(cfg: Any, full: str) -> str:
+    """The key the user set for ``full``: ``seed`` when ``data.seed`` is ``${seed}``."""
+    from omegaconf import OmegaConf
+
+    parent, _, leaf = full.rpartition(".")
+    try:
+        node = OmegaConf.select(cfg, parent) if parent else cfg
+        raw = node._get_node(leaf)._value() if node is not None else None
+    except Exception:  # any odd node: keep the name as it is
+        return full
+    m = re.fullmatch(r"\$\{([\w.]+)\}", raw) if isinstance(raw, str) else None
+    return m.group(1) if m else full
 
 
 def _check_required(cfg: Any, group: str) -> None:
