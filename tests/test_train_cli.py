@@ -229,3 +229,33 @@ def test_init_from_bad_values(dataset: Path, tmp_path: Path, args: list[str],
     assert proc.returncode == 1, proc.stderr[-2000:]
     last = proc.stderr.strip().splitlines()[-1]
     assert last.startswith("posernet-train: error:") and message in last
+
+
+def test_resume_continues_the_run_it_names(dataset: Path, tmp_path: Path) -> None:
+    """``ckpt_path=RUN/checkpoints/last.ckpt`` alone, from another folder: the run's own data
+    and model settings (not the defaults); a finished run keeps its recorded metrics."""
+    run = tmp_path / "run"
+    first = subprocess.run(
+        [sys.executable, "-m", "posernet.cli.train", f"data.root={dataset}",
+         f"hydra.run.dir={run}", "trainer.max_epochs=1", "model.net.depth=1", *QUIET],
+        capture_output=True, text=True, env=env(), timeout=300, cwd=tmp_path)
+    assert first.returncode == 0, first.stderr[-2000:]
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    last = run / "checkpoints" / "last.ckpt"
+    again = subprocess.run(
+        [sys.executable, "-m", "posernet.cli.train", f"ckpt_path={last}",
+         "trainer.max_epochs=2"], capture_output=True, text=True, env=env(), timeout=300,
+        cwd=elsewhere)
+    assert again.returncode == 0, again.stderr[-2000:]
+    assert (f"continuing {run} with its own settings: data.root={dataset}" in again.stderr
+            and "model.net.depth=1" in again.stderr)
+    metrics = json.loads((run / "metrics.json").read_text())
+    assert metrics["epochs"] == 2 and metrics["final_metrics"]
+    # once more: finished, nothing trained, the recorded metrics stay
+    done = subprocess.run(
+        [sys.executable, "-m", "posernet.cli.train", f"ckpt_path={last}"],
+        capture_output=True, text=True, env=env(), timeout=300, cwd=elsewhere)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert "the run had finished" in done.stdout
+    assert json.loads((run / "metrics.json").read_text()) == metrics

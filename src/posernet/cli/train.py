@@ -78,7 +78,39 @@ def resume_overrides(argv: list[str]) -> list[str]:
     if run_dir is None or '"' in str(run_dir):
         return list(argv)
     stamp = time.strftime("%Y-%m-%d_%H-%M-%S")
-    return [*argv, f'hydra.run.dir="{run_dir}"', f"hydra.output_subdir=.hydra/resume_{stamp}"]
+    own = run_settings(run_dir)
+    given = {a.split("=", 1)[0].lstrip("+~") for a in argv if "=" in a}
+    inherited = [o for o in own if o.split("=", 1)[0].lstrip("+~") not in given]
+    if inherited:
+        print(f"posernet-train: continuing {run_dir} with its own settings: "
+              + " ".join(inherited), file=sys.stderr)
+    return [*inherited, *argv, f'hydra.run.dir="{run_dir}"',
+            f"hydra.output_subdir=.hydra/resume_{stamp}"]
+
+
+def run_settings(run_dir: Path) -> list[str]:
+    """The command-line overrides a run was started with (``RUN/.hydra/overrides.yaml``),
+    without Hydra's own and ``ckpt_path``, and its ``data.root`` made absolute against the
+    folder it was started from (``RUN/.hydra/hydra.yaml``): what resuming it from any folder
+    needs to train on the same data with the same model. Empty when the files are absent."""
+    from omegaconf import OmegaConf
+
+    hydra_dir = run_dir / ".hydra"
+    try:
+        overrides = [str(o) for o in OmegaConf.load(hydra_dir / "overrides.yaml")]
+        config = OmegaConf.load(hydra_dir / "config.yaml")
+        cwd = Path(str(OmegaConf.load(hydra_dir / "hydra.yaml").hydra.runtime.cwd))
+    except Exception:  # no (or unreadable) Hydra record: nothing to inherit
+        return []
+    keep = [o for o in overrides if not o.lstrip("+~").startswith(("hydra.", "ckpt_path="))
+            and not o.lstrip("+~").startswith("data.root=")]
+    root = OmegaConf.select(config, "data.root", default=None)
+    if root is not None:
+        roots = list(root) if OmegaConf.is_list(root) else [root]
+        absolute = [str(p if Path(str(p)).is_absolute() else cwd / str(p)) for p in roots]
+        keep.insert(0, "data.root=" + (absolute[0] if len(absolute) == 1
+                                       else "[" + ",".join(absolute) + "]"))
+    return keep
 
 
 def _continues_run(ckpt_path: Any, out_dir: Path) -> bool:
@@ -297,6 +329,14 @@ def train(cfg: DictConfig) -> float:
         results = trainer.test(model, datamodule=datamodule, ckpt_path=best_path or None)
         test_metrics = {k: float(v) for r in results for k, v in r.items()}
 
+    previous = out_dir / "metrics.json"
+    if (trainer.is_global_zero and not trainer.callback_metrics and cfg.get("ckpt_path")
+            and previous.is_file()):
+        # resuming a finished run trains nothing: keep what it recorded
+        print(f"the run had finished (epoch {int(trainer.current_epoch)} of "
+              f"trainer.max_epochs={cfg.trainer.get('max_epochs')}): nothing to continue; "
+              f"{previous} kept (raise trainer.max_epochs to train further)")
+        return best
     if trainer.is_global_zero:
         summary = {
             "optimized_metric": metric_name,
