@@ -310,6 +310,18 @@ def test_refine_writes_confidence_and_the_guard_warning(tmp_path: Path, capsys) 
     assert edge["kept_input"] == {"rotation": True, "direction": True}
     assert rec["guard"] is True and rec["confidence_weights"] is True
     assert rec["input_check"]["warning"] is not None
+    # the absolute table says the input's averaging was weighted by the model too
+    from posernet.nn import PoserNet
+    from posernet.pipeline import evaluate_result, refine_graphs, result_tables
+    from posernet.sync import get_backend
+
+    model = PoserNet.from_checkpoint(ckpt)
+    res = refine_graphs(model, shifted, backend=get_backend("eig_se3"), weighted=True)
+    table = result_tables(evaluate_result(res), backend=res.backend)["absolute"]
+    assert "weighted by PoserNet's confidence" in table.to_markdown()
+    res = refine_graphs(model, shifted, backend=get_backend("eig_se3"), weighted=False)
+    table = result_tables(evaluate_result(res), backend=res.backend)["absolute"]
+    assert "weighted" not in table.to_markdown()
 
 
 def test_evaluation_command_reports_bad_input_in_one_line(tmp_path, capsys) -> None:

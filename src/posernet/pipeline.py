@@ -217,6 +217,9 @@ def refine_graphs(
     out = RefineResult(graphs=graphs, edge_pose={s: [] for s in stages})
     if backend is not None:
         out.backend = backend.describe()
+        # the averaging of *every* stage, the input's too, is then weighted by the model
+        out.backend["confidence_weights"] = bool(weighted and model is not None
+                                                 and getattr(model, "confidence", False))
         for d in (out.absolute, out.solved, out.component):
             d.update({s: [] for s in stages})
     adaptive = model is not None and bool(getattr(model, "adaptive", False))
@@ -488,6 +491,8 @@ def result_tables(evaluation: dict[str, Any], label: str = "KP",
     if evaluation.get("absolute"):
         bname = (backend or {}).get("backend", "sync")
         base = {"initial": bname, "refined": f"{bname} + PoserNet"}
+        if (backend or {}).get("confidence_weights"):
+            base["initial"] = f"{bname} (weighted by PoserNet's confidence)"
 
         def stage_name(s: str) -> str:  # "<stage>+ba": bundle adjustment after averaging
             head, _, tail = s.partition("+")
