@@ -39,3 +39,27 @@ def test_camera_plot_writes_png(tmp_path):
     T = random_absolute_poses(8, torch.Generator().manual_seed(0))
     path = plot_cameras(tmp_path / "cams.png", {"ground truth": T, "refined": T}, title="g0")
     assert path.stat().st_size > 1000
+
+
+def test_camera_plot_links_estimates_to_ground_truth_and_names_stages(tmp_path, monkeypatch):
+
+    import posernet.plots as plots
+
+    seen = {}
+
+    def keep(fig, path):  # look at the figure instead of only the file
+        ax = fig.axes[0]
+        seen["labels"] = [t.get_text() for t in ax.get_legend().get_texts()]
+        seen["lines"] = len(ax.lines)
+        seen["xlabel"] = ax.get_xlabel()
+        return original(fig, path)
+
+    original = plots._save
+    monkeypatch.setattr(plots, "_save", keep)
+    T = random_absolute_poses(6, torch.Generator().manual_seed(1))
+    plot_cameras(tmp_path / "a.png", {"ground truth": T, "initial+ba": T}, links="initial+ba")
+    assert seen["labels"] == ["ground truth", "motion averaging + bundle adjustment",
+                              "estimate to ground truth"]
+    assert seen["lines"] == 6 and seen["xlabel"] == "x (m)"
+    plot_cameras(tmp_path / "b.png", {"initial+ba": T}, units="scale-free")
+    assert seen["lines"] == 0 and seen["xlabel"] == "x (scale-free)"

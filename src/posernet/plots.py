@@ -24,6 +24,10 @@ __all__ = ["plot_cameras", "plot_sorted_errors", "rolling_mean"]
 
 _COLOURS = {"ground truth": "#1f9bd7", "initial": "#d62728", "refined": "#2ca02c",
             "initial+ba": "#9467bd", "refined+ba": "#ff7f0e"}
+#: what a stage's poses are, in words a photo user reads (legend of :func:`plot_cameras`)
+STAGE_LABELS = {"initial": "motion averaging", "refined": "PoserNet + motion averaging",
+                "initial+ba": "motion averaging + bundle adjustment",
+                "refined+ba": "PoserNet + averaging + bundle adjustment"}
 
 
 def rolling_mean(x: np.ndarray, window: int) -> np.ndarray:
@@ -96,14 +100,20 @@ def plot_cameras(
     poses: Mapping[str, Tensor],
     title: str | None = None,
     axis_length: float | None = None,
+    links: str | None = None,
+    units: str = "m",
 ) -> Path:
     """Camera centres and optical axes in 3D for one graph.
 
     Args:
         path: output PNG.
         poses: ``{label: world-to-camera poses (N, 4, 4)}``, e.g. ground truth, initial and
-            refined after motion averaging, already aligned to the ground-truth frame.
+            refined after motion averaging, already aligned to the ground-truth frame; stage
+            names (``initial``, ``initial+ba``, ...) are shown as :data:`STAGE_LABELS`.
         axis_length: length of the drawn optical axis (default: 15% of the scene extent).
+        links: a key of ``poses`` whose cameras are each joined to their ``"ground truth"``
+            camera by a thin line (the error made visible).
+        units: axis unit: ``"m"`` (aligned to metric ground truth) or e.g. ``"scale-free"``.
     """
     if not poses:
         raise ValueError("plot_cameras: no poses given")
@@ -120,9 +130,17 @@ def plot_cameras(
         axis = c2w[:, :3, 2] * length  # camera z axis (optical axis) in the world
         colour = _COLOURS.get(label)
         c, a = centres.numpy(), axis.numpy()
-        ax.scatter(c[:, 0], c[:, 1], c[:, 2], color=colour, label=label, s=18)
+        ax.scatter(c[:, 0], c[:, 1], c[:, 2], color=colour, label=STAGE_LABELS.get(label, label),
+                   s=18)
         ax.quiver(c[:, 0], c[:, 1], c[:, 2], a[:, 0], a[:, 1], a[:, 2], color=colour,
                   linewidth=1.0, arrow_length_ratio=0.2)
+    if links is not None and links in poses and "ground truth" in poses:
+        keys = list(poses)
+        est = centres_all[keys.index(links)].numpy()
+        gt = centres_all[keys.index("ground truth")].numpy()
+        for k, (p, q) in enumerate(zip(est, gt, strict=True)):
+            ax.plot([p[0], q[0]], [p[1], q[1]], [p[2], q[2]], color="0.45", lw=0.8,
+                    label="estimate to ground truth" if k == 0 else None)
     # equal scales on the three axes: a trajectory must not look stretched
     pts = torch.cat(centres_all).numpy()
     mid = 0.5 * (pts.max(0) + pts.min(0))
@@ -131,10 +149,10 @@ def plot_cameras(
     ax.set_ylim(mid[1] - half, mid[1] + half)
     ax.set_zlim(mid[2] - half, mid[2] + half)
     ax.set_box_aspect((1, 1, 1))
-    ax.set_xlabel("x (m)")
-    ax.set_ylabel("y (m)")
-    ax.set_zlabel("z (m)")
-    ax.legend(loc="upper left")
+    ax.set_xlabel(f"x ({units})")
+    ax.set_ylabel(f"y ({units})")
+    ax.set_zlabel(f"z ({units})")
+    ax.legend(loc="upper left", fontsize=7)
     if title:
         ax.set_title(title)
     return _save(fig, path)

@@ -47,7 +47,8 @@ __all__ = ["main", "run"]
 
 
 def _pictures(rec: Any, out: Path, k: int) -> list[Path]:
-    """The ``k`` edges with the most matched boxes, drawn with their matches and boxes."""
+    """``k`` edges spread over the ranking by matched boxes (or, without boxes, by verified
+    matches), each drawn with the matches its verified pose explains (and its boxes)."""
     import numpy as np
 
     from ..frontend.features import draw_matches
@@ -56,8 +57,13 @@ def _pictures(rec: Any, out: Path, k: int) -> list[Path]:
     fe, g = rec.frontend, rec.graph
     if k <= 0 or g.num_edges == 0:
         return []
-    rows = torch.bincount(g.pair_edge, minlength=g.num_edges)
-    order = torch.argsort(rows, descending=True, stable=True)
+    boxes = fe.summary.boxes
+    if boxes:
+        score = torch.bincount(g.pair_edge, minlength=g.num_edges)
+    else:
+        score = torch.tensor([0 if (inl := fe.pair(int(i), int(j)).inliers) is None
+                              else len(inl) for i, j in g.edge_index.T.tolist()])
+    order = torch.argsort(score, descending=True, stable=True)
     # spread over the ranking: the best-matched pairs are neighbours, the others show more
     picks = sorted({round(float(q)) for q in np.linspace(0, g.num_edges - 1, min(k, g.num_edges))})
     paths = []
@@ -66,11 +72,20 @@ def _pictures(rec: Any, out: Path, k: int) -> list[Path]:
         a, b = (i, j) if i < j else (j, i)
         pr = fe.pair(a, b)
         ra, rb = fe.records[a], fe.records[b]
+        m = fe.matches[(a, b)]
+        verified = m
+        if pr.inliers is not None and m.idx_a is not None and m.idx_b is not None:
+            code = m.idx_a.astype(np.int64) * (1 << 32) + m.idx_b
+            inl = pr.inliers[:, 0].astype(np.int64) * (1 << 32) + pr.inliers[:, 1]
+            verified = m.subset(np.isin(code, inl))
+        what = f"{len(m)} matches, {len(verified)} verified (drawn)"
+        if boxes:
+            what += f", {pr.box_a.size} matched boxes"
         paths.append(draw_matches(
-            read_image(ra.path), read_image(rb.path), fe.matches[(a, b)], out / f"matches_{n}.png",
-            boxes_a=fe.boxes(a), boxes_b=fe.boxes(b),
-            box_pairs=np.stack([pr.box_a, pr.box_b], axis=1), max_lines=80,
-            title=f"{ra.key} <-> {rb.key}: {pr.box_a.size} matched boxes"))
+            read_image(ra.path), read_image(rb.path), verified, out / f"matches_{n}.png",
+            boxes_a=fe.boxes(a) if boxes else None, boxes_b=fe.boxes(b) if boxes else None,
+            box_pairs=np.stack([pr.box_a, pr.box_b], axis=1) if boxes else None, max_lines=80,
+            title=f"{ra.key} <-> {rb.key}: {what}"))
     return paths
 
 
@@ -97,8 +112,13 @@ def _camera_plot(rec: Any, out: Path) -> Path | None:
             poses[s] = align_to_ground_truth(res.absolute[s][0].double()[keep], gt)
     else:
         poses[stage] = gauge_fixed(res.absolute[stage][0], keep, comp)[keep]
+    has_gt = g.pose_gt is not None
     return plot_cameras(out / "cameras.png", poses,
-                        title=f"{int(keep.sum())} of {g.num_nodes} cameras (largest component)")
+                        title=f"{int(keep.sum())} of {g.num_nodes} cameras (largest component)"
+                              + ("\naligned to the ground truth by a similarity" if has_gt
+                                 else "\npositions up to one similarity: no metric scale"),
+                        links=stage if has_gt else None,
+                        units="m" if has_gt else "scale-free")
 
 
 def run(cfg: DictConfig) -> dict[str, Any]:
