@@ -116,6 +116,14 @@ def test_multirun_sweep(dataset: Path, tmp_path: Path) -> None:
     for job in jobs:
         assert (job / "checkpoints" / "last.ckpt").is_file()
         assert json.loads((job / "metrics.json").read_text())["best"] is not None
+    # one table across the jobs, best first, with the swept values
+    assert "sweep summary:" in res.stdout
+    lines = (sweep / "summary.md").read_text().splitlines()
+    assert lines[2] == ("| job | model.loss.alpha | model.net.depth | best | metric | epochs | "
+                        "checkpoint | note |")
+    best = [float(ln.split("|")[4]) for ln in lines[4:]]
+    assert len(best) == 4 and best == sorted(best)
+    assert (sweep / "summary.csv").read_text().startswith("job,model.loss.alpha,")
 
 
 def test_eval_on_the_datamodule_test_split(trained: Path, dataset: Path, tmp_path: Path) -> None:
