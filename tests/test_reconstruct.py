@@ -111,6 +111,8 @@ def test_reconstruct_recovers_rendered_rotations(scene, tmp_path):
     img = cv2.imread(str(out / "matches_0.png"))
     assert img is not None and img.shape[1] > 2 * W - 10
     assert cv2.imread(str(out / "cameras.png")) is not None
+    traj = (out / "trajectory_errors.md").read_text()  # evo-style APE / RPE against the GT
+    assert "| APE translation (GT units) |" in traj and "RPE rotation (deg)" in traj
     summary = json.loads((out / "summary.json").read_text())
     assert summary["cameras_placed"] == 8
     assert set(summary["frontend"]["seconds"]) >= {"proposals", "features", "matching"}

@@ -39,6 +39,7 @@ __all__ = [
     "relative_rows",
     "skipped_per_graph",
     "threshold_row",
+    "trajectory_errors",
     "translation_direction_error_deg",
     "umeyama_alignment",
     "unplaced_per_graph",
@@ -428,3 +429,41 @@ def absolute_rows(per_graph: dict[str, Tensor | Sequence[float]]) -> dict[str, T
     """``{"rot", "trans"}`` threshold rows (degrees, metres) of per-graph absolute errors."""
     return {"rot": threshold_row(per_graph["rot"], ANGLE_THRESHOLDS_DEG),
             "trans": threshold_row(per_graph["trans"], METRE_THRESHOLDS)}
+
+
+def trajectory_errors(est_c2w: Tensor, gt_c2w: Tensor) -> dict[str, dict[str, float]]:
+    """evo-style APE and RPE of one trajectory, after a similarity alignment (``evo_ape -as``).
+
+    ``est_c2w, gt_c2w [N, 4, 4]`` camera-to-world poses of the same cameras in trajectory
+    order (N >= 3). The estimate is mapped onto the ground truth by the Umeyama similarity of
+    the camera centres. APE: the translation error of every camera (ground-truth units). RPE:
+    between consecutive cameras, the translation (units) and rotation (degrees) of
+    ``inv(gt_i^-1 gt_j) (est_i^-1 est_j)``. Each as ``rmse, mean, median, std, min, max``.
+    """
+    if est_c2w.shape != gt_c2w.shape or est_c2w.ndim != 3 or est_c2w.shape[1:] != (4, 4):
+        raise ValueError(f"est and gt must both be [N, 4, 4], got {tuple(est_c2w.shape)} and "
+                         f"{tuple(gt_c2w.shape)}")
+    if est_c2w.shape[0] < 3:
+        raise ValueError("a trajectory needs at least 3 poses")
+    est, gt = est_c2w.double(), gt_c2w.double()
+    s, R, t = umeyama_alignment(est[:, :3, 3], gt[:, :3, 3])
+    aligned = est.clone()
+    aligned[:, :3, :3] = R @ est[:, :3, :3]
+    aligned[:, :3, 3] = s * est[:, :3, 3] @ R.T + t
+    ape = (aligned[:, :3, 3] - gt[:, :3, 3]).norm(dim=1)
+
+    def rel(T: Tensor) -> Tensor:
+        return torch.linalg.inv(T[:-1]) @ T[1:]
+
+    d = torch.linalg.inv(rel(gt)) @ rel(aligned)
+    rpe_t = d[:, :3, 3].norm(dim=1)
+    cos = ((d[:, 0, 0] + d[:, 1, 1] + d[:, 2, 2] - 1) / 2).clamp(-1.0, 1.0)
+    rpe_r = torch.rad2deg(torch.arccos(cos))
+
+    def stats(x: Tensor) -> dict[str, float]:
+        return {"rmse": float(x.pow(2).mean().sqrt()), "mean": float(x.mean()),
+                "median": float(x.median()), "std": float(x.std(unbiased=False)),
+                "min": float(x.min()), "max": float(x.max())}
+
+    return {"ape_translation": stats(ape), "rpe_translation": stats(rpe_t),
+            "rpe_rotation_deg": stats(rpe_r), "scale": {"sim3": float(s)}}

@@ -244,6 +244,9 @@ def run(cfg: DictConfig) -> dict[str, Any]:
                 print(tables[key].to_markdown(int(cfg.digits)) + "\n")
         files["tables"] = tables
         files["evaluation"] = ev
+        traj = _trajectory_errors(record, records, out)
+        if traj is not None:
+            files["trajectory_errors"] = traj
     colmap = (f", COLMAP model{'s' if len(files['colmap']) > 1 else ''} in "
               + ", ".join(str(p) for p in files["colmap"])) if files["colmap"] else ""
     more = ", nerfstudio transforms.json, TUM trajectory_tum.txt" if "tum" in files else ""
@@ -252,8 +255,40 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     return files
 
 
+def _trajectory_errors(record: dict[str, Any], records: list[Any], out: Path) -> Path | None:
+    """evo-style APE / RPE of the largest component against the ground truth, in name order
+    (``trajectory_errors.md``); None with fewer than 3 cameras."""
+    import numpy as np
+
+    from ..export import largest_component
+    from ..io import atomic_write_text
+    from ..metrics import trajectory_errors
+
+    names = sorted(largest_component(record["cameras"]))
+    gt = {r.key: r.c2w for r in records}
+    if len(names) < 3:
+        return None
+    est = torch.as_tensor(np.stack([record["cameras"][n]["camera_to_world"] for n in names]))
+    ref = torch.as_tensor(np.stack([gt[n] for n in names]))
+    err = trajectory_errors(est, ref)
+    rows = [("APE translation (GT units)", err["ape_translation"]),
+            ("RPE translation (GT units)", err["rpe_translation"]),
+            ("RPE rotation (deg)", err["rpe_rotation_deg"])]
+    lines = [f"**Trajectory errors (evo style, Sim(3)-aligned; largest component, {len(names)} "
+             f"cameras in name order; scale {err['scale']['sim3']:.4g})**", "",
+             "| error | rmse | mean | median | std | min | max |",
+             "|---|---:|---:|---:|---:|---:|---:|"]
+    lines += [f"| {name} | " + " | ".join(f"{v[k]:.4f}" for k in
+                                          ("rmse", "mean", "median", "std", "min", "max")) + " |"
+              for name, v in rows]
+    text = "\n".join(lines) + "\n"
+    print(text)
+    return atomic_write_text(out / "trajectory_errors.md", text)
+
+
 #: what a run writes into out_dir (removed before a run replaces an earlier one there)
 _OUTPUTS = ("poses.json", "summary.json", "cameras.png", "matches_*.png", "table.md",
+            "trajectory_errors.md",
             "table.csv", "abs_table.md", "abs_table.csv", "transforms.json",
             "trajectory_tum.txt", "sparse")
 
