@@ -357,8 +357,13 @@ def test_draw_matches_writes_a_png(tmp_path, pair):
     assert out == tmp_path / "sub" / "m.png"
     img = cv2.imread(str(out))
     assert img is not None and img.ndim == 3
-    assert 240 <= img.shape[0] <= 240 + 40 and 640 <= img.shape[1] <= 640 + 20
+    # both shown at one height: the 200-row image is scaled up to 240 rows (384 columns)
+    assert img.shape[0] == 30 + 240 and img.shape[1] == 320 + 8 + 384
     assert [p.name for p in out.parent.iterdir()] == ["m.png"]  # no temporary file left
+    # a big photo beside a small one: the small one is not shrunk to a thumbnail
+    big = cv2.resize(pair[1], (3200, 2400))
+    wide = cv2.imread(str(draw_matches(pair[0], big, Matches.empty(), tmp_path / "big.png")))
+    assert wide.shape[0] == 30 + 720 and wide.shape[1] == 960 + 8 + 960  # both at 720 rows
     # nothing to draw is fine too
     draw_matches(pair[0], pair[1], Matches.empty(), tmp_path / "empty.png")
     assert cv2.imread(str(tmp_path / "empty.png")).shape[1] >= 640

@@ -652,12 +652,14 @@ def draw_matches(
         )
     max_lines = _positive_int(max_lines, "max_lines", minimum=0)
 
-    # downscale big images so the picture stays screen-sized
-    scale = min(1.0, 720.0 / max(im.shape[0] for im in imgs))
-    if scale < 1.0:
-        imgs = [
-            cv2.resize(im, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA) for im in imgs
-        ]
+    # both images at one height (at most 720 px): a small image beside a big one is shown as
+    # large as its partner, not as a thumbnail; each keeps its own scale for the drawing
+    target = min(720, max(im.shape[0] for im in imgs))
+    scales = [target / im.shape[0] for im in imgs]
+    imgs = [im if s == 1.0 else cv2.resize(im, None, fx=s, fy=s, interpolation=(
+        cv2.INTER_AREA if s < 1.0 else cv2.INTER_LINEAR)) for im, s in zip(imgs, scales,
+                                                                            strict=True)]
+    scale_a, scale_b = scales
     (ha, wa), (hb, wb) = imgs[0].shape[:2], imgs[1].shape[:2]
     gap, head = 8, 30
     canvas = np.full((head + max(ha, hb), wa + gap + wb, 3), 32, np.uint8)
@@ -676,14 +678,15 @@ def draw_matches(
     for j, i in enumerate(sel):
         hue = np.uint8([[[int(j * 0.618034 * 180) % 180, 200, 255]]])
         c = tuple(int(v) for v in cv2.cvtColor(hue, cv2.COLOR_HSV2BGR)[0, 0])
-        pa = tuple(np.round(matches.uv_a[i] * scale + off_a).astype(int))
-        pb = tuple(np.round(matches.uv_b[i] * scale + off_b).astype(int))
+        pa = tuple(np.round(matches.uv_a[i] * scale_a + off_a).astype(int))
+        pb = tuple(np.round(matches.uv_b[i] * scale_b + off_b).astype(int))
         cv2.line(overlay, pa, pb, c, 1, cv2.LINE_AA)
         cv2.circle(overlay, pa, 2, c, -1, cv2.LINE_AA)
         cv2.circle(overlay, pb, 2, c, -1, cv2.LINE_AA)
     canvas = cv2.addWeighted(overlay, 0.65, canvas, 0.35, 0.0)
 
-    def rect(box: np.ndarray, off: np.ndarray, colour: tuple[int, ...], thick: int) -> tuple:
+    def rect(box: np.ndarray, off: np.ndarray, colour: tuple[int, ...], thick: int,
+             scale: float) -> tuple:
         p1 = tuple(np.round(box[:2] * scale + off).astype(int))
         p2 = tuple(np.round(box[2:] * scale + off).astype(int))
         if thick > 1:  # dark rim: a matched box reads against lines and texture alike
@@ -691,13 +694,13 @@ def draw_matches(
         cv2.rectangle(canvas, p1, p2, colour, thick, cv2.LINE_AA)
         return p1
 
-    for boxes, off in ((ba, off_a), (bb, off_b)):
+    for boxes, off, sc in ((ba, off_a, scale_a), (bb, off_b, scale_b)):
         for box in boxes:
-            rect(box, off, (200, 200, 200), 1)
+            rect(box, off, (200, 200, 200), 1, sc)
     for k, (i, j) in enumerate(pairs):
         c = _pair_colour(k)
-        for box, off in ((ba[i], off_a), (bb[j], off_b)):
-            p1 = rect(box, off, c, 3)
+        for box, off, sc in ((ba[i], off_a, scale_a), (bb[j], off_b, scale_b)):
+            p1 = rect(box, off, c, 3, sc)
             _label(canvas, str(k), (p1[0], p1[1]), c)
 
     shown = f"{len(sel)} drawn" if len(sel) < n else "all drawn"
