@@ -12,9 +12,20 @@ shares the box-matching rules, the 5-point step and the graph assembly.
 """
 
 from .boxmatch import BoxMatchRules, match_boxes
+from .cache import FrontendCache
 from .features import Features, MatcherError, Matches, SiftMatcher, XFeatMatcher, make_matcher
 from .graphs import PairResult, assemble_view_graph, grow_connected
-from .images import ImageError, ImageRecord, parse_intrinsics, read_image, records_for_images
+from .images import (
+    ImageError,
+    ImageRecord,
+    image_problem,
+    parse_intrinsics,
+    read_colmap_images,
+    read_image,
+    read_tum_trajectory,
+    records_for_images,
+)
+from .pairs import PairOptions, PairSelection, global_descriptors, select_pairs
 from .pipeline import FrontendSummary, ImageFrontend
 from .proposals import (
     EdgeBoxes,
@@ -32,13 +43,16 @@ __all__ = [
     "EdgeBoxes",
     "Features",
     "FileProposals",
+    "FrontendCache",
     "FrontendSummary",
     "ImageError",
     "ImageFrontend",
     "ImageRecord",
     "MatcherError",
     "Matches",
+    "PairOptions",
     "PairResult",
+    "PairSelection",
     "PoseOptions",
     "ProposalError",
     "Proposals",
@@ -51,12 +65,17 @@ __all__ = [
     "epipolar_consistent",
     "filter_proposals",
     "five_point",
+    "global_descriptors",
     "grow_connected",
+    "image_problem",
     "keypoint_contrast",
     "make_matcher",
     "match_boxes",
     "parse_intrinsics",
+    "read_colmap_images",
     "read_image",
+    "read_tum_trajectory",
     "records_for_images",
+    "select_pairs",
     "verify_two_view",
 ]
