@@ -113,8 +113,8 @@ def _bundle_stage(frontend: ImageFrontend, graph: ViewGraph, weights: Tensor,
     options = dataclasses.replace(options, refine_focal=focal_mode(frontend, options.refine_focal))
     # Which cameras the averaging pinned: the graph's edges with a usable direction.
     edges = graph.edge_index.T.numpy().astype(np.int64)
-    strength = np.asarray([len(frontend.pair(i, j).inliers if frontend.pair(i, j).inliers
-                               is not None else ()) for i, j in edges.tolist()], np.float64)
+    inliers = [frontend.pair(i, j).inliers for i, j in edges.tolist()]
+    strength = np.asarray([0 if m is None else len(m) for m in inliers], np.float64)
     out = poses.clone()
     solved_ba = solved.clone()
     runs = []

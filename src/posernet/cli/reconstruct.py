@@ -206,7 +206,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     record = poses_json(rec, info)  # built once: poses.json and the summary share it
     files: dict[str, Any] = {"poses": atomic_write_json(out / "poses.json", record, indent=1)}
     files["colmap"] = write_colmap_models(out / "sparse", rec)
-    if solved_any(record):
+    if _solved_any(record):
         from ..export import write_nerfstudio, write_tum
 
         files["nerfstudio"] = write_nerfstudio(out / "transforms.json", record["cameras"],
@@ -328,7 +328,7 @@ def _clear_outputs(out: Path) -> None:
           "was reused)")
 
 
-def solved_any(record: dict[str, Any]) -> bool:
+def _solved_any(record: dict[str, Any]) -> bool:
     return any(c.get("solved") for c in record["cameras"].values())
 
 
