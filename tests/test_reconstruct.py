@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -111,6 +112,9 @@ def test_reconstruct_recovers_rendered_rotations(scene, tmp_path):
     img = cv2.imread(str(out / "matches_0.png"))
     assert img is not None and img.shape[1] > 2 * W - 10
     assert cv2.imread(str(out / "cameras.png")) is not None
+    view = (out / "cameras.html").read_text()  # the interactive view: cameras, points, GT
+    assert view.count('"name":"') == 2 * 8 and '"units":"ground-truth units' in view
+    assert re.search(r'"points":\[-?\d', view)
     traj = (out / "trajectory_errors.md").read_text()  # evo-style APE / RPE against the GT
     assert "| APE translation (GT units) |" in traj and "RPE rotation (deg)" in traj
     summary = json.loads((out / "summary.json").read_text())

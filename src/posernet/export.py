@@ -31,8 +31,8 @@ import torch
 from .geometry import matrix_to_pose_vec
 from .io import atomic_write_text
 
-__all__ = ["colmap_camera", "largest_component", "write_colmap_text", "write_nerfstudio",
-           "write_tum"]
+__all__ = ["colmap_camera", "largest_component", "point_colours", "write_colmap_text",
+           "write_nerfstudio", "write_tum"]
 
 #: OpenCV camera axes (x right, y down, z forward) -> OpenGL / nerfstudio (x right, y up, z back)
 _CV_TO_GL = np.diag([1.0, -1.0, -1.0, 1.0])
@@ -51,6 +51,29 @@ def colmap_camera(K: np.ndarray, dist: np.ndarray | None) -> tuple[str, list[flo
     if d.size <= 4:
         return "OPENCV", f + list(np.pad(d, (0, 4 - d.size)))
     return "FULL_OPENCV", f + list(np.pad(d, (0, 8 - d.size)))
+
+
+def point_colours(image_paths: Sequence[str | os.PathLike[str]] | None,
+                  uv: Sequence[np.ndarray], obs_image: np.ndarray, obs_keypoint: np.ndarray,
+                  obs_point: np.ndarray, num_points: int) -> np.ndarray:
+    """RGB colour ``(P, 3)`` int64 of each point: the pixel under its first observation
+    (``obs_* (O,)`` as in :func:`write_colmap_text`); grey where no image can be read or
+    ``image_paths`` is None. Each image is read once."""
+    colour = np.full((num_points, 3), 128, np.int64)
+    if image_paths is None or not len(obs_point):
+        return colour
+    is_first = np.zeros(obs_point.size, bool)  # one observation per point gives its colour
+    is_first[np.unique(obs_point, return_index=True)[1]] = True
+    for i in np.unique(obs_image[is_first]):
+        sel = np.flatnonzero((obs_image == i) & is_first)
+        img = cv2.imread(str(image_paths[i]), cv2.IMREAD_COLOR)
+        if img is None:
+            continue
+        h, w = img.shape[:2]
+        xy = np.rint(uv[i][obs_keypoint[sel]]).astype(np.int64)
+        bgr = img[np.clip(xy[:, 1], 0, h - 1), np.clip(xy[:, 0], 0, w - 1)]
+        colour[obs_point[sel]] = bgr[:, ::-1]
+    return colour
 
 
 def write_colmap_text(
@@ -91,21 +114,7 @@ def write_colmap_text(
     # position of each observation within its image's POINTS2D list
     starts = np.searchsorted(oi, oi, side="left")
     p2d_idx = np.arange(oi.size) - starts
-    colour = np.full((points.shape[0], 3), 128, np.int64)
-    if image_paths is not None:
-        is_first = np.zeros(op.size, bool)  # one observation per point gives its colour
-        is_first[np.unique(op, return_index=True)[1]] = True
-        for i in np.unique(oi):
-            sel = np.flatnonzero((oi == i) & is_first)
-            if not sel.size:
-                continue
-            img = cv2.imread(str(image_paths[i]), cv2.IMREAD_COLOR)
-            if img is None:
-                continue
-            h, w = img.shape[:2]
-            xy = np.rint(uv[i][ok[sel]]).astype(np.int64)
-            bgr = img[np.clip(xy[:, 1], 0, h - 1), np.clip(xy[:, 0], 0, w - 1)]
-            colour[op[sel]] = bgr[:, ::-1]
+    colour = point_colours(image_paths, uv, oi, ok, op, points.shape[0])
     cam_lines = ["# Camera list with one line of data per camera:",
                  "#   CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]",
                  f"# Number of cameras: {images.size}"]

@@ -28,6 +28,7 @@ import dataclasses
 import os
 import sys
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -45,8 +46,9 @@ from .io import atomic_write_json
 from .pipeline import RefineResult, refine_graphs
 from .sfm import BundleOptions, SfmResult, anchored_cameras, bundle_adjust_reconstruction
 
-__all__ = ["Reconstruction", "edge_weights", "focal_mode", "gauge_fixed", "poses_json",
-           "reconstruct", "write_colmap_models", "write_poses_json"]
+__all__ = ["Reconstruction", "edge_weights", "focal_mode", "gauge_fixed",
+           "largest_point_cloud", "poses_json", "reconstruct", "write_colmap_models",
+           "write_poses_json"]
 
 
 @dataclass
@@ -358,6 +360,25 @@ def poses_json(rec: Reconstruction, info: dict[str, Any] | None = None) -> dict[
             "rejected_pairs": rec.frontend.rejected_pairs()}
 
 
+def _component_models(rec: Reconstruction) -> Iterator[tuple[Any, np.ndarray, np.ndarray]]:
+    """Per bundle-adjusted component of two or more refined cameras, largest first:
+    ``(run, cameras (C,), points (P, 3))`` with the points in the frame of ``poses.json`` (the
+    component's world moves with its first camera)."""
+    res = rec.result
+    poses = res.absolute[rec.stage][0].double()
+    for r in sorted(rec.sfm.get(rec.stage, []), key=lambda r: -int(r.refined.sum())):
+        cams = np.flatnonzero(r.refined)
+        if cams.size < 2 or r.points.shape[0] == 0:
+            continue
+        M = poses[np.flatnonzero(r.placed)[0]].numpy()
+        yield r, cams, r.points @ M[:3, :3].T + M[:3, 3]
+
+
+def _keypoints(rec: Reconstruction) -> list[np.ndarray]:
+    fe = rec.frontend
+    return [fe.image(i).features.uv for i in range(len(fe.records))]
+
+
 def write_colmap_models(folder: str | os.PathLike[str], rec: Reconstruction) -> list[Path]:
     """The final bundle-adjusted stage as COLMAP text models, one per component of two or more
     refined cameras, largest first: ``folder/0``, ``folder/1``, ... (:mod:`posernet.export`), in
@@ -365,29 +386,21 @@ def write_colmap_models(folder: str | os.PathLike[str], rec: Reconstruction) -> 
     from .export import write_colmap_text
     from .sfm import reprojection_errors, undistort_keypoints
 
-    runs = rec.sfm.get(rec.stage, [])
-    if not runs:
+    models = list(_component_models(rec))
+    if not models:
         return []
-    fe = rec.frontend
-    recs = fe.records
+    recs = rec.frontend.records
     K = np.stack([r.K for r in recs]).astype(np.float64)
     dist = [r.dist for r in recs]
-    uv = [fe.image(i).features.uv for i in range(len(recs))]
+    uv = _keypoints(rec)
     und = undistort_keypoints(uv, K, dist)
     res = rec.result
-    poses = res.absolute[rec.stage][0].double()
-    fixed = gauge_fixed(poses, res.solved[rec.stage][0].bool(), res.component[rec.stage][0])
+    fixed = gauge_fixed(res.absolute[rec.stage][0].double(), res.solved[rec.stage][0].bool(),
+                        res.component[rec.stage][0])
     out: list[Path] = []
     offs = np.concatenate(([0], np.cumsum([len(u) for u in und])))
     flat = np.concatenate([u.reshape(-1, 2) for u in und])
-    for r in sorted(runs, key=lambda r: -int(r.refined.sum())):
-        cams = np.flatnonzero(r.refined)
-        if cams.size < 2 or r.points.shape[0] == 0:
-            continue
-        # the component's world moves with its first camera, as in poses.json
-        ref = np.flatnonzero(r.placed)[0]
-        M = poses[ref].numpy()
-        pts = r.points @ M[:3, :3].T + M[:3, 3]
+    for r, cams, pts in models:
         xy = flat[offs[r.obs_image] + r.obs_keypoint]
         err = reprojection_errors(r.points, xy, r.obs_point, r.obs_image, r.K, r.w2c)
         folder_k = Path(folder) / str(len(out))
@@ -396,6 +409,21 @@ def write_colmap_models(folder: str | os.PathLike[str], rec: Reconstruction) -> 
                           r.obs_image, r.obs_keypoint, r.obs_point, err)
         out.append(folder_k)
     return out
+
+
+def largest_point_cloud(
+        rec: Reconstruction) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """The largest bundle-adjusted component: its cameras ``(C,)`` (image indices), points
+    ``(P, 3)`` in the frame of ``poses.json`` and their image colours ``(P, 3)`` RGB; None
+    without bundle adjustment."""
+    from .export import point_colours
+
+    r, cams, pts = next(_component_models(rec), (None, None, None))
+    if r is None:
+        return None
+    colours = point_colours([x.path for x in rec.frontend.records], _keypoints(rec),
+                            r.obs_image, r.obs_keypoint, r.obs_point, pts.shape[0])
+    return cams, pts, colours
 
 
 def write_poses_json(path: str | os.PathLike[str], rec: Reconstruction,

@@ -121,6 +121,50 @@ def _camera_plot(rec: Any, out: Path) -> Path | None:
                         units="m" if has_gt else "scale-free")
 
 
+def _html_view(rec: Any, record: dict[str, Any], out: Path) -> Path | None:
+    """``cameras.html``: the largest component's cameras and points, interactive and offline
+    (:mod:`posernet.viewer`); with ground truth, moved onto it by the similarity of the camera
+    centres and shown with it."""
+    import numpy as np
+
+    from ..export import largest_component
+    from ..metrics import umeyama_alignment
+    from ..reconstruct import largest_point_cloud
+    from ..viewer import write_html_view
+
+    names = largest_component(record["cameras"])
+    if not names:
+        return None
+    cams = {n: dict(record["cameras"][n]) for n in names}
+    cloud = largest_point_cloud(rec)
+    points = colours = None
+    keys = [r.key for r in rec.frontend.records]
+    if cloud is not None and {keys[i] for i in cloud[0]} <= set(names):
+        points, colours = cloud[1], cloud[2]
+    gt = {r.key: r.c2w for r in rec.frontend.records if r.c2w is not None and r.key in cams}
+    units = "scale-free"
+    if len(gt) == len(cams) >= 3:
+        est_c = np.stack([np.asarray(cams[n]["camera_to_world"])[:3, 3] for n in names])
+        gt_c = np.stack([np.asarray(gt[n])[:3, 3] for n in names])
+        s, R, t = (x.numpy() for x in umeyama_alignment(torch.as_tensor(est_c),
+                                                        torch.as_tensor(gt_c)))
+        S = np.eye(4)
+        S[:3, :3], S[:3, 3] = R, t
+        for n in names:
+            m = np.array(cams[n]["camera_to_world"], np.float64)
+            m[:3, 3] *= s
+            cams[n]["camera_to_world"] = S @ m
+        if points is not None:
+            points = s * points @ R.T + t
+        units = "ground-truth units (aligned by a similarity)"
+    else:
+        gt = {}
+    title = (f"{len(names)} of {len(record['cameras'])} cameras (largest component)"
+             + (f", {len(points)} points" if points is not None else ""))
+    return write_html_view(out / "cameras.html", cams, points, colours, ground_truth=gt or None,
+                           title=title, units=units)
+
+
 def run(cfg: DictConfig) -> dict[str, Any]:
     """Run the reconstruct job described by ``cfg``; returns the written files and tables."""
     from hydra.utils import instantiate
@@ -234,6 +278,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
         "seconds_total": round(time.perf_counter() - t0, 2)})
     files["pictures"] = _pictures(rec, out, int(cfg.pictures))
     files["cameras_png"] = _camera_plot(rec, out) if int(cfg.pictures) > 0 else None
+    files["html"] = _html_view(rec, record, out) if int(cfg.pictures) > 0 else None
     if has_gt:
         ev = evaluate_result(rec.result)
         tables = result_tables(ev, label=str(cfg.estimate).upper(), backend=rec.result.backend,
@@ -287,7 +332,8 @@ def _trajectory_errors(record: dict[str, Any], records: list[Any], out: Path) ->
 
 
 #: what a run writes into out_dir (removed before a run replaces an earlier one there)
-_OUTPUTS = ("poses.json", "summary.json", "cameras.png", "matches_*.png", "table.md",
+_OUTPUTS = ("poses.json", "summary.json", "cameras.png", "cameras.html", "matches_*.png",
+            "table.md",
             "trajectory_errors.md",
             "table.csv", "abs_table.md", "abs_table.csv", "transforms.json",
             "trajectory_tum.txt", "sparse")
