@@ -94,26 +94,28 @@ def test_resection_without_enough_points_fails_and_keeps_the_pose(scene) -> None
 
 
 def test_orchestrator_resects_unpinned_camera(scene) -> None:
+    """From the averaged start (the incremental start never uses a far averaged position)."""
+    avg = BundleOptions(start="averaged")
     w0 = _slide_out(perturb_poses(scene.w2c, 1.0, 0.03, seed=2), 7, 6, 1e8)
     anchored = np.ones(8, bool)
     anchored[7] = False
     placed = np.ones(8, bool)
     res = bundle_adjust_reconstruction(scene.uv, scene.pair_matches, scene.K, None, w0, placed,
-                                       BundleOptions(), anchored=anchored)
+                                       avg, anchored=anchored)
     assert res.stats["resection"]["resected"] == 1 and not res.weak.any()
     rot, pos = _errors(res.w2c, scene.w2c)
     assert rot < 0.1 and pos < 0.02, (rot, pos)
     assert "re-placed from 3D points (PnP) 1" in "\n".join(res.lines())
     # without the anchors the far camera spoils the triangulation (the old behaviour)
     bad = bundle_adjust_reconstruction(scene.uv, scene.pair_matches, scene.K, None, w0,
-                                       placed, BundleOptions())
+                                       placed, avg)
     assert _errors(bad.w2c, scene.w2c)[1] > 10 * pos
     # a camera PnP cannot place (its observations scrambled) is not trusted: weak and
     # undetermined (not to be reported as placed), the others still adjusted
     uv = [u.copy() for u in scene.uv]
     uv[7] = np.random.default_rng(0).uniform(0, 480, uv[7].shape)
     res = bundle_adjust_reconstruction(uv, scene.pair_matches, scene.K, None, w0, placed,
-                                       BundleOptions(), anchored=anchored)
+                                       avg, anchored=anchored)
     assert res.stats["resection"]["failed"] == 1
     assert res.undetermined.tolist() == [False] * 7 + [True] and res.weak[7]
     assert _errors(res.w2c[:7], scene.w2c[:7])[1] < 0.02

@@ -297,7 +297,23 @@ def sfm_record(r: SfmResult, keys: list[str]) -> dict[str, Any]:
         # cameras whose averaged position no edge pinned, re-placed by PnP on 3D points
         "resection": {keys[i]: {"points": n, "pnp_inliers": k, "resected": ok}
                       for i, n, k, ok in st.get("resection", {}).get("cameras", [])},
+        # the start kept (averaged poses or incremental registration) and what each kept
+        "start": _start_record(st.get("start"), keys),
     }
+
+
+def _start_record(start: dict[str, Any] | None, keys: list[str]) -> dict[str, Any] | None:
+    if not start:
+        return None
+    out = {k: _num(v) for k, v in start.items() if k != "observations"}
+    obs = dict(start.get("observations") or {})
+    if obs.get("seed_pair") is not None:
+        obs["seed_pair"] = [keys[i] for i in obs["seed_pair"]]
+    if obs:
+        out["observations_kept"] = {k: obs.get(k) for k in ("averaged", "incremental")}
+        out["registered"] = obs.get("registered")
+        out["seed_pair"] = obs.get("seed_pair")
+    return out
 
 
 def poses_json(rec: Reconstruction, info: dict[str, Any] | None = None) -> dict[str, Any]:

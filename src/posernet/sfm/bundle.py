@@ -36,6 +36,11 @@ LOSSES: tuple[str, ...] = ("linear", "huber", "soft_l1", "cauchy", "arctan")
 #: resolves it: refine when they were guessed); :func:`bundle_adjust` itself reads it as ``none``
 FOCAL_MODES: tuple[str, ...] = ("none", "shared", "per_camera", "auto")
 GAUGES: tuple[str, ...] = ("max_degree", "first")
+#: where the adjustment of a component starts: ``averaged`` (the motion-averaging poses),
+#: ``incremental`` (cameras registered one at a time by PnP from a seed pair,
+#: :mod:`posernet.sfm.incremental`) or ``auto`` (both; the one whose adjustment keeps more
+#: observations within ``max_reproj_px`` wins, ties to the averaged start)
+STARTS: tuple[str, ...] = ("auto", "averaged", "incremental")
 
 
 @dataclass
@@ -63,7 +68,9 @@ class BundleOptions:
     motion-averaging poses that may be degrees off: a track is kept when its largest error is
     below ``max(max_reproj_px, factor * median track error)``), ``min_angle_deg`` (smallest
     triangulation angle), ``rounds`` (BA passes: BA, filter, BA, ...), ``min_points_per_camera``
-    (cameras seeing fewer triangulated points keep their input pose and are flagged).
+    (cameras seeing fewer triangulated points keep their input pose and are flagged),
+    ``start`` (:data:`STARTS`: the poses the adjustment starts from) and
+    ``incremental_max_cameras`` (larger components start from the averaged poses only).
     """
 
     loss: str = "cauchy"
@@ -86,8 +93,15 @@ class BundleOptions:
     min_angle_deg: float = 1.0
     rounds: int = 2
     min_points_per_camera: int = 15
+    start: str = "auto"
+    incremental_max_cameras: int = 40
 
     def __post_init__(self) -> None:
+        if self.start not in STARTS:
+            raise ValueError(f"start={self.start!r}; choose one of {list(STARTS)}")
+        if self.incremental_max_cameras < 2:
+            raise ValueError(f"incremental_max_cameras must be >= 2, got "
+                             f"{self.incremental_max_cameras}")
         if self.loss not in LOSSES:
             raise ValueError(f"loss={self.loss!r}; choose one of {list(LOSSES)}")
         if self.refine_focal not in FOCAL_MODES:

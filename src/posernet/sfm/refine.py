@@ -8,6 +8,7 @@ yet in the problem with the refined poses (strict filters), bundle-adjust again.
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
@@ -18,6 +19,7 @@ import torch
 
 from ..metrics import umeyama_alignment
 from .bundle import BundleOptions, BundleResult, bundle_adjust
+from .incremental import register_incrementally
 from .resection import resect_cameras
 from .tracks import Tracks, build_tracks
 from .triangulation import reprojection_errors, triangulate_tracks, undistort_keypoints
@@ -67,6 +69,14 @@ class SfmResult:
             r = s["resection"]
             out.append(f"cameras not pinned by averaging: {r['tried']}; re-placed from 3D points "
                        f"(PnP) {r['resected']}, failed {r['failed']}")
+        if "start" in s:
+            st = s["start"]
+            obs = st.get("observations") or {}
+            out.append(f"start: {st['kept']}" + (
+                f" (observations kept: from averaged poses {obs.get('averaged')}, from "
+                f"incremental registration {obs.get('incremental')} with "
+                f"{obs.get('registered')} cameras registered)" if obs else
+                f" ({st.get('why', '')})"))
         if "triangulation" in s:
             out.append("initial triangulation: " + ", ".join(
                 f"{k} {v}" for k, v in s["triangulation"].items()))
@@ -140,6 +150,8 @@ def bundle_adjust_reconstruction(uv: Sequence[np.ndarray],
     failed bundle adjustment keeps the previous (ultimately the input) poses.
     """
     opt = options or BundleOptions()
+    if opt.start != "averaged":
+        return _best_start(uv, pair_matches, K, dist, w2c, placed, opt, anchored, seed)
     t_all = time.perf_counter()
     seconds: dict[str, float] = {}
     K = np.asarray(K, np.float64)
@@ -317,3 +329,66 @@ def bundle_adjust_reconstruction(uv: Sequence[np.ndarray],
     msg = (f"bundle adjustment: {len(accepted)}/{len(bundles)} run(s) accepted; "
            f"{int(refined.sum())} cameras refined, {int(weak.sum())} weak kept at input pose")
     return result(out, out_K, pts, in_ba, active, refined, weak, bundles, stats, msg)
+
+
+def _support(r: SfmResult) -> int:
+    """Observations the adjustment explains: those kept in cameras it refined (a failed
+    adjustment refines none)."""
+    return int(r.refined[r.obs_image].sum())
+
+
+def _best_start(uv: Sequence[np.ndarray], pair_matches: Mapping[tuple[int, int], np.ndarray],
+                K: np.ndarray, dist: Sequence[np.ndarray | None] | None, w2c: np.ndarray,
+                placed: np.ndarray, opt: BundleOptions, anchored: np.ndarray | None,
+                seed: int) -> SfmResult:
+    """:func:`bundle_adjust_reconstruction` from the start ``opt.start`` names (see
+    :data:`~posernet.sfm.bundle.STARTS`); ``stats["start"]`` says which start was kept and
+    what each one kept."""
+    averaged_opt = dataclasses.replace(opt, start="averaged")
+    K = np.asarray(K, np.float64)
+    w2c = np.asarray(w2c, np.float64)
+    members = np.asarray(placed, bool).reshape(-1) & np.isfinite(w2c).all((1, 2))
+    small = int(members.sum()) <= opt.incremental_max_cameras
+    avg = None
+    if opt.start == "auto" or not small:
+        avg = bundle_adjust_reconstruction(uv, pair_matches, K, dist, w2c, placed, averaged_opt,
+                                           anchored=anchored, seed=seed)
+        if not small:
+            avg.stats["start"] = {"kept": "averaged", "why": "component over "
+                                  f"{opt.incremental_max_cameras} cameras"}
+            return avg
+    t0 = time.perf_counter()
+    N = _check_inputs(uv, K, dist, w2c, members)
+    und = undistort_keypoints(uv, K, dist)
+    sub = {k: m for k, m in pair_matches.items() if members[int(k[0])] and members[int(k[1])]}
+    tracks = build_tracks(sub, [len(u) for u in und])
+    offs = np.concatenate(([0], np.cumsum([len(u) for u in und]))).astype(np.int64)
+    flat = np.concatenate([u.reshape(-1, 2) for u in und]) if N else np.zeros((0, 2))
+    reg = register_incrementally(flat[offs[tracks.image] + tracks.keypoint], tracks.track,
+                                 tracks.image, tracks.num_tracks, K, w2c, members,
+                                 dataclasses.replace(averaged_opt, refine_focal="none"),
+                                 min_inliers=max(6, opt.min_points_per_camera), seed=seed)
+    seconds = time.perf_counter() - t0
+    inc = None
+    if int(reg.registered.sum()) >= 2:
+        inc = bundle_adjust_reconstruction(uv, pair_matches, K, dist, reg.w2c, reg.registered,
+                                           averaged_opt, seed=seed)
+        # members the registration could not place: no position for them
+        left = members & ~reg.registered
+        inc.placed = inc.placed | left
+        inc.weak = inc.weak | left
+        inc.undetermined = (inc.undetermined if inc.undetermined.size else
+                            np.zeros(N, bool)) | left
+        inc.w2c[left] = w2c[left]
+        inc.stats["seconds"]["registration"] = seconds
+    kept = {"averaged": None if avg is None else _support(avg),
+            "incremental": None if inc is None else _support(inc),
+            "registered": int(reg.registered.sum()), "seed_pair": reg.seed}
+    if inc is None or (avg is not None and _support(avg) >= _support(inc)):
+        if avg is None:  # start=incremental, and the registration placed nothing
+            avg = bundle_adjust_reconstruction(uv, pair_matches, K, dist, w2c, placed,
+                                               averaged_opt, anchored=anchored, seed=seed)
+        avg.stats["start"] = {"kept": "averaged", "observations": kept}
+        return avg
+    inc.stats["start"] = {"kept": "incremental", "observations": kept}
+    return inc

@@ -88,15 +88,16 @@ def _pnp(X: np.ndarray, x: np.ndarray, K: np.ndarray, T0: np.ndarray, thr: float
     Levenberg-Marquardt fit started from ``T0 (4, 4)``, each polished on its inliers with the
     threshold tightened in stages; ``(None, 0)`` when neither finds a pose."""
     cands = [(cv2.Rodrigues(T0[:3, :3])[0], T0[:3, 3].reshape(3, 1).copy())]
-    cv2.setRNGSeed(seed)
-    try:
-        ok, rvec, tvec, inl = cv2.solvePnPRansac(
-            X, x, K, None, iterationsCount=1000, reprojectionError=thr, confidence=0.999,
-            flags=cv2.SOLVEPNP_SQPNP)
+    for flag in (cv2.SOLVEPNP_SQPNP, cv2.SOLVEPNP_AP3P, cv2.SOLVEPNP_EPNP):
+        cv2.setRNGSeed(seed)
+        try:
+            ok, rvec, tvec, inl = cv2.solvePnPRansac(
+                X, x, K, None, iterationsCount=1000, reprojectionError=thr, confidence=0.999,
+                flags=flag)
+        except cv2.error:  # SQPnP asserts on near-degenerate (long-lens) configurations
+            continue
         if ok and inl is not None and len(inl) >= 4:
             cands.append((rvec, tvec))
-    except cv2.error:  # SQPnP asserts on near-degenerate (long-lens) configurations
-        pass
     best, best_n = None, 0
     for rvec, tvec in cands:
         T = np.eye(4)
