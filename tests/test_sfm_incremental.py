@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 import torch
@@ -82,14 +84,26 @@ def test_auto_start_keeps_the_start_that_explains_more(long_lens) -> None:
     assert any(line.startswith("start: incremental") for line in res["auto"].lines())
 
 
-def test_a_good_averaged_start_is_kept_on_a_tie() -> None:
+def test_a_good_averaged_start_is_kept() -> None:
     sc = make_scene(num_cameras=6, num_points=300, noise_px=0.3, seed=3)
-    res = bundle_adjust_reconstruction(sc.uv, sc.pair_matches, sc.K, None, sc.w2c,
-                                       np.ones(6, bool), BundleOptions())
-    obs = res.stats["start"]["observations"]
-    assert obs["averaged"] == obs["incremental"] == res.obs_image.size
-    assert res.stats["start"]["kept"] == "averaged"  # a tie keeps the averaged start
+    placed = np.ones(6, bool)
+    # explaining most observations with every camera refined: incremental not even tried
+    res = bundle_adjust_reconstruction(sc.uv, sc.pair_matches, sc.K, None, sc.w2c, placed,
+                                       BundleOptions())
+    assert res.stats["start"]["kept"] == "averaged"
+    assert re.fullmatch(r"explains (9\d|100)% of the track observations, every camera refined",
+                        res.stats["start"]["why"])
+    assert "registration" not in res.stats["seconds"]
     assert _errors(res.w2c, sc.w2c)[0] < 0.05
+    # noisier keypoints: a few observations over max_reproj_px, so explained_min=1 tries the
+    # incremental start too; the one explaining more wins, a tie keeps the averaged one
+    sc = make_scene(num_cameras=6, num_points=300, noise_px=2.0, seed=3)
+    both = bundle_adjust_reconstruction(sc.uv, sc.pair_matches, sc.K, None, sc.w2c, placed,
+                                        BundleOptions(explained_min=1.0))
+    obs = both.stats["start"]["observations"]
+    want = "averaged" if obs["averaged"] >= obs["incremental"] else "incremental"
+    assert both.stats["start"]["kept"] == want
+    assert obs[want] == both.obs_image.size
 
 
 def test_a_camera_that_cannot_be_registered_is_not_placed(long_lens) -> None:
@@ -119,3 +133,5 @@ def test_start_options_are_checked() -> None:
         BundleOptions(start="global")
     with pytest.raises(ValueError, match="incremental_max_cameras must be >= 2"):
         BundleOptions(incremental_max_cameras=1)
+    with pytest.raises(ValueError, match="explained_min must be in"):
+        BundleOptions(explained_min=1.5)

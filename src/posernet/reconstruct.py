@@ -286,7 +286,8 @@ def sfm_record(r: SfmResult, keys: list[str]) -> dict[str, Any]:
         "cameras_refined": [keys[i] for i in np.flatnonzero(r.refined)],
         "cameras_weak": [keys[i] for i in np.flatnonzero(r.weak)],
         "cameras_position_undetermined": [keys[i] for i in np.flatnonzero(r.undetermined)],
-        "tracks": int(r.tracks.num_tracks), "points": int(r.points.shape[0]),
+        "tracks": int(r.tracks.num_tracks),
+        "track_observations": int(r.tracks.track.size), "points": int(r.points.shape[0]),
         "observations": int(r.obs_image.size),
         "reprojection_px": {f"{k}_{w}": _num(st.get(f"{k}_error_{w}"))
                             for k in ("median", "mean") for w in ("before", "after")},

@@ -39,7 +39,9 @@ GAUGES: tuple[str, ...] = ("max_degree", "first")
 #: where the adjustment of a component starts: ``averaged`` (the motion-averaging poses),
 #: ``incremental`` (cameras registered one at a time by PnP from a seed pair,
 #: :mod:`posernet.sfm.incremental`) or ``auto`` (both; the one whose adjustment keeps more
-#: observations within ``max_reproj_px`` wins, ties to the averaged start)
+#: observations within ``max_reproj_px`` wins, ties to the averaged start; the incremental one
+#: is tried only when the averaged adjustment leaves a camera unrefined or explains less than
+#: ``explained_min`` of the track observations)
 STARTS: tuple[str, ...] = ("auto", "averaged", "incremental")
 
 
@@ -69,7 +71,9 @@ class BundleOptions:
     below ``max(max_reproj_px, factor * median track error)``), ``min_angle_deg`` (smallest
     triangulation angle), ``rounds`` (BA passes: BA, filter, BA, ...), ``min_points_per_camera``
     (cameras seeing fewer triangulated points keep their input pose and are flagged),
-    ``start`` (:data:`STARTS`: the poses the adjustment starts from) and
+    ``start`` (:data:`STARTS`: the poses the adjustment starts from), ``explained_min`` (with
+    ``start="auto"``, the share of track observations an adjustment from the averaged poses
+    must explain, every camera refined, for the incremental start not to be tried) and
     ``incremental_max_cameras`` (larger components start from the averaged poses only).
     """
 
@@ -95,10 +99,13 @@ class BundleOptions:
     min_points_per_camera: int = 15
     start: str = "auto"
     incremental_max_cameras: int = 40
+    explained_min: float = 0.75
 
     def __post_init__(self) -> None:
         if self.start not in STARTS:
             raise ValueError(f"start={self.start!r}; choose one of {list(STARTS)}")
+        if not 0.0 <= float(self.explained_min) <= 1.0:
+            raise ValueError(f"explained_min must be in [0, 1], got {self.explained_min}")
         if self.incremental_max_cameras < 2:
             raise ValueError(f"incremental_max_cameras must be >= 2, got "
                              f"{self.incremental_max_cameras}")

@@ -357,6 +357,11 @@ def _best_start(uv: Sequence[np.ndarray], pair_matches: Mapping[tuple[int, int],
             avg.stats["start"] = {"kept": "averaged", "why": "component over "
                                   f"{opt.incremental_max_cameras} cameras"}
             return avg
+        explained = _support(avg) / max(int(avg.tracks.track.size), 1)
+        if bool(avg.refined[members].all()) and explained >= opt.explained_min:
+            avg.stats["start"] = {"kept": "averaged", "why": f"explains {explained:.0%} of the "
+                                  "track observations, every camera refined"}
+            return avg
     t0 = time.perf_counter()
     N = _check_inputs(uv, K, dist, w2c, members)
     und = undistort_keypoints(uv, K, dist)
