@@ -166,3 +166,14 @@ def test_working_resolution_maps_keypoints_back(scene) -> None:
     assert len(full) > len(mapped)  # full size: more (finer) keypoints
     with pytest.raises(ValueError, match="max_image_size"):
         _frontend(scene, max_image_size=8)
+
+
+def test_without_boxes_a_rejected_pair_names_the_verification_rule(scene) -> None:
+    """No stage uses boxes: a pair that fails verification says which rule, not "matched
+    boxes"."""
+    records = records_for_images(scene, "292.5,292.5,160,120", "*.color.png", "none")
+    strict = VerifyRules(min_inlier_ratio=0.999)  # any outlier at all rejects the pair
+    fe = ImageFrontend(records, None, SiftMatcher(), verify=strict, edge_rule="verified")
+    fe.evaluate_pairs(PAIRS, progress=False)
+    reasons = {fe.pair(a, b).reason for a, b in PAIRS if fe.pair(a, b).status != "edge"}
+    assert "low_inlier_ratio" in reasons and "too_few_matched_boxes" not in reasons, reasons

@@ -391,8 +391,10 @@ class ImageFrontend:
                                   info=tv.info)
             if not tv.accepted:
                 summary.rejected[f"kp:{tv.status}"] += 1
+            # the verification's own reason when it failed: boxes may not be in use at all
             return PairResult(a, b, ia, ib, wrong, 0, 0, None, None, "unmatched",
-                              reason="too_few_matched_boxes", rotation_only=tv.rotation_only,
+                              reason="too_few_matched_boxes" if tv.accepted else tv.status,
+                              rotation_only=tv.rotation_only,
                               inliers=inliers, info=tv.info)
         inside = keypoints_in_matched_boxes(m.uv_a, m.uv_b, A.boxes, B.boxes, ia, ib,
                                             self.kp_top_pairs)
