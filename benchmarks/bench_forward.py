@@ -3,7 +3,7 @@
 Both paths run in this process on the same batch with the same weights (the shipped
 checkpoint): the fast path (``PoserConv(fused=True)``, the default) and the literal one
 (``fused=False``: every matched pair runs both MLPs on its concatenated message, the code before
-issue 15). Reported: best-of-``--repeat`` wall time, graphs/s, the ratio, the largest output
+the fused path). Reported: best-of-``--repeat`` wall time, graphs/s, the ratio, the largest output
 difference between the paths, and the top operators of the fast path (what bounds it).
 
     python benchmarks/bench_forward.py                 # 7000 graphs -> results/forward.md
@@ -84,7 +84,7 @@ def main() -> None:
         print(f"fast path: {fmt_s(t_fast)} {[round(t, 3) for t in all_fast]}", flush=True)
         t_ref, all_ref = best_of(lambda: ref(batch), max(1, repeat - 1), dev)
         print(f"literal path: {fmt_s(t_ref)} {[round(t, 3) for t in all_ref]}", flush=True)
-        rows = [["literal path (`fused=False`, before issue 15)", fmt_s(t_ref),
+        rows = [["literal path (`fused=False`, before the fused path)", fmt_s(t_ref),
                  f"{n / t_ref:.0f}", "1.0x"],
                 ["fast path (default)", fmt_s(t_fast), f"{n / t_fast:.0f}",
                  f"{t_ref / t_fast:.1f}x"]]

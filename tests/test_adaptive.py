@@ -1,4 +1,4 @@
-"""Input-adaptive refinement (issue 16): cycle features, gate / confidence head, its loss, the
+"""Input-adaptive refinement: cycle features, gate / confidence head, its loss, the
 initial-pose mixture, confidence-weighted motion averaging, the guard and refined.json."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Differentiable synchronisation and end-to-end training through it (issue 17)."""
+"""Differentiable synchronisation and end-to-end training through it."""
 
 from __future__ import annotations
 

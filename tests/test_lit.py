@@ -107,7 +107,7 @@ def test_checkpoint_round_trip(data, tmp_path: Path) -> None:
     expected = module(batch)
     loaded = PoserNetModule.load_from_checkpoint(path, map_location="cpu")  # no Hydra needed
     assert loaded.hparams.net["depth"] == 3 and loaded.hparams.net["residual"]
-    # the adaptive terms (issue 16) default to 0 and end to end (issue 17) off: the paper's
+    # the input-adaptive terms default to 0 and end-to-end training is off: the paper's
     assert loaded.hparams.loss == {"alpha": 0.3, "raw": 0.0, "confidence": 0.0,
                                    "correction": 0.0, "harm": 0.0, "harm_scale": 0.0,
                                    "end_to_end": False, "relative_weight": 1.0,
@@ -211,8 +211,8 @@ def test_optimizer_and_scheduler() -> None:
 
 MODEL_CONFIG_DIR = Path(CONFIG_DIR) / "model"
 MODEL_CONFIGS = sorted(p.stem for p in MODEL_CONFIG_DIR.glob("*.yaml"))
-# the checkpoint shipped before issue 16: the older layout (flat hyper-parameters, last-round
-# node MLP and its Adam state)
+# the checkpoint shipped before input-adaptive refinement: the older layout (flat
+# hyper-parameters, last-round node MLP and its Adam state)
 SHIPPED = (Path(__file__).resolve().parents[1] / "src" / "posernet" / "checkpoints"
            / "posernet_synthetic_kp_v1.ckpt")
 

@@ -363,7 +363,7 @@ def test_mismatching_state_dicts_still_fail() -> None:
 # --------------------------------------------------------------------------- shipped weights
 
 ROOT = Path(__file__).resolve().parents[1]
-# The checkpoint shipped before issue 16 (KP-only training, no gate), kept as
+# The checkpoint shipped before input-adaptive refinement (KP-only training, no gate), kept as
 # posernet_synthetic_kp_v1.ckpt: the file of the older layout (flat hyper-parameters, the last
 # round's node MLP) whose outputs are pinned here.
 SHIPPED = ROOT / "src" / "posernet" / "checkpoints" / "posernet_synthetic_kp_v1.ckpt"
@@ -408,7 +408,7 @@ def test_shipped_checkpoint_gives_the_recorded_output(tiny_graph: ViewGraph) -> 
                                    atol=2e-6, rtol=0)
 
 
-# The shipped checkpoint since issue 16 (input-adaptive: gates, confidence head, cycle
+# The shipped checkpoint since input-adaptive refinement (gates, confidence head, cycle
 # feature; depth 3, 64-wide MLPs and node state; fine-tuned with the relative do-no-harm
 # hinge, then on the paper preset plus generator variants: three, nine, then twelve), recorded
 # on the same graph when it was shipped: final pose, gates (rotation, direction) and error

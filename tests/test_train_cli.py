@@ -13,7 +13,7 @@ import torch
 
 pytest.importorskip(
     "posernet.data.datamodule",
-    reason="posernet.data.datamodule (the synthetic-datasets issue) has not landed yet")
+    reason="posernet.data.datamodule is not importable")
 
 from hydra import compose, initialize_config_dir
 

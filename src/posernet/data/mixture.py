@@ -1,4 +1,4 @@
-"""Training on a mixture of initial-pose qualities (issue 16, input-adaptive refinement).
+"""Training on a mixture of initial-pose qualities (input-adaptive refinement).
 
 A network trained on one input distribution (KP) learns that distribution's error floor and
 maps every input onto it: ground-truth input comes out ~8 degrees off. Training on inputs whose

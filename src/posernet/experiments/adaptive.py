@@ -1,4 +1,4 @@
-"""Input-adaptive refinement: the evaluation of issue 16.
+"""Input-adaptive refinement: its evaluation.
 
 ``python -m posernet.experiments.adaptive --data DIR --model NAME=CKPT [--model ...] --out DIR``
 
@@ -533,7 +533,8 @@ def paper_tables(ckpt: str | Path, data: str | Path, out: str | Path, label: str
         if paper_dir is not None:
             src = Path(paper_dir) / name / "table.md"
             if src.is_file():
-                text = (src.read_text() + f"\n\n**Rows added (issue 16): {label}**\n\n"
+                text = (src.read_text()
+                        + f"\n\n**Rows added (input-adaptive refinement): {label}**\n\n"
                         + tab.to_markdown())
                 paths[f"{name}_with_paper"] = atomic_write_text(
                     out / f"{name}_with_paper.md", text)
