@@ -9,13 +9,13 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from posernet.geometry import axis_angle_to_rotation_matrix, invert_se3, make_se3
-from posernet.metrics import (
-    absolute_pose_errors,
-    absolute_pose_errors_per_camera,
-    threshold_row,
+from posernet.geometry import (
+    axis_angle_to_rotation_matrix,
+    invert_se3,
+    make_se3,
     umeyama_alignment,
 )
+from posernet.metrics import absolute_pose_errors, absolute_pose_errors_per_camera, threshold_row
 from posernet.testing import random_absolute_poses
 
 F64 = torch.float64

@@ -78,7 +78,7 @@ def test_reconstruct_recovers_rendered_rotations(scene, tmp_path):
             for i in range(len(names)) for j in range(i + 1, len(names))]
     assert np.median(errs) < 2.0, errs
     # positions: camera centres after a similarity alignment, against the trajectory's size
-    from posernet.metrics import umeyama_alignment
+    from posernet.geometry import umeyama_alignment
 
     c_est = np.stack([np.asarray(cams[n]["camera_to_world"])[:3, 3] for n in names])
     c_gt = np.stack([np.linalg.inv(reader.world_to_camera(frames[n]))[:3, 3] for n in names])

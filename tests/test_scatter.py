@@ -7,7 +7,7 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from posernet.nn.scatter import scatter_count, scatter_max, scatter_mean, scatter_sum
+from posernet.scatter import scatter_count, scatter_max, scatter_mean, scatter_sum
 
 
 def dense_reference(src: torch.Tensor, index: torch.Tensor, G: int, reduce: str) -> torch.Tensor:

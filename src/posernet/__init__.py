@@ -6,6 +6,7 @@ The public API is re-exported here; see the README for a tour.
 
 from . import geometry, sync
 from .checkpoints import CheckpointError, read_checkpoint
+from .geometry import umeyama_alignment
 from .graph import (
     GraphBatch,
     GraphValidationError,
@@ -21,7 +22,6 @@ from .metrics import (
     per_graph_mean,
     relative_pose_errors,
     threshold_row,
-    umeyama_alignment,
 )
 from .nn import PoserConv, PoserNet, posernet_loss
 

@@ -32,6 +32,7 @@ __all__ = [
     "matrix_to_pose_vec",
     "pose_vec_to_matrix",
     "project_to_so3",
+    "proper_rotation_from_cov",
     "quaternion_angle",
     "quaternion_canonical",
     "quaternion_conjugate",
@@ -50,6 +51,7 @@ __all__ = [
     "so3_hat",
     "symmetric_pose_mean",
     "translation_direction_error_deg",
+    "umeyama_alignment",
     "world_to_camera",
 ]
 
@@ -535,3 +537,47 @@ def se3_log(T: Tensor) -> Tensor:
     eye = torch.eye(3, dtype=T.dtype, device=T.device)
     V_inv = eye - 0.5 * W + d * (W @ W)
     return torch.cat((w, (V_inv @ T[..., :3, 3:]).squeeze(-1)), dim=-1)
+
+
+def proper_rotation_from_cov(C: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """The proper rotation closest to a 3x3 covariance ``C [..., 3, 3]``: ``R = U diag(1, 1, d)
+    V^T`` maximising ``tr(R^T C)`` (Kabsch / Umeyama); returns ``(R, S, D)`` with the singular
+    values ``S`` and the signs ``D [..., 3]``."""
+    U, S, Vh = torch.linalg.svd(C)
+    d = torch.sign(torch.linalg.det(U) * torch.linalg.det(Vh))
+    d = torch.where(d == 0, torch.ones_like(d), d)
+    D = torch.ones_like(S)
+    D[..., 2] = d
+    return (U * D[..., None, :]) @ Vh, S, D
+
+
+def umeyama_alignment(src: Tensor, dst: Tensor, with_scale: bool = True,
+                      mask: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
+    """Least-squares similarity (or rigid) transform with ``dst ~ s R src + t`` (Umeyama 1991).
+
+    Shapes: ``src, dst [..., K, 3]``, ``mask [..., K]`` (True = use the point) ->
+    ``s [...]``, ``R [..., 3, 3]`` (a proper rotation), ``t [..., 3]``. Batched over the leading
+    dims. ``s`` is 1 when ``with_scale`` is False or when the masked source points coincide.
+    With fewer than 3 points, or collinear points, ``R`` is one of several minimisers.
+    """
+    if src.shape != dst.shape or src.ndim < 2 or src.shape[-1] != 3:
+        raise ValueError(f"src and dst must both be [..., K, 3], got {tuple(src.shape)} and "
+                         f"{tuple(dst.shape)}")
+    if mask is None:
+        mask = torch.ones(src.shape[:-1], dtype=torch.bool, device=src.device)
+    w = mask.to(src.dtype)[..., None]
+    cnt = w.sum(-2).clamp_min(1.0)  # [..., 1]
+    mu_s = (w * src).sum(-2) / cnt
+    mu_d = (w * dst).sum(-2) / cnt
+    xs = (src - mu_s[..., None, :]) * w
+    xd = (dst - mu_d[..., None, :]) * w
+    C = xd.mT @ xs / cnt[..., None]  # [..., 3, 3] covariance dst x src
+    R, S, D = proper_rotation_from_cov(C)
+    var_s = (xs * xs).sum((-1, -2)) / cnt[..., 0]
+    if with_scale:
+        s = torch.where(var_s > 1e-300, (S * D).sum(-1) / var_s.clamp_min(1e-300),
+                        torch.ones_like(var_s))
+    else:
+        s = torch.ones_like(var_s)
+    t = mu_d - s[..., None] * (R @ mu_s[..., None]).squeeze(-1)
+    return s, R, t

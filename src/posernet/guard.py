@@ -1,4 +1,4 @@
-"""Out-of-distribution guard for ``posernet-refine`` (issue 16).
+"""Out-of-distribution guard for ``posernet-refine``.
 
 A refiner trained on one kind of graph can make other graphs much worse (the authors'-schema
 test file: 10 -> 108 degrees), and a user cannot tell in advance. Two checks, no ground truth:
@@ -28,7 +28,7 @@ from torch import Tensor
 
 from .graph import REF_FOCAL, REF_HEIGHT, REF_K1, REF_WIDTH, GraphBatch, ViewGraph
 from .nn.adaptive import cycle_features
-from .nn.scatter import scatter_count, scatter_mean
+from .scatter import scatter_count, scatter_mean
 
 __all__ = ["FEATURES", "check_inputs", "cycle_inconsistency", "graph_features", "graph_made_worse",
            "input_statistics", "keep_input_mask", "refinement_check", "warning_line"]

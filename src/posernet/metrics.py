@@ -17,8 +17,14 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from .geometry import rotation_angle, rotation_error_deg, translation_direction_error_deg
-from .nn.scatter import scatter_count
+from .geometry import (
+    proper_rotation_from_cov,
+    rotation_angle,
+    rotation_error_deg,
+    translation_direction_error_deg,
+    umeyama_alignment,
+)
+from .scatter import scatter_count
 
 __all__ = [
     "ABSOLUTE_KEYS",
@@ -41,7 +47,6 @@ __all__ = [
     "threshold_row",
     "trajectory_errors",
     "translation_direction_error_deg",
-    "umeyama_alignment",
     "unplaced_per_graph",
 ]
 
@@ -158,48 +163,6 @@ def _group_layout(group: Tensor, num_groups: int) -> tuple[Tensor, Tensor, int]:
     return group, col, int(count.max()) if count.numel() else 0
 
 
-def _proper_rotation_from_cov(C: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """``R = U diag(1, 1, d) V^T`` maximising ``tr(R^T C)``; returns ``(R, S, d)``."""
-    U, S, Vh = torch.linalg.svd(C)
-    d = torch.sign(torch.linalg.det(U) * torch.linalg.det(Vh))
-    d = torch.where(d == 0, torch.ones_like(d), d)
-    D = torch.ones_like(S)
-    D[..., 2] = d
-    return (U * D[..., None, :]) @ Vh, S, D
-
-
-def umeyama_alignment(src: Tensor, dst: Tensor, with_scale: bool = True,
-                      mask: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
-    """Least-squares similarity (or rigid) transform with ``dst ~ s R src + t`` (Umeyama 1991).
-
-    Shapes: ``src, dst [..., K, 3]``, ``mask [..., K]`` (True = use the point) ->
-    ``s [...]``, ``R [..., 3, 3]`` (a proper rotation), ``t [..., 3]``. Batched over the leading
-    dims. ``s`` is 1 when ``with_scale`` is False or when the masked source points coincide.
-    With fewer than 3 points, or collinear points, ``R`` is one of several minimisers.
-    """
-    if src.shape != dst.shape or src.ndim < 2 or src.shape[-1] != 3:
-        raise ValueError(f"src and dst must both be [..., K, 3], got {tuple(src.shape)} and "
-                         f"{tuple(dst.shape)}")
-    if mask is None:
-        mask = torch.ones(src.shape[:-1], dtype=torch.bool, device=src.device)
-    w = mask.to(src.dtype)[..., None]
-    cnt = w.sum(-2).clamp_min(1.0)  # [..., 1]
-    mu_s = (w * src).sum(-2) / cnt
-    mu_d = (w * dst).sum(-2) / cnt
-    xs = (src - mu_s[..., None, :]) * w
-    xd = (dst - mu_d[..., None, :]) * w
-    C = xd.mT @ xs / cnt[..., None]  # [..., 3, 3] covariance dst x src
-    R, S, D = _proper_rotation_from_cov(C)
-    var_s = (xs * xs).sum((-1, -2)) / cnt[..., 0]
-    if with_scale:
-        s = torch.where(var_s > 1e-300, (S * D).sum(-1) / var_s.clamp_min(1e-300),
-                        torch.ones_like(var_s))
-    else:
-        s = torch.ones_like(var_s)
-    t = mu_d - s[..., None] * (R @ mu_s[..., None]).squeeze(-1)
-    return s, R, t
-
-
 def absolute_pose_errors_per_camera(
     pose_est: Tensor,
     pose_gt: Tensor,
@@ -282,7 +245,7 @@ def _align_groups(pose_est: Tensor, pose_gt: Tensor, group: Tensor, num_groups: 
     if bool(degenerate.any()) or rotation_gauge == "rotations":
         M = torch.zeros(G, 3, 3, dtype=dt, device=est.device)
         M.index_add_(0, group[valid], (Rg @ Re.mT)[valid])
-        Qr, _, _ = _proper_rotation_from_cov(M)
+        Qr, _, _ = proper_rotation_from_cov(M)
         Q_rot = Qr
         var_e = (xe * xe).sum((1, 2))
         if alignment == "similarity":

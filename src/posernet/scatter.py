@@ -17,7 +17,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-__all__ = ["scatter_count", "scatter_max", "scatter_mean", "scatter_sum"]
+__all__ = ["scatter_count", "scatter_max", "scatter_mean", "scatter_sum", "scatter_sum_unchecked"]
 
 
 def _check(src: Tensor, index: Tensor, dim: int, dim_size: int | None) -> tuple[int, int]:
@@ -72,10 +72,12 @@ def scatter_sum(src: Tensor, index: Tensor, dim: int = 0, dim_size: int | None =
     Shapes: ``src (..., R, ...)``, ``index (R,)`` -> ``(..., G, ...)``.
     """
     dim, dim_size = _check(src, index, dim, dim_size)
-    return _sum(src, index, dim, dim_size)
+    return scatter_sum_unchecked(src, index, dim, dim_size)
 
 
-def _sum(src: Tensor, index: Tensor, dim: int, dim_size: int) -> Tensor:
+def scatter_sum_unchecked(src: Tensor, index: Tensor, dim: int, dim_size: int) -> Tensor:
+    """:func:`scatter_sum` without its input checks, for hot paths whose ``index`` is known
+    to be valid (1-D, in ``[0, dim_size)``)."""
     shape = list(src.shape)
     shape[dim] = dim_size
     return src.new_zeros(shape).index_add(dim, index.long(), src)
@@ -100,7 +102,7 @@ def scatter_mean(src: Tensor, index: Tensor, dim: int = 0, dim_size: int | None 
     Shapes as :func:`scatter_sum`.
     """
     dim, dim_size = _check(src, index, dim, dim_size)
-    total = _sum(src, index, dim, dim_size)
+    total = scatter_sum_unchecked(src, index, dim, dim_size)
     count = scatter_count(index, dim_size).clamp_min(1).to(src.dtype)
     shape = [1] * src.ndim
     shape[dim] = -1

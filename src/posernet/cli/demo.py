@@ -95,7 +95,7 @@ def demo(cfg: DictConfig) -> dict[str, Any]:
     """Run the demo described by ``cfg``; returns the written files."""
     from ..data.store import open_split
     from ..data.synthetic import generate_dataset
-    from ..data.synthetic.generate import GenerationError
+    from ..data.writer import GenerationError
     from ..metrics import align_to_ground_truth
     from ..nn import PoserNet
     from ..pipeline import evaluate_result, refine_graphs, result_tables

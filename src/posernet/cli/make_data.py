@@ -124,7 +124,7 @@ def _resume_hint(cfg: DictConfig) -> str | None:
     """After Ctrl-C: how to finish the dataset, when its folder was started."""
     from pathlib import Path
 
-    from posernet.data.synthetic.generate import JOB_FILE
+    from posernet.data.writer import JOB_FILE
 
     out = _out_dir(cfg)
     if (Path(out) / JOB_FILE).is_file():

@@ -128,7 +128,7 @@ def _html_view(rec: Any, record: dict[str, Any], out: Path) -> Path | None:
     import numpy as np
 
     from ..export import largest_component
-    from ..metrics import umeyama_alignment
+    from ..geometry import umeyama_alignment
     from ..reconstruct import largest_point_cloud
     from ..viewer import write_html_view
 

@@ -15,8 +15,8 @@ What ``posernet-make-data source=sevenscenes root=DIR`` runs. Per scene:
 Every graph draws from its own random stream ``(seed, scene, split, size, index)`` and every
 image pair's RANSAC from ``(seed, pair)`` (:func:`~posernet.frontend.pipeline.pair_seed`), so a
 chunk (one ``<size>/<split>/<scene>.pt`` file) gives the same graphs whatever ran before it.
-Directory layout, manifest, resume and JSON export are the synthetic generator's
-(:mod:`posernet.data.synthetic.generate`). Chunk files hold graphs and deterministic counts
+Directory layout, manifest, resume and JSON export are the dataset writer's, shared with the
+synthetic generator (:mod:`posernet.data.writer`). Chunk files hold graphs and deterministic counts
 only; wall times go to the manifest's ``frontend`` entry and the printed summary.
 """
 
@@ -39,17 +39,17 @@ from ..frontend.pipeline import FrontendSummary, ImageFrontend
 from ..graph import ViewGraph
 from .synthetic.chunks import Chunk, add_graph_stats, empty_stats
 from .synthetic.config import SIZES, SPLITS, ConfigError, GraphCounts
-from .synthetic.generate import (
-    _prepare,
-    _save_chunk,
-    check_run_options,
-    finish_dataset,
-    make_spec,
-    resumed_chunks,
-)
 from .synthetic.sampling import SamplingError
 from .synthetic.seeding import make_rng
 from .synthetic.summary import format_summary
+from .writer import (
+    check_run_options,
+    finish_dataset,
+    make_spec,
+    prepare_output,
+    resumed_chunks,
+    save_chunk,
+)
 
 __all__ = [
     "FORMAT",
@@ -553,7 +553,7 @@ def generate_sevenscenes(
                   frontend={**part_cfgs, "matcher_built": repr(parts["matcher"])})
     spec = make_spec(opts.name, seed, config, fmt=FORMAT, version=VERSION)
     root = Path(out_dir)
-    _prepare(root, spec, overwrite, resume, prefix="sevenscenes")
+    prepare_output(root, spec, overwrite, resume, prefix="sevenscenes")
 
     t0 = time.perf_counter()
     results, todo = resumed_chunks(root, chunks, spec, resume)
@@ -571,7 +571,7 @@ def generate_sevenscenes(
                 graphs, stats = build_chunk(fe, pools[name], c, opts, seed, done, progress,
                                             bar.update)
                 stats.pop("timing")  # files hold reproducible numbers only
-                _save_chunk(root, c, graphs, stats, spec["spec_hash"])
+                save_chunk(root, c, graphs, stats, spec["spec_hash"])
                 results[c.relpath] = stats
             run.images += len(done)
             run.images_without_boxes += fe.summary.images_without_boxes

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-__all__ = ["METHODS", "PoseOptions", "five_point"]
+__all__ = ["METHODS", "PoseOptions", "five_point", "normalised_points"]
 
 
 METHODS = {"usac": cv2.USAC_DEFAULT, "ransac": cv2.RANSAC}
@@ -35,7 +35,7 @@ class PoseOptions:
     max_iters: int = 1000
 
 
-def _normalised(p: np.ndarray, K: np.ndarray, dist: np.ndarray | None) -> np.ndarray:
+def normalised_points(p: np.ndarray, K: np.ndarray, dist: np.ndarray | None) -> np.ndarray:
     """Pixels ``(M, 2)`` -> undistorted normalised image coordinates ``(M, 2)``."""
     d = None if dist is None else np.asarray(dist, dtype=np.float64).reshape(-1)
     return cv2.undistortPoints(p.reshape(-1, 1, 2), K, d).reshape(-1, 2)
@@ -75,7 +75,7 @@ def five_point(
     general = K2 is not None and not np.array_equal(K2d, Kd)
     general = general or any(d is not None and np.any(np.asarray(d) != 0) for d in (dist1, dist2))
     if general:
-        p1, p2 = _normalised(p1, Kd, dist1), _normalised(p2, K2d, dist2)
+        p1, p2 = normalised_points(p1, Kd, dist1), normalised_points(p2, K2d, dist2)
         threshold = threshold / (0.25 * (Kd[0, 0] + Kd[1, 1] + K2d[0, 0] + K2d[1, 1]))
         Kd = np.eye(3)
     cv2.setRNGSeed(int(seed) & 0x7FFFFFFF)

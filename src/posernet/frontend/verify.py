@@ -40,7 +40,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from .relpose import METHODS, _normalised
+from .relpose import METHODS, normalised_points
 
 __all__ = ["TwoView", "VerifyRules", "epipolar_consistent", "keypoint_contrast", "verify_two_view"]
 
@@ -173,7 +173,7 @@ def _to_normalised(p1: np.ndarray, p2: np.ndarray, K1: np.ndarray, K2: np.ndarra
     K1 = np.asarray(K1, dtype=np.float64)
     K2 = K1 if K2 is None else np.asarray(K2, dtype=np.float64)
     f = 0.25 * (K1[0, 0] + K1[1, 1] + K2[0, 0] + K2[1, 1])
-    return _normalised(p1, K1, dist1), _normalised(p2, K2, dist2), float(f)
+    return normalised_points(p1, K1, dist1), normalised_points(p2, K2, dist2), float(f)
 
 
 def verify_two_view(

@@ -4,11 +4,11 @@ Nothing here imports Lightning or Hydra: another GNN can import :class:`PoserCon
 price of torch alone.
 """
 
+from ..scatter import scatter_count, scatter_max, scatter_mean, scatter_sum
 from .conv import PoserConv, PoserConvOutput, graph_inputs
 from .loss import PoserLoss, PoserNetLoss, posernet_loss
 from .mlp import MLP
 from .model import PoserNet
-from .scatter import scatter_count, scatter_max, scatter_mean, scatter_sum
 
 __all__ = [
     "MLP",

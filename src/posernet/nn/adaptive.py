@@ -1,4 +1,4 @@
-"""Input-adaptive refinement (issue 16): cycle consistency, a per-edge gate and confidence.
+"""Input-adaptive refinement: cycle consistency, a per-edge gate and confidence.
 
 PoserNet as published *regresses* every edge pose: it maps good and bad inputs alike to its own
 error floor. The pieces here let a network know when to leave a pose alone and say how sure it
@@ -35,8 +35,8 @@ from ..geometry import (
     quaternion_multiply,
     quaternion_normalize,
 )
+from ..scatter import scatter_count, scatter_mean, scatter_sum
 from .mlp import MLP
-from .scatter import scatter_count, scatter_mean, scatter_sum
 
 __all__ = [
     "CONFIDENCE_NAMES",
@@ -48,6 +48,7 @@ __all__ = [
     "cycle_features",
     "edge_errors",
     "heteroscedastic_nll",
+    "pair_stats",
 ]
 
 #: size of :func:`cycle_features` per edge: mean and min triangle discrepancy (radians), and
@@ -153,7 +154,7 @@ def edge_errors(pose: Tensor, target: Tensor) -> Tensor:
                         angle_between_vectors(pose[:, 4:], target[:, 4:])), dim=-1)
 
 
-def _pair_stats(pair_edge: Tensor, box_src: Tensor, box_dst: Tensor, E: int) -> Tensor:
+def pair_stats(pair_edge: Tensor, box_src: Tensor, box_dst: Tensor, E: int) -> Tensor:
     """Direction-invariant matched-pair statistics per edge ``[E, 3]``: log(1 + #pairs), mean
     box area (both images) and mean centre displacement between the two boxes of a pair."""
     n = scatter_count(pair_edge, E).to(box_src.dtype)

@@ -97,13 +97,14 @@ from ..geometry import (
     symmetric_pose_mean,
 )
 from ..graph import check_edge_index
+from ..scatter import scatter_count, scatter_mean, scatter_sum, scatter_sum_unchecked
 from .mlp import MLP
-from .scatter import _sum, scatter_count, scatter_mean, scatter_sum
 
 __all__ = [
     "PoserConv",
     "PoserConvOutput",
     "graph_inputs",
+    "is_graph_input",
 ]
 
 BOX_DIM = 4
@@ -179,7 +180,7 @@ def _check_pyg_offsets(graph: Any) -> None:
                 f"class whose __inc__ offsets {name!r})")
 
 
-def _is_graph(x: Any) -> bool:
+def is_graph_input(x: Any) -> bool:
     return not isinstance(x, Tensor) and hasattr(x, "edge_index") and hasattr(x, "det_box")
 
 
@@ -448,7 +449,7 @@ class PoserConv(nn.Module):
         (``edge_pose`` and ``edge_state`` may still be given to override / continue).
         ``update_nodes`` / ``update_edge_state``: see :meth:`propagate`.
         """
-        if _is_graph(x):
+        if is_graph_input(x):
             inputs = graph_inputs(x)
             if edge_pose is not None:
                 inputs["edge_pose"] = edge_pose
@@ -684,9 +685,10 @@ class PoserConv(nn.Module):
         if grads or x.device.type != "cpu" or torch.compiler.is_compiling() or \
                 M <= 2 * _BLOCK_PAIRS:
             m_edge, node_rows = reduce(
-                [_sum(y, pair_edge, 0, E) for y in
+                [scatter_sum_unchecked(y, pair_edge, 0, E) for y in
                  messages(view_inputs(0, E), pair_edge, box_src, box_dst)], 0, E)
-            node_total = None if node_rows is None else _sum(node_rows, own_flat, 0, N)
+            node_total = (None if node_rows is None
+                          else scatter_sum_unchecked(node_rows, own_flat, 0, N))
         else:
             m_edge, node_total = self._blocked(
                 view_inputs, messages, reduce, pair_edge, box_src, box_dst, n_pairs,
@@ -712,9 +714,10 @@ class PoserConv(nn.Module):
 
         # ---- node update: each node hears every neighbour through the view starting at itself.
         if self.nested_mean:  # the mean over the views that have pairs
-            count = _sum(w_view_has, own_flat, 0, N)
+            count = scatter_sum_unchecked(w_view_has, own_flat, 0, N)
         else:  # the mean over all pair rows
-            count = _sum(n_pairs.repeat_interleave(2)[:, None].to(x.dtype), own_flat, 0, N)
+            count = scatter_sum_unchecked(n_pairs.repeat_interleave(2)[:, None].to(x.dtype),
+                                          own_flat, 0, N)
         return PoserConvOutput(node_total / count.clamp_min(1.0), new_pose, new_state)
 
     @staticmethod

@@ -32,11 +32,11 @@ from .adaptive import (
     CYCLE_DIM,
     AdaptiveOutput,
     EdgeHead,
-    _pair_stats,
     blend_poses,
     cycle_features,
+    pair_stats,
 )
-from .conv import PoserConv, _is_graph, check_module_inputs, graph_inputs, validate_inputs
+from .conv import PoserConv, check_module_inputs, graph_inputs, is_graph_input, validate_inputs
 
 __all__ = ["PoserNet"]
 
@@ -207,7 +207,7 @@ class PoserNet(nn.Module):
         ``return_extras=True`` returns an :class:`~posernet.nn.adaptive.AdaptiveOutput`
         (final pose, pre-gate prediction, gate and error scales; ``None`` where not built).
         """
-        if _is_graph(x):
+        if is_graph_input(x):
             inputs = graph_inputs(x)
             if edge_pose is not None:
                 inputs["edge_pose"] = edge_pose
@@ -244,7 +244,7 @@ class PoserNet(nn.Module):
         if self.head is not None:
             assert cyc_in is not None
             E = raw.shape[0]
-            stats = _pair_stats(inputs["pair_edge"], inputs["pair_box_src"],
+            stats = pair_stats(inputs["pair_edge"], inputs["pair_box_src"],
                                 inputs["pair_box_dst"], E)
             cyc_raw = cycle_features(inputs["edge_index"], raw, inputs["x"].shape[0])
             # the head judges the prediction; it does not train the prediction through its

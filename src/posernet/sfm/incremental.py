@@ -23,7 +23,7 @@ import cv2
 import numpy as np
 
 from .bundle import BundleOptions, bundle_adjust
-from .resection import _pnp
+from .resection import solve_pnp
 from .triangulation import reprojection_errors, triangulate_tracks
 
 __all__ = ["Registration", "register_incrementally"]
@@ -139,7 +139,7 @@ def register_incrementally(xy: np.ndarray, track: np.ndarray, image: np.ndarray,
         cam = int(np.argmax(counts))
         tried[cam] = True
         o = np.flatnonzero(seen & (image == cam))
-        T, inl = _pnp(pts[track[o]].astype(np.float64), xy[o].astype(np.float64), K[cam],
+        T, inl = solve_pnp(pts[track[o]].astype(np.float64), xy[o].astype(np.float64), K[cam],
                       out[cam], thr, seed)
         if T is not None and inl >= min_inliers and inl >= min_inlier_ratio * o.size:
             out[cam] = T

@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from ..metrics import umeyama_alignment
+from ..geometry import umeyama_alignment
 from .bundle import BundleOptions, BundleResult, bundle_adjust
 from .incremental import register_incrementally
 from .resection import resect_cameras

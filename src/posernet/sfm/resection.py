@@ -20,7 +20,7 @@ import numpy as np
 
 from .triangulation import triangulate_tracks
 
-__all__ = ["Resection", "anchored_cameras", "resect_cameras"]
+__all__ = ["Resection", "anchored_cameras", "resect_cameras", "solve_pnp"]
 
 
 def anchored_cameras(edges: np.ndarray, weights: np.ndarray, members: np.ndarray,
@@ -81,7 +81,7 @@ def _count(T: np.ndarray, X: np.ndarray, x: np.ndarray, K: np.ndarray, thr: floa
     return (pc[:, 2] > 0) & (err < thr)
 
 
-def _pnp(X: np.ndarray, x: np.ndarray, K: np.ndarray, T0: np.ndarray, thr: float, seed: int
+def solve_pnp(X: np.ndarray, x: np.ndarray, K: np.ndarray, T0: np.ndarray, thr: float, seed: int
          ) -> tuple[np.ndarray | None, int]:
     """World-to-camera pose of one camera from ``X (M, 3)`` <-> undistorted pixels ``x (M, 2)``:
     the better (more inliers within ``thr`` px) of RANSAC PnP (OpenCV, SQPnP) and a
@@ -157,7 +157,7 @@ def resect_cameras(xy: np.ndarray, track: np.ndarray, image: np.ndarray, num_tra
         n_pts[cam] = o.size
         T, inl = (None, 0)
         if o.size >= min_inliers:
-            T, inl = _pnp(tri.points[track[o]].astype(np.float64), xy[o].astype(np.float64),
+            T, inl = solve_pnp(tri.points[track[o]].astype(np.float64), xy[o].astype(np.float64),
                           K[cam], out[cam], thr, seed)
         n_inl[cam] = inl
         todo[cam] = False

@@ -37,7 +37,7 @@ import torch
 from torch import Tensor
 
 from ..graph import GraphBatch, ViewGraph, check_edge_index
-from ..nn.scatter import scatter_count
+from ..scatter import scatter_count
 from .components import Components, connected_components
 
 __all__ = [
@@ -48,6 +48,7 @@ __all__ = [
     "SyncResult",
     "apply_scale_policy",
     "as_mapping",
+    "check_edge_weight",
     "check_positive",
     "graph_structure",
     "validate_sync_input",
@@ -174,8 +175,6 @@ class SyncBackend(ABC):
         struct = graph_structure(batch)
         validate_sync_input(struct, edge_pose)
         if edge_weight is not None:
-            from .weighted import check_edge_weight
-
             struct["edge_weight"] = check_edge_weight(edge_weight, struct["edge_index"].shape[1])
         gt = getattr(batch, "edge_pose_gt", None) if self.options.scale == "oracle" else None
         comps = connected_components(struct["edge_index"], struct["num_nodes"],
@@ -226,6 +225,28 @@ def graph_structure(batch: GraphBatch | ViewGraph) -> dict[str, Any]:
         names = [batch.name]
     return {"edge_index": ei.long(), "num_nodes": n, "node_batch": node_batch,
             "edge_batch": edge_batch, "num_graphs": num_graphs, "names": names}
+
+
+def check_edge_weight(edge_weight: Tensor, num_edges: int) -> Tensor:
+    """Validate per-edge weights ``[E]`` or ``[E, 2]`` (rotation, translation) and return them
+    as ``[E, 2]`` float64; raises ``ValueError`` naming ``edge_weight``."""
+    if not isinstance(edge_weight, Tensor):
+        raise ValueError(f"edge_weight must be a tensor, got {type(edge_weight).__name__}")
+    w = edge_weight.detach().to(torch.float64)
+    if w.ndim == 1:
+        w = w[:, None].expand(-1, 2)
+    if w.ndim != 2 or w.shape != (num_edges, 2):
+        raise ValueError(f"edge_weight must be [E] or [E, 2] with E = {num_edges}, got "
+                         f"{tuple(edge_weight.shape)}")
+    if not bool(torch.isfinite(w).all()):
+        raise ValueError("edge_weight must be finite on every edge")
+    if bool((w[:, 0] <= 0).any()):
+        raise ValueError("edge_weight: the rotation weight (column 0, or the only column) must "
+                         "be > 0 on every edge; a translation weight (column 1 of an [E, 2] "
+                         "tensor) may be 0 to mark an edge without a usable direction")
+    if bool((w[:, 1] < 0).any()):
+        raise ValueError("edge_weight: translation weights (column 1) must be >= 0")
+    return w
 
 
 def validate_sync_input(struct: dict[str, Any], edge_pose: Tensor | None) -> None:

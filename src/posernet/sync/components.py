@@ -8,7 +8,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from ..nn.scatter import scatter_count
+from ..scatter import scatter_count
 
 __all__ = ["Components", "connected_components"]
 

@@ -180,7 +180,7 @@ def aligned_pose_loss(poses: Tensor, pose_gt: Tensor, node_batch: Tensor, num_gr
     rotation; positions: ``|s Q c_i + b - c_gt_i|^2`` of camera centres after the Umeyama
     similarity. Returns ``rot [B]``, ``pos [B]`` (graphs with fewer than 2 used nodes: 0).
     """
-    from ..metrics import umeyama_alignment
+    from ..geometry import umeyama_alignment
 
     N = poses.shape[0]
     dev, dtype = poses.device, poses.dtype

@@ -16,7 +16,7 @@ that would make ``T_d`` agree with it). With ``c`` the current relative translat
 (``T_d T_s^{-1}``) and ``u`` the measured unit direction, both in ``d``'s frame, a message MLP
 over ``[h_s, h_d, rho, |omega|, |v|, u, c_perp, cos(c, u), |c|, confidence]`` (``c_perp`` the
 part of ``c`` off ``u``: the scale-free direction error) gives a feature and a weight; node
-``d`` averages the features (:func:`posernet.nn.scatter_mean`) and, with the learned weights,
+``d`` averages the features (:func:`posernet.scatter.scatter_mean`) and, with the learned weights,
 the suggested corrections ``corr = [-omega, -c_perp, -v]`` (a learned robust mean, like one
 IRLS step), updates ``h_d <- LayerNorm(h_d + MLP([h_d, agg, corr]))`` and moves on the
 manifold by a bounded increment ``delta = s tanh((head([h_d, corr]) + g * corr[:6]) / s)``:
@@ -57,7 +57,7 @@ from ..checkpoints import CHECKPOINT_TAG, CheckpointError, read_checkpoint
 from ..geometry import invert_se3, pose_vec_to_matrix, rotation_angle, se3_exp, se3_log
 from ..graph import GraphBatch, ViewGraph
 from ..nn.mlp import MLP
-from ..nn.scatter import scatter_count, scatter_mean, scatter_sum
+from ..scatter import scatter_count, scatter_mean, scatter_sum
 from .backend import SyncBackend, SyncOptions, SyncResult
 from .components import Components
 from .eig_se3 import EigSE3

@@ -11,7 +11,7 @@ import torch
 from torch import Tensor
 
 from ..geometry import make_se3, quaternion_to_rotation_matrix
-from ..nn.scatter import scatter_count
+from ..scatter import scatter_count
 from .components import Components
 
 __all__ = ["PaddedProblem", "assemble", "build_padded", "edge_rotations"]

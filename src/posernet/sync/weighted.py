@@ -38,34 +38,12 @@ from torch import Tensor
 from .padding import PaddedProblem
 from .spectral import RotationSolution, rotation_irls
 
-__all__ = ["WEIGHT_MODES", "check_edge_weight", "padded_weights", "weighted_rotation_irls"]
+__all__ = ["WEIGHT_MODES", "padded_weights", "weighted_rotation_irls"]
 
 WEIGHT_MODES = ("start", "prior")
 #: smallest prior weight relative to the graph's largest: an edge is never switched off (a
 #: zero weight on a bridge would disconnect the graph)
 MIN_PRIOR = 1e-3
-
-
-def check_edge_weight(edge_weight: Tensor, num_edges: int) -> Tensor:
-    """Validate per-edge weights ``[E]`` or ``[E, 2]`` (rotation, translation) and return them
-    as ``[E, 2]`` float64; raises ``ValueError`` naming ``edge_weight``."""
-    if not isinstance(edge_weight, Tensor):
-        raise ValueError(f"edge_weight must be a tensor, got {type(edge_weight).__name__}")
-    w = edge_weight.detach().to(torch.float64)
-    if w.ndim == 1:
-        w = w[:, None].expand(-1, 2)
-    if w.ndim != 2 or w.shape != (num_edges, 2):
-        raise ValueError(f"edge_weight must be [E] or [E, 2] with E = {num_edges}, got "
-                         f"{tuple(edge_weight.shape)}")
-    if not bool(torch.isfinite(w).all()):
-        raise ValueError("edge_weight must be finite on every edge")
-    if bool((w[:, 0] <= 0).any()):
-        raise ValueError("edge_weight: the rotation weight (column 0, or the only column) must "
-                         "be > 0 on every edge; a translation weight (column 1 of an [E, 2] "
-                         "tensor) may be 0 to mark an edge without a usable direction")
-    if bool((w[:, 1] < 0).any()):
-        raise ValueError("edge_weight: translation weights (column 1) must be >= 0")
-    return w
 
 
 def padded_weights(prob: PaddedProblem, w: Tensor, keep_zero: bool = False) -> Tensor:

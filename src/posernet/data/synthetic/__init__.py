@@ -12,6 +12,7 @@ Modules: ``config`` (options, presets), ``scenes``, ``trajectories``, ``camera``
 ``generate``, ``summary``.
 """
 
+from ..writer import DatasetExistsError, GenerationError, export_json
 from .chunks import Chunk, plan_chunks, simulate_chunk, simulate_graphs
 from .config import (
     ALL_SCENES,
@@ -22,7 +23,7 @@ from .config import (
     options_from_dict,
     resolve_options,
 )
-from .generate import DatasetExistsError, GenerationError, export_json, generate_dataset
+from .generate import generate_dataset
 from .sampling import SamplingError
 from .scenes import SCENE_PRESETS, Scene, build_scene
 from .summary import PAPER_INITIAL, format_summary
