@@ -20,8 +20,9 @@ from pathlib import Path
 
 import numpy as np
 
+from posernet.data.layout import SIZES, SPLITS
 from posernet.data.synthetic import SceneWorld, generate_dataset, load_preset
-from posernet.data.synthetic.config import SIZES, SPLITS, DatasetOptions, options_from_dict
+from posernet.data.synthetic.config import DatasetOptions, options_from_dict
 from posernet.io import atomic_write_text
 
 RESULTS = Path(__file__).resolve().parent / "results" / "make_data.md"

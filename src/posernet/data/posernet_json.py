@@ -54,6 +54,7 @@ from ..graph import (
     normalize_boxes,
 )
 from ..io import atomic_write_json
+from .layout import SCENES
 
 __all__ = ["ESTIMATE_KEYS", "SCENES", "load_posernet_json", "save_posernet_json"]
 
@@ -65,7 +66,6 @@ ESTIMATE_KEYS: dict[str, str] = {
     "ground_truth": "gt",
 }
 _JSON_NAME = {v: k for k, v in ESTIMATE_KEYS.items()}
-SCENES = ("chess", "fire", "heads", "office", "pumpkin", "redkitchen", "stairs")
 _SCENE_RE = re.compile(r"(?:^|[/\\])(" + "|".join(SCENES) + r")(?:[/\\]|$)")
 _SEQ_RE = re.compile(r"seq-(\d+)")
 _RIGID_TOL = 1e-3

@@ -37,12 +37,12 @@ from tqdm.auto import tqdm
 
 from posernet.io import atomic_path, atomic_write_json, atomic_write_text
 
+from ..frontend.proposals import BOXES_FORMAT, BOXES_VERSION
 from .synthetic.camera import cuboid_corners, look_at
 from .synthetic.scenes import FURNITURE, OBJECT, SCENE_PRESETS, STEP, Scene, build_scene
 from .synthetic.seeding import make_rng
 
 __all__ = [
-    "BOXES_FORMAT",
     "RENDER_FORMAT",
     "RenderedView",
     "Renderer",
@@ -52,7 +52,6 @@ __all__ = [
     "render_sevenscenes",
 ]
 
-BOXES_FORMAT = "posernet-boxes"
 RENDER_FORMAT = "posernet-render"
 DEPTH_INVALID = 65535  # 7-Scenes marks missing depth with 65535
 _NEAR = 1e-3  # hits closer than this (m) are ignored
@@ -627,7 +626,7 @@ def _boxes(ids: np.ndarray, min_px: int) -> tuple[list[list[int]], list[int]]:
 
 def _boxes_json(images: dict[str, dict[str, list]]) -> str:
     """``objects.json`` text: one line per image (readable, diff-friendly, still plain JSON)."""
-    head = json.dumps({"format": BOXES_FORMAT, "version": 1})[:-1]
+    head = json.dumps({"format": BOXES_FORMAT, "version": BOXES_VERSION})[:-1]
     rows = ",\n".join(f"  {json.dumps(k)}: {json.dumps(v)}" for k, v in images.items())
     return f'{head}, "images": {{\n{rows}\n}}}}\n'
 

@@ -37,8 +37,9 @@ from ..frontend.graphs import grow_connected, is_connected
 from ..frontend.images import ImageRecord
 from ..frontend.pipeline import FrontendSummary, ImageFrontend
 from ..graph import ViewGraph
+from .layout import LARGE_SCENES, SIZES, SPLITS
 from .synthetic.chunks import Chunk, add_graph_stats, empty_stats
-from .synthetic.config import SIZES, SPLITS, ConfigError, GraphCounts
+from .synthetic.config import ConfigError, GraphCounts
 from .synthetic.sampling import SamplingError
 from .synthetic.seeding import make_rng
 from .synthetic.summary import format_summary
@@ -54,7 +55,6 @@ from .writer import (
 __all__ = [
     "FORMAT",
     "FRONTEND_DEFAULTS",
-    "PAPER_LARGE_SCENES",
     "SOURCE",
     "ScenePools",
     "SevenScenesOptions",
@@ -70,8 +70,6 @@ __all__ = [
 SOURCE = "sevenscenes"
 FORMAT = "posernet-sevenscenes-dataset"
 VERSION = 1
-# The paper's large graphs: one train and one test graph for the first five scenes.
-PAPER_LARGE_SCENES = ["chess", "fire", "heads", "office", "pumpkin"]
 # Front-end stages (Hydra ``_target_`` configs), as in posernet/conf/
 # {proposals,matcher,box_matching,relpose}/.
 FRONTEND_DEFAULTS: dict[str, dict[str, Any]] = {
@@ -101,7 +99,7 @@ class SevenScenesOptions:
     small: GraphCounts = field(default_factory=GraphCounts)
     large: GraphCounts = field(
         default_factory=lambda: GraphCounts(graph_size=125, train=1, val=0, test=1,
-                                            scenes=list(PAPER_LARGE_SCENES)))
+                                            scenes=list(LARGE_SCENES)))
     kp_top_pairs: int = 0  # KP input from the N box pairs sharing most matches (0: all)
     max_tries_per_node: int = 100  # rejected candidates in a row before a restart
     restarts: int = 10  # attempts at one small graph before giving up

@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Any
 
 from ..graph import ViewGraph, load_graphs
+from .layout import MANIFEST, SIZES, SPLITS
 
 __all__ = [
     "SIZES",
@@ -24,9 +25,6 @@ __all__ = [
     "read_manifest",
 ]
 
-SIZES = ("small", "large")
-SPLITS = ("train", "val", "test")
-MANIFEST = "manifest.json"
 
 
 class DatasetError(FileNotFoundError):

@@ -27,8 +27,9 @@ import torch
 
 from ..graph import load_graphs, save_graphs
 from ..io import atomic_write_json
+from .layout import JOB_FILE, MANIFEST, SIZES, SPLITS
 from .synthetic.chunks import Chunk
-from .synthetic.config import SIZES, SPLITS, ConfigError
+from .synthetic.config import ConfigError
 from .synthetic.summary import aggregate_stats, composition_row, error_table
 
 __all__ = [
@@ -47,8 +48,6 @@ __all__ = [
     "save_chunk",
 ]
 
-MANIFEST = "manifest.json"
-JOB_FILE = ".make_data.json"
 FORMAT = "posernet-synthetic-dataset"
 VERSION = 1
 

@@ -15,7 +15,6 @@ Modules: ``config`` (options, presets), ``scenes``, ``trajectories``, ``camera``
 from ..writer import DatasetExistsError, GenerationError, export_json
 from .chunks import Chunk, plan_chunks, simulate_chunk, simulate_graphs
 from .config import (
-    ALL_SCENES,
     ConfigError,
     DatasetOptions,
     available_presets,
@@ -30,7 +29,6 @@ from .summary import PAPER_INITIAL, format_summary
 from .world import Frame, PairResult, SceneWorld
 
 __all__ = [
-    "ALL_SCENES",
     "PAPER_INITIAL",
     "SCENE_PRESETS",
     "Chunk",

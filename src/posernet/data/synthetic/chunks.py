@@ -13,7 +13,8 @@ from itertools import pairwise
 from typing import Any
 
 from ...graph import ViewGraph
-from .config import SIZES, SPLITS, ConfigError, DatasetOptions, resolve_options
+from ..layout import SIZES, SPLITS
+from .config import ConfigError, DatasetOptions, resolve_options
 from .sampling import GraphStats, build_view_graph, sample_large, sample_small
 from .seeding import make_rng
 from .world import SceneWorld

@@ -16,12 +16,12 @@ from typing import TYPE_CHECKING, Any
 
 from ...conf import config_root
 from ...frontend.relpose import PoseOptions
+from ..layout import LARGE_SCENES, SCENES, SIZES, SPLITS
 
 if TYPE_CHECKING:
     from ...conf import Traversable
 
 __all__ = [
-    "ALL_SCENES",
     "CameraOptions",
     "ConfigError",
     "DatasetOptions",
@@ -38,11 +38,6 @@ __all__ = [
     "resolve_options",
 ]
 
-ALL_SCENES: tuple[str, ...] = (
-    "chess", "fire", "heads", "office", "pumpkin", "redkitchen", "stairs",
-)  # fmt: skip
-SIZES: tuple[str, ...] = ("small", "large")
-SPLITS: tuple[str, ...] = ("train", "val", "test")
 
 
 class ConfigError(ValueError):
@@ -153,12 +148,12 @@ class DatasetOptions:
     """Everything that defines a synthetic dataset (besides the seed)."""
 
     name: str = "custom"
-    scenes: list[str] = field(default_factory=lambda: list(ALL_SCENES))
+    scenes: list[str] = field(default_factory=lambda: list(SCENES))
     small: GraphCounts = field(default_factory=GraphCounts)
     large: GraphCounts = field(
         default_factory=lambda: GraphCounts(
             graph_size=125, train=1, val=0, test=1,
-            scenes=["chess", "fire", "heads", "office", "pumpkin"],
+            scenes=list(LARGE_SCENES),
         )
     )  # fmt: skip
     sequences: SequenceOptions = field(default_factory=SequenceOptions)
@@ -217,10 +212,10 @@ def _check_float(
 
 def _check_scenes(path: str, scenes: Any, allow_empty: bool = False) -> None:
     if not isinstance(scenes, list | tuple) or (not scenes and not allow_empty):
-        _fail(path, f"must be a non-empty list of scene names from {list(ALL_SCENES)}")
+        _fail(path, f"must be a non-empty list of scene names from {list(SCENES)}")
     for s in scenes:
-        if s not in ALL_SCENES:
-            _fail(path, f"unknown scene {s!r}; choose from {list(ALL_SCENES)}")
+        if s not in SCENES:
+            _fail(path, f"unknown scene {s!r}; choose from {list(SCENES)}")
     if len(set(scenes)) != len(scenes):
         _fail(path, f"lists a scene twice: {list(scenes)}")
 
