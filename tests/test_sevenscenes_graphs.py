@@ -281,3 +281,15 @@ def test_unquoted_lists_become_one_string():
     assert quote_list_args(argv, ("intrinsics", "scenes")) == [
         "prog", "intrinsics='585,585,320,240'", "scenes='chess,fire'", "scenes=[chess,fire]",
         "dataset.scenes=[chess]", "intrinsics=cams.json"]
+
+
+def test_frontend_defaults_are_the_make_data_configs() -> None:
+    """The builder's default stages come from the shipped config groups (one source of
+    truth), as make_data.yaml picks them."""
+    from posernet.data.sevenscenes_graphs import FRONTEND_GROUPS, frontend_defaults
+
+    d = frontend_defaults()
+    assert tuple(d) == FRONTEND_GROUPS
+    assert d["proposals"]["_target_"].endswith("SelectiveSearch") and d["proposals"]["top_k"] == 50
+    assert d["matcher"] == {"_target_": "posernet.frontend.features.make_matcher", "name": "auto"}
+    assert d["box_matching"]["min_boxes"] == 5 and d["relpose"]["method"] == "usac"

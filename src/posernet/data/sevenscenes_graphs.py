@@ -54,7 +54,7 @@ from .writer import (
 
 __all__ = [
     "FORMAT",
-    "FRONTEND_DEFAULTS",
+    "FRONTEND_GROUPS",
     "SOURCE",
     "ScenePools",
     "SevenScenesOptions",
@@ -70,18 +70,25 @@ __all__ = [
 SOURCE = "sevenscenes"
 FORMAT = "posernet-sevenscenes-dataset"
 VERSION = 1
-# Front-end stages (Hydra ``_target_`` configs), as in posernet/conf/
-# {proposals,matcher,box_matching,relpose}/.
-FRONTEND_DEFAULTS: dict[str, dict[str, Any]] = {
-    "proposals": {"_target_": "posernet.frontend.proposals.SelectiveSearch", "top_k": 50,
-                  "max_area": 0.25, "min_size": 8.0, "strategy": "single"},
-    "matcher": {"_target_": "posernet.frontend.features.make_matcher", "name": "auto"},
-    "box_matching": {"_target_": "posernet.frontend.boxmatch.BoxMatchRules", "min_keypoints": 15,
-                     "min_span": 0.3, "min_boxes": 5, "one_to_one": True},
-    "relpose": {"_target_": "posernet.frontend.relpose.PoseOptions", "method": "usac",
-                "ransac_prob": 0.999, "kp_threshold": 1.0, "bb_threshold": 1.0,
-                "max_iters": 1000},
-}  # fmt: skip
+#: the front-end stages the builder makes, each a Hydra config group of ``make_data``
+FRONTEND_GROUPS: tuple[str, ...] = ("proposals", "matcher", "box_matching", "relpose")
+
+
+def frontend_defaults() -> dict[str, dict[str, Any]]:
+    """The default ``_target_`` config of each front-end stage, read from the shipped configs:
+    the option ``make_data.yaml``'s defaults list picks in each group."""
+    from omegaconf import OmegaConf
+
+    from ..conf import config_root
+
+    root = config_root()
+    picks: dict[str, str] = {}
+    for entry in OmegaConf.create(root.joinpath("make_data.yaml").read_text()).defaults:
+        if OmegaConf.is_dict(entry):
+            picks.update({str(k): str(v) for k, v in entry.items()})
+    return {g: OmegaConf.to_container(OmegaConf.create(
+                root.joinpath(g, f"{picks[g]}.yaml").read_text()), resolve=True)
+            for g in FRONTEND_GROUPS}
 
 
 @dataclass
@@ -493,7 +500,7 @@ def build_parts(frontend: Mapping[str, Any] | None) -> tuple[dict[str, Any], dic
     from omegaconf import OmegaConf
 
     cfgs: dict[str, Any] = {}
-    for k, default in FRONTEND_DEFAULTS.items():
+    for k, default in frontend_defaults().items():
         c = (frontend or {}).get(k)
         c = default if c is None else c
         cfgs[k] = OmegaConf.to_container(c, resolve=True) if OmegaConf.is_config(c) else dict(c)
