@@ -502,3 +502,28 @@ def test_evaluation_command_pools_the_test_graphs_of_several_datasets(tmp_path) 
         main(["--data", str(a), "--data", str(b), "--out", str(tmp_path / "g"), "--model",
               "shipped=shipped", "--guard"])
     assert exc.value.code == 2 and not (tmp_path / "g").exists()
+
+
+def test_load_refiner_reads_the_checkpoint_once_for_the_model_and_its_guard(monkeypatch) -> None:
+    """The network and the guard's training statistics come from one reading of the file;
+    keeping inputs needs a confidence head."""
+    import posernet.checkpoints as ck
+    from posernet.checkpoints import default_checkpoint, resolve_checkpoint
+    from posernet.guard import Guard, load_refiner
+
+    reads = []
+    real = ck.read_checkpoint
+
+    def counting(path, *a, **k):
+        reads.append(path)
+        return real(path, *a, **k)
+
+    monkeypatch.setattr(ck, "read_checkpoint", counting)
+    model, guard = load_refiner(default_checkpoint(), keep_inputs=True)
+    assert len(reads) == 1 and not model.training
+    assert isinstance(guard, Guard) and guard.keep_inputs and guard.stats is not None
+    old = resolve_checkpoint("shipped:posernet_synthetic_kp_v1.ckpt")  # no confidence head
+    with pytest.raises(ValueError, match="guard=true needs a checkpoint with a confidence head"):
+        load_refiner(old, keep_inputs=True)
+    _, plain = load_refiner(old)
+    assert not plain.keep_inputs

@@ -20,8 +20,10 @@ model's own error scales decide per edge whether to keep the input
 from __future__ import annotations
 
 import math
+import os
 from collections.abc import Mapping, Sequence
-from typing import Any
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
 
 import torch
 from torch import Tensor
@@ -30,8 +32,12 @@ from .graph import REF_FOCAL, REF_HEIGHT, REF_K1, REF_WIDTH, GraphBatch, ViewGra
 from .nn.adaptive import cycle_features
 from .scatter import scatter_count, scatter_mean
 
-__all__ = ["FEATURES", "check_inputs", "cycle_inconsistency", "graph_features", "graph_made_worse",
-           "input_statistics", "keep_input_mask", "refinement_check", "warning_line"]
+if TYPE_CHECKING:
+    from .nn import PoserNet
+
+__all__ = ["FEATURES", "Guard", "check_inputs", "cycle_inconsistency", "graph_features",
+           "graph_made_worse", "input_statistics", "keep_input_mask", "load_refiner",
+           "refinement_check", "warning_line"]
 
 #: per-graph summaries compared with the training data; the last is only flagged upwards
 FEATURES = ("node_width", "node_height", "node_focal", "node_k1", "rotation_deg",
@@ -180,3 +186,34 @@ def refinement_check(
     line = warning_line(reasons, cyc["initial"], cyc.get("refined", float("nan")))
     return line, {"training_stats": stats is not None, "reasons": reasons,
                   "cycle_deg": cyc, "warning": line}
+
+
+@dataclass(frozen=True)
+class Guard:
+    """The guard of one refine run: the training-input statistics of the model's checkpoint
+    (``None`` when it stores none) and whether to keep the input where the model's confidence
+    says refinement would not help (``keep_inputs``, the commands' ``guard=true``)."""
+
+    stats: Mapping[str, Any] | None
+    keep_inputs: bool = False
+
+    def check(self, graphs: Sequence[ViewGraph], result: Any) -> tuple[str | None, dict[str, Any]]:
+        """:func:`refinement_check` of a refine run's ``result`` (a
+        :class:`posernet.pipeline.RefineResult`) on ``graphs``."""
+        return refinement_check(self.stats, graphs, result.edge_pose)
+
+
+def load_refiner(path: str | os.PathLike[str], map_location: Any = "cpu",
+                 keep_inputs: bool = False) -> tuple[PoserNet, Guard]:
+    """The network of checkpoint ``path`` (eval mode) and its :class:`Guard`, from one reading
+    of the file. ``keep_inputs`` needs a confidence head: ``ValueError`` naming the checkpoint
+    otherwise; a bad checkpoint raises :class:`posernet.checkpoints.CheckpointError`."""
+    from .checkpoints import read_checkpoint
+    from .nn import PoserNet
+
+    ckpt = read_checkpoint(path)
+    model = PoserNet.from_checkpoint_dict(ckpt, path).to(map_location).eval()
+    if keep_inputs and not getattr(model, "confidence", False):
+        raise ValueError(f"guard=true needs a checkpoint with a confidence head "
+                         f"(net.confidence=true); {path} has none")
+    return model, Guard((ckpt.get("posernet") or {}).get("input_stats"), bool(keep_inputs))

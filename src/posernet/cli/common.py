@@ -303,21 +303,3 @@ def quote_list_args(argv: list[str], keys: tuple[str, ...]) -> list[str]:
     return [pattern.sub(r"\1='\2'", a) for a in argv]
 
 
-def guard_option(cfg: Any, model: Any, ckpt: Path | None) -> bool:
-    """``cfg.guard`` (default false) for ``model`` (``None``: no refinement, no guard); the
-    guard needs a confidence head, else ``ValueError`` naming the checkpoint."""
-    guard = bool(cfg.get("guard", False)) and model is not None
-    if guard and not getattr(model, "confidence", False):
-        raise ValueError(f"guard=true needs a checkpoint with a confidence head "
-                         f"(net.confidence=true); {ckpt} has none")
-    return guard
-
-
-def guard_check(ckpt: Path, graphs: list[Any], result: Any) -> tuple[str | None, dict[str, Any]]:
-    """The guard's checks (:func:`posernet.guard.refinement_check`) of a refine run with the
-    training-input statistics stored in checkpoint ``ckpt``: the warning line and a record."""
-    from ..checkpoints import read_checkpoint
-    from ..guard import refinement_check
-
-    stats = (read_checkpoint(ckpt).get("posernet") or {}).get("input_stats")
-    return refinement_check(stats, graphs, result.edge_pose)

@@ -31,8 +31,6 @@ from . import CONFIG_DIR
 from .common import (
     available_cores,
     check_config,
-    guard_check,
-    guard_option,
     resolve_device,
     run_app,
     run_task,
@@ -172,8 +170,8 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     from ..checkpoints import resolve_checkpoint
     from ..frontend.images import records_for_images
     from ..frontend.pipeline import ImageFrontend
+    from ..guard import load_refiner
     from ..io import atomic_write_json
-    from ..nn import PoserNet
     from ..pipeline import evaluate_result, result_tables
     from ..reconstruct import NothingPlaced, poses_json, reconstruct, write_colmap_models
     from ..sync import backend_from_config
@@ -194,11 +192,11 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     if len(records) < 2:
         raise ValueError(f"images: {cfg.images} holds {len(records)} image(s); need at least "
                          "2 to place cameras")
-    model, ckpt = None, None
+    model, ckpt, checks = None, None, None
     if cfg.refine:
         ckpt = resolve_checkpoint(cfg.get("ckpt_path"))
-        model = PoserNet.from_checkpoint(ckpt, map_location=device)
-    guard = guard_option(cfg, model, ckpt)
+        model, checks = load_refiner(ckpt, device, keep_inputs=bool(cfg.get("guard", False)))
+    guard = checks is not None and checks.keep_inputs
     backend = backend_from_config(OmegaConf.to_container(cfg.sync, resolve=True))
     proposals = instantiate(cfg.proposals)  # checked (a missing boxes file) even when unused
     frontend = ImageFrontend(
@@ -240,8 +238,8 @@ def run(cfg: DictConfig) -> dict[str, Any]:
         _report_nothing_placed(err, out, info, int(cfg.pictures), t0)
     print("[2/3] front end: " + "\n      ".join(
         [*(rec.pairs.lines() if rec.pairs else []), *frontend.summary.lines()]))
-    if ckpt is not None and bool(cfg.get("check_inputs", True)):
-        line, info["input_check"] = guard_check(ckpt, [rec.graph], rec.result)
+    if checks is not None and bool(cfg.get("check_inputs", True)):
+        line, info["input_check"] = checks.check([rec.graph], rec.result)
         if line:
             print(f"posernet-reconstruct: {line}", file=sys.stderr)
     out.mkdir(parents=True, exist_ok=True)

@@ -20,8 +20,6 @@ from omegaconf import DictConfig, OmegaConf
 from . import CONFIG_DIR
 from .common import (
     check_config,
-    guard_check,
-    guard_option,
     resolve_device,
     run_app,
     run_task,
@@ -34,8 +32,8 @@ __all__ = ["main", "refine"]
 def refine(cfg: DictConfig) -> dict[str, Any]:
     """Run the refine job described by ``cfg``; returns the output paths and tables."""
     from ..checkpoints import resolve_checkpoint
+    from ..guard import load_refiner
     from ..io import atomic_write_json
-    from ..nn import PoserNet
     from ..pipeline import (
         evaluate_result,
         load_input_graphs,
@@ -49,7 +47,7 @@ def refine(cfg: DictConfig) -> dict[str, Any]:
     set_threads(cfg.get("num_threads"))
     device = resolve_device(cfg.device)
     ckpt = resolve_checkpoint(cfg.get("ckpt_path"))
-    model = PoserNet.from_checkpoint(ckpt, map_location=device)
+    model, guard = load_refiner(ckpt, device, keep_inputs=bool(cfg.get("guard", False)))
     backend = backend_from_config(OmegaConf.to_container(cfg.sync, resolve=True)) \
         if cfg.get("sync") else None
     estimate = cfg.get("estimate")
@@ -57,15 +55,14 @@ def refine(cfg: DictConfig) -> dict[str, Any]:
                                strict=bool(cfg.strict), size=str(cfg.get("size", "small")),
                                log=print)
     has_conf = bool(getattr(model, "confidence", False))
-    guard = guard_option(cfg, model, ckpt)
     weighted = bool(cfg.get("confidence_weights", True)) and has_conf and backend is not None
     result = refine_graphs(model, graphs, backend=backend, batch_size=int(cfg.batch_size),
-                           device=device, guard=guard, weighted=weighted)
+                           device=device, guard=guard.keep_inputs, weighted=weighted)
     info: dict[str, Any] = {"input": str(cfg.input), "estimate": estimate,
-                            "checkpoint": str(ckpt), "guard": guard,
+                            "checkpoint": str(ckpt), "guard": guard.keep_inputs,
                             "confidence_weights": weighted}
     if bool(cfg.get("check_inputs", True)):
-        line, report = guard_check(ckpt, graphs, result)
+        line, report = guard.check(graphs, result)
         info["input_check"] = report
         if line:
             print(f"posernet-refine: {line}", file=sys.stderr)
