@@ -92,3 +92,19 @@ def test_empty_and_bad_inputs() -> None:
         posernet_loss(torch.zeros(3, 6), torch.zeros(3, 6))
     with pytest.raises(ValueError, match="weight"):
         posernet_loss(torch.zeros(3, 7), torch.zeros(3, 7), weight=torch.ones(2))
+
+
+def test_relative_objective_adds_only_the_terms_it_is_given() -> None:
+    from posernet.geometry import quaternion_angle
+    from posernet.nn.loss import posernet_loss, relative_objective
+
+    g = torch.Generator().manual_seed(0)
+    pred, gt, inp = (torch.randn(12, 7, generator=g) for _ in range(3))
+    total, out, terms = relative_objective(pred, gt, inp, None, {"alpha": 0.5})
+    assert terms == {} and torch.equal(total, posernet_loss(pred, gt, 0.5).loss)
+    assert torch.equal(out.loss, total)
+    total, _, terms = relative_objective(pred, gt, inp, None,
+                                         {"alpha": 0.5, "correction": 0.2, "harm": 0.0})
+    corr = quaternion_angle(pred[:, :4], inp[:, :4]).mean()
+    assert set(terms) == {"correction"} and torch.allclose(terms["correction"], corr)
+    assert torch.allclose(total, posernet_loss(pred, gt, 0.5).loss + 0.2 * corr)

@@ -22,12 +22,11 @@ import torch
 from torch import Tensor
 
 from .checkpoints import CHECKPOINT_TAG, CheckpointError, read_checkpoint
-from .geometry import quaternion_angle
 from .graph import GraphBatch
 from .lit_base import SectionedModule, fill_sections
 from .metrics import relative_errors_per_graph
-from .nn import PoserNet, posernet_loss
-from .nn.adaptive import blend_poses, edge_errors, heteroscedastic_nll
+from .nn import PoserNet
+from .nn.loss import relative_objective
 
 __all__ = ["SECTIONS", "PoserNetModule", "flat_name_section", "load_posernet_checkpoint",
            "module_hparams", "upgrade_optimizer_states"]
@@ -146,34 +145,7 @@ class PoserNetModule(SectionedModule):
         gt = batch.edge_pose_gt
         extras = self.model(batch, return_extras=True) if self.model.adaptive else None
         pred = extras.pose if extras is not None else self(batch)
-        out = posernet_loss(pred, gt, lh["alpha"])
-        total = out.loss
-        terms: dict[str, Tensor] = {}
-        if extras is not None and extras.gate is not None and lh.get("raw", 0.0):
-            terms["raw"] = posernet_loss(extras.raw, gt, lh["alpha"]).loss
-            total = total + lh["raw"] * terms["raw"]
-        if extras is not None and extras.sigma is not None and lh.get("confidence", 0.0):
-            # the scales learn the errors; the errors are data here (no gradient to the pose)
-            err = torch.cat((edge_errors(pred, gt), edge_errors(batch.edge_pose, gt)), dim=-1)
-            terms["confidence"] = heteroscedastic_nll(err.detach(), extras.sigma).mean()
-            total = total + lh["confidence"] * terms["confidence"]
-        if lh.get("correction", 0.0):
-            terms["correction"] = quaternion_angle(pred[:, :4], batch.edge_pose[:, :4]).mean()
-            total = total + lh["correction"] * terms["correction"]
-        if lh.get("harm", 0.0):
-            # absolute hinge, with a gate: it trains the decision only (the prediction is data
-            # here): through the prediction it would pull every estimate towards its input.
-            # Relative hinge (harm_scale > 0): the pull on poor inputs is negligible, so it
-            # trains the whole network to keep good inputs good (measured: better than gate-only)
-            scale = lh.get("harm_scale", 0.0)
-            judged = pred if extras is None or extras.gate is None or scale else blend_poses(
-                batch.edge_pose, extras.raw.detach(), extras.gate)
-            e_in = edge_errors(batch.edge_pose, gt).detach()
-            worse = (edge_errors(judged, gt) - e_in).clamp_min(0.0)
-            if scale:
-                worse = worse / (e_in + scale)
-            terms["harm"] = worse.sum(-1).mean()
-            total = total + lh["harm"] * terms["harm"]
+        total, out, terms = relative_objective(pred, gt, batch.edge_pose, extras, lh)
         if lh.get("end_to_end", False):
             terms["abs_rot"], terms["abs_pos"] = self._absolute_loss(batch, pred)
             total = lh["relative_weight"] * total + lh["absolute_weight"] * (

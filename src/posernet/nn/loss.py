@@ -17,14 +17,16 @@ finite at 0 and 180 degrees (``acos`` has an infinite derivative at 1).
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from collections.abc import Mapping
+from typing import Any, NamedTuple
 
 import torch
 from torch import Tensor, nn
 
 from ..geometry import angle_between_vectors, quaternion_angle
+from .adaptive import blend_poses, edge_errors, heteroscedastic_nll
 
-__all__ = ["PoserLoss", "PoserNetLoss", "posernet_loss"]
+__all__ = ["PoserLoss", "PoserNetLoss", "posernet_loss", "relative_objective"]
 
 
 class PoserLoss(NamedTuple):
@@ -95,3 +97,48 @@ class PoserNetLoss(nn.Module):
 
     def extra_repr(self) -> str:
         return f"alpha={self.alpha}"
+
+
+def relative_objective(pred: Tensor, gt: Tensor, edge_pose: Tensor, extras: Any,
+                       weights: Mapping[str, Any]) -> tuple[Tensor, PoserLoss, dict[str, Tensor]]:
+    """The training objective on relative poses: the paper's loss (:func:`posernet_loss`) plus
+    the input-adaptive terms that ``weights`` switches on.
+
+    ``pred, gt, edge_pose [E, 7]`` refined, true and input edge poses; ``extras`` the model's
+    :class:`~posernet.nn.adaptive.AdaptiveOutput` (``None`` for the paper's model);
+    ``weights`` the ``loss`` hyper-parameters: ``alpha`` and the weights of ``raw`` (the
+    un-gated prediction), ``confidence`` (Gaussian NLL of the error scales), ``correction``
+    (how far the prediction moves from its input) and ``harm`` (a hinge on getting worse than
+    the input, relative when ``harm_scale`` > 0). Returns ``(total, the paper's terms, the
+    other terms by name)``.
+    """
+    lh = weights
+    out = posernet_loss(pred, gt, lh["alpha"])
+    total = out.loss
+    terms: dict[str, Tensor] = {}
+    if extras is not None and extras.gate is not None and lh.get("raw", 0.0):
+        terms["raw"] = posernet_loss(extras.raw, gt, lh["alpha"]).loss
+        total = total + lh["raw"] * terms["raw"]
+    if extras is not None and extras.sigma is not None and lh.get("confidence", 0.0):
+        # the scales learn the errors; the errors are data here (no gradient to the pose)
+        err = torch.cat((edge_errors(pred, gt), edge_errors(edge_pose, gt)), dim=-1)
+        terms["confidence"] = heteroscedastic_nll(err.detach(), extras.sigma).mean()
+        total = total + lh["confidence"] * terms["confidence"]
+    if lh.get("correction", 0.0):
+        terms["correction"] = quaternion_angle(pred[:, :4], edge_pose[:, :4]).mean()
+        total = total + lh["correction"] * terms["correction"]
+    if lh.get("harm", 0.0):
+        # absolute hinge, with a gate: it trains the decision only (the prediction is data
+        # here): through the prediction it would pull every estimate towards its input.
+        # Relative hinge (harm_scale > 0): the pull on poor inputs is negligible, so it
+        # trains the whole network to keep good inputs good (measured: better than gate-only)
+        scale = lh.get("harm_scale", 0.0)
+        judged = pred if extras is None or extras.gate is None or scale else blend_poses(
+            edge_pose, extras.raw.detach(), extras.gate)
+        e_in = edge_errors(edge_pose, gt).detach()
+        worse = (edge_errors(judged, gt) - e_in).clamp_min(0.0)
+        if scale:
+            worse = worse / (e_in + scale)
+        terms["harm"] = worse.sum(-1).mean()
+        total = total + lh["harm"] * terms["harm"]
+    return total, out, terms
