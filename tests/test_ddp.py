@@ -37,7 +37,7 @@ def test_two_process_cpu_ddp_training(tmp_path: Path) -> None:
                 f"hydra.run.dir={tmp_path / 'make_data'}"], tmp_path)
     assert made.returncode == 0, made.stderr[-3000:]
 
-    # The command shown in the README's "Scaling out" section (plus quiet flags and paths).
+    # The command shown in docs/architecture.md, "Scaling out" (plus quiet flags and paths).
     cmd = [str(BIN / "posernet-train"), "trainer=ddp", "trainer.devices=2",
            "trainer.accelerator=cpu", "trainer.max_epochs=1", f"data.root={data}",
            "data.batch_size=1", f"hydra.run.dir={out}",

@@ -1,17 +1,36 @@
-"""The README's code examples run as written."""
+"""The README's code examples run as written, the results quoted in the docs are the committed
+digests, the README stays short, and every relative link in the README and docs/ resolves."""
 
 from __future__ import annotations
 
 import re
 from pathlib import Path
 
-README = Path(__file__).resolve().parents[1] / "README.md"
+ROOT = Path(__file__).resolve().parents[1]
+README = ROOT / "README.md"
+DOCS = ROOT / "docs"
+RESULTS_DOC = DOCS / "results.md"
+
+
+def _section(heading: str, path: Path = README) -> str:
+    """The lines from the one starting with ``heading`` to the next heading of the same or a
+    higher level (lines inside code blocks are not headings)."""
+    level = len(heading) - len(heading.lstrip("#"))
+    out: list[str] = []
+    fence = False
+    for line in path.read_text(encoding="utf-8").splitlines(keepends=True):
+        if out and not fence and re.match(rf"#{{1,{level}}} ", line):
+            break
+        if out or line.startswith(heading):
+            out.append(line)
+        if line.startswith("```"):
+            fence = not fence
+    assert out, f"{path.name}: no heading {heading!r}"
+    return "".join(out)
 
 
 def _block_after(heading: str) -> str:
-    text = README.read_text(encoding="utf-8")
-    section = text[text.index(heading):]
-    return re.search(r"```python\n(.*?)```", section, re.S).group(1)
+    return re.search(r"```python\n(.*?)```", _section(heading), re.S).group(1)
 
 
 def test_poserconv_example_runs():
@@ -25,9 +44,7 @@ def test_pyg_example_runs():
     import pytest
 
     pytest.importorskip("torch_geometric")
-    text = README.read_text(encoding="utf-8")
-    section = text[text.index("## Using `PoserConv`"):text.index("## Scaling out")]
-    code = re.findall(r"```python\n(.*?)```", section, re.S)[1]
+    code = re.findall(r"```python\n(.*?)```", _section("## Using `PoserConv`"), re.S)[1]
     ns: dict = {}
     exec(compile(code, "README.md", "exec"), ns)
     assert ns["poses"].shape[1] == 7
@@ -35,7 +52,7 @@ def test_pyg_example_runs():
 
 
 def test_reconstruct_example_runs(tmp_path):
-    code = _block_after("## From images to camera poses").replace(
+    code = _block_after("## Quick start from Python").replace(
         "/tmp/posernet-example", str(tmp_path))
     ns: dict = {}
     exec(compile(code, "README.md", "exec"), ns)
@@ -44,15 +61,40 @@ def test_reconstruct_example_runs(tmp_path):
 
 
 def test_results_sections_quote_the_committed_digests():
-    """Each results block of the README (``<!-- results:<scale>:begin -->``) is the runner's own
-    digest of the committed run at that scale, verbatim."""
-    root = README.parent
-    text = README.read_text(encoding="utf-8")
+    """Each results block of docs/results.md (``<!-- results:<scale>:begin -->``) is the
+    runner's own digest of the committed run at that scale, verbatim."""
+    text = RESULTS_DOC.read_text(encoding="utf-8")
     scales = re.findall(r"<!-- results:(\w+):begin -->", text)
     assert {"paper", "medium"} <= set(scales)
     for scale in scales:
         begin, end = f"<!-- results:{scale}:begin -->", f"<!-- results:{scale}:end -->"
         quoted = text[text.index(begin) + len(begin):text.index(end)].strip()
-        digest = (root / "results" / scale / "digest.md").read_text(encoding="utf-8").strip()
+        digest = (ROOT / "results" / scale / "digest.md").read_text(encoding="utf-8").strip()
         assert quoted == digest, scale
-        assert (root / "results" / scale / "summary.md").is_file()
+        assert (ROOT / "results" / scale / "summary.md").is_file()
+
+
+def _relative_links(path: Path) -> list[str]:
+    """Targets of the markdown links and images of ``path`` outside code blocks and code spans,
+    without http(s)/mailto links, anchors stripped (a bare ``#anchor`` gives nothing)."""
+    text = re.sub(r"```.*?```", "", path.read_text(encoding="utf-8"), flags=re.S)
+    text = re.sub(r"`[^`\n]*`", "``", text)
+    targets = []
+    for target in re.findall(r"\]\(\s*<?([^)\s>]+)>?(?:\s+\"[^\"]*\")?\s*\)", text):
+        if re.match(r"[a-z][a-z0-9+.-]*:", target, re.I):  # http:, https:, mailto:, ...
+            continue
+        target = target.split("#", 1)[0]
+        if target:
+            targets.append(target)
+    return targets
+
+
+def test_readme_is_short_and_every_relative_link_resolves():
+    lines = README.read_text(encoding="utf-8").count("\n")
+    assert lines <= 420, f"README.md has {lines} lines; move reference material into docs/"
+    pages = [README, *sorted(DOCS.glob("*.md"))]
+    assert len(pages) > 1
+    missing = [f"{page.relative_to(ROOT)}: {target}" for page in pages
+               for target in _relative_links(page)
+               if not (page.parent / target).is_file()]
+    assert not missing, "links to missing files:\n" + "\n".join(missing)

@@ -1,7 +1,7 @@
 """posernet: refine relative camera poses with matched object detections (PoserNet, ECCV 2022),
 then average them into absolute camera poses.
 
-The public API is re-exported here; see the README for a tour.
+The public API is re-exported here; see the README and docs/ for a tour.
 """
 
 from . import geometry, sync

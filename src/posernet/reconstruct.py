@@ -318,7 +318,7 @@ def _start_record(start: dict[str, Any] | None, keys: list[str]) -> dict[str, An
 
 
 def poses_json(rec: Reconstruction, info: dict[str, Any] | None = None) -> dict[str, Any]:
-    """JSON-ready record (format ``posernet-poses``, version 1), see the README."""
+    """JSON-ready record (format ``posernet-poses``, version 1), see docs/formats.md."""
     from .geometry import matrix_to_pose_vec, pose_vec_to_matrix
 
     g, res, stage = rec.graph, rec.result, rec.stage

@@ -13,8 +13,8 @@ mixture of initial-pose qualities, then fine-tuned with the relative do-no-harm 
 (``conf/dataset/vary_*.yaml``: three, nine, then twelve) -- not on 7-Scenes. It exists so
 that ``posernet-refine`` and ``make demo`` work out of the box; train your own for real data.
 ``posernet_synthetic_kp_v1.ckpt`` is the checkpoint shipped before it (residual PoserNet trained
-on KP input only, which regresses every input towards its error floor). ``README.md`` (section
-"Shipped checkpoint") gives the commands that reproduce both.
+on KP input only, which regresses every input towards its error floor). ``docs/model-card.md``
+gives the commands that reproduce both.
 """
 
 from __future__ import annotations

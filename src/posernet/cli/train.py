@@ -258,7 +258,7 @@ def train(cfg: DictConfig) -> float:
 
     from ..checkpoints import CHECKPOINT_TAG, read_checkpoint
     from ..io import atomic_write_json
-    from ..training import trainer_from_config
+    from ..lit import trainer_from_config
 
     check_config(cfg, "train")  # every value, CUDA, a writable out_dir: before any output
     quiet_lightning()

@@ -1,7 +1,7 @@
 """A one-page digest of a run: the medians of every table, ours beside the paper's.
 
 Built only from the CSV files the experiments wrote (``<out>/<experiment>/*.csv``), so the numbers
-quoted in the README's results section can be checked against the runner's output.
+quoted in docs/results.md can be checked against the runner's output.
 """
 
 from __future__ import annotations

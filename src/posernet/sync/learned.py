@@ -74,7 +74,7 @@ __all__ = [
     "load_learned_sync",
 ]
 
-#: written into checkpoints by :class:`posernet.lit_sync.LearnedSyncModule`
+#: written into checkpoints by :class:`posernet.lit.LearnedSyncModule`
 LEARNED_SYNC_TAG = "posernet.LearnedSyncModule"
 #: initial absolute poses of :class:`LearnedSyncNet`
 INITS: tuple[str, ...] = ("spectral", "identity")

@@ -21,12 +21,12 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from .checkpoints import CHECKPOINT_TAG, CheckpointError, read_checkpoint
-from .graph import GraphBatch
-from .lit_base import SectionedModule, fill_sections
-from .metrics import relative_errors_per_graph
-from .nn import PoserNet
-from .nn.loss import relative_objective
+from ..checkpoints import CHECKPOINT_TAG, CheckpointError, read_checkpoint
+from ..graph import GraphBatch
+from ..metrics import relative_errors_per_graph
+from ..nn import PoserNet
+from ..nn.loss import relative_objective
+from .base import SectionedModule, fill_sections
 
 __all__ = ["SECTIONS", "PoserNetModule", "flat_name_section", "load_posernet_checkpoint",
            "module_hparams", "upgrade_optimizer_states"]
@@ -167,7 +167,7 @@ class PoserNetModule(SectionedModule):
     def _absolute_loss(self, batch: GraphBatch, pred: Tensor) -> tuple[Tensor, Tensor]:
         """Mean aligned rotation / position losses of the absolute poses synchronised from
         ``pred`` (float64: the spectral step and the SO(3) projection need it)."""
-        from .sync.differentiable import aligned_pose_loss, differentiable_sync
+        from ..sync.differentiable import aligned_pose_loss, differentiable_sync
 
         if batch.pose_gt is None or batch.edge_pose_gt is None:
             raise ValueError("loss.end_to_end needs batches with pose_gt and edge_pose_gt")
@@ -195,7 +195,7 @@ class PoserNetModule(SectionedModule):
         dm = getattr(self.trainer, "datamodule", None) if self._trainer is not None else None
         graphs = getattr(dm, "train_graphs", None)
         if graphs:
-            from .guard import input_statistics
+            from ..guard import input_statistics
 
             self.input_stats = input_statistics(graphs)
 

@@ -25,11 +25,11 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
-from .graph import GraphBatch
-from .lit_base import SectionedModule, fill_sections
-from .metrics import absolute_errors_per_graph
-from .sync.components import connected_components
-from .sync.learned import LEARNED_SYNC_TAG, LearnedSyncNet, all_pairs, learned_sync_loss
+from ..graph import GraphBatch
+from ..metrics import absolute_errors_per_graph
+from ..sync.components import connected_components
+from ..sync.learned import LEARNED_SYNC_TAG, LearnedSyncNet, all_pairs, learned_sync_loss
+from .base import SectionedModule, fill_sections
 
 __all__ = ["SECTIONS", "LearnedSyncModule", "sync_module_hparams"]
 
@@ -95,7 +95,7 @@ class LearnedSyncModule(SectionedModule):
         if path is None:
             return None
         if self._refiner is None:
-            from .nn import PoserNet
+            from ..nn import PoserNet
 
             # object.__setattr__: nn.Module would register it as a submodule
             object.__setattr__(self, "_refiner",

@@ -2,7 +2,7 @@
 epoch medians of per-graph errors, Adam with reduce-on-plateau, and the checkpoint tag.
 
 :class:`~posernet.lit.PoserNetModule` (relative poses) and
-:class:`~posernet.lit_sync.LearnedSyncModule` (the learned synchronisation) subclass
+:class:`~posernet.lit.LearnedSyncModule` (the learned synchronisation) subclass
 :class:`SectionedModule`; each declares its ``SECTIONS`` (the sections of its model config with
 their defaults), its ``CHECKPOINT_TAG`` and the names of the per-graph errors its
 ``_collect`` stores (``MEDIAN_METRICS``).
@@ -17,7 +17,7 @@ import lightning as L
 import torch
 from torch import Tensor, nn
 
-from . import __version__
+from .. import __version__
 
 __all__ = ["SectionedModule", "fill_sections"]
 

@@ -1,0 +1,29 @@
+"""The Lightning layer: the refiner's module (:mod:`.refiner`), the learned synchronisation's
+(:mod:`.sync`), what they share (:mod:`.base`: sectioned hyper-parameters, the checkpoint tag)
+and the one Trainer builder with its determinism policy (:mod:`.trainer`)."""
+
+from .base import SectionedModule, fill_sections
+from .refiner import (
+    PoserNetModule,
+    flat_name_section,
+    load_posernet_checkpoint,
+    module_hparams,
+    upgrade_optimizer_states,
+)
+from .sync import LearnedSyncModule, sync_module_hparams
+from .trainer import build_trainer, determinism_policy, trainer_from_config
+
+__all__ = [
+    "LearnedSyncModule",
+    "PoserNetModule",
+    "SectionedModule",
+    "build_trainer",
+    "determinism_policy",
+    "fill_sections",
+    "flat_name_section",
+    "load_posernet_checkpoint",
+    "module_hparams",
+    "sync_module_hparams",
+    "trainer_from_config",
+    "upgrade_optimizer_states",
+]
