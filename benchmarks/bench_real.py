@@ -74,7 +74,7 @@ class ImageSet:
     ``intrinsics`` as given to posernet-reconstruct (``"fx,fy,cx,cy"`` or a file path),
     ``K (3, 3)`` and ``dist`` (OpenCV order or ``None``) parsed from it; ``c2w`` the
     ground-truth camera-to-world pose per key. (No dataclass: the benchmark scripts are also
-    loaded as unregistered modules, see tests/test_benchmarks.py.)"""
+    loaded as unregistered modules, see tests/benchmarks/test_benchmarks.py.)"""
 
     def __init__(self, name: str, images: Path, keys: list[str], intrinsics: str,
                  K: np.ndarray, dist: np.ndarray | None, c2w: dict[str, np.ndarray],

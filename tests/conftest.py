@@ -12,24 +12,11 @@ import torch
 torch.set_num_threads(1)
 
 
-def posernet_train_callbacks(out_dir: object) -> list:
-    """The checkpoint callbacks ``posernet-train`` builds from ``conf/callbacks/default.yaml``
-    for a run folder ``out_dir`` (best and last, in ``out_dir/checkpoints``)."""
-    from hydra import compose, initialize_config_dir
-    from lightning.pytorch.callbacks import ModelCheckpoint
-
-    from posernet.cli import CONFIG_DIR
-    from posernet.cli.train import _instantiate_dict
-
-    with initialize_config_dir(config_dir=CONFIG_DIR, version_base="1.3"):
-        cfg = compose(config_name="train", overrides=[f"out_dir={out_dir}"])
-    return [c for c in _instantiate_dict(cfg.callbacks) if isinstance(c, ModelCheckpoint)]
-
-
-@pytest.fixture(scope="module")
+@pytest.fixture(autouse=True, scope="module")
 def one_torch_thread():
-    """One torch thread for a module (timing-insensitive, and no oversubscription on the
-    2-core CI box); restored afterwards."""
+    """One torch thread for every test module, restored afterwards (a test may change it):
+    tiny tensors are dominated by per-op overhead, and OpenMP threads oversubscribe the
+    2-core CI box (small batched linear algebra 10-50x slower)."""
     n = torch.get_num_threads()
     torch.set_num_threads(1)
     yield

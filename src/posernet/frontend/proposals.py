@@ -15,7 +15,7 @@ deterministic: the same image gives the same boxes in the same order. An image w
 survives the filters (a blank wall, a uniform image) gives an empty :class:`Proposals`, not an
 error: callers count such images.
 
-Measured on the synthetic scenes of ``tests/test_proposals.py`` (640x480; "easy": 8 scenes,
+Measured on the synthetic scenes of ``tests/frontend/test_proposals.py`` (640x480; "easy": 8 scenes,
 116 textured rectangles / ellipses on a low-contrast textured background; "hard": 16 scenes,
 304 objects, a floor split and clutter) and on 18 frames of
 :func:`posernet.data.render.render_sevenscenes` (chess, fire, office, seed 0; 368 ground-truth

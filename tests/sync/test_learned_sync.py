@@ -270,7 +270,7 @@ def test_training_lowers_the_validation_loss():
 
 
 def test_module_sections_and_plain_hyper_parameters(tmp_path):
-    from posernet.lit_sync import SECTIONS, LearnedSyncModule, sync_module_hparams
+    from posernet.lit.sync import SECTIONS, LearnedSyncModule, sync_module_hparams
 
     m = LearnedSyncModule(net={"hidden": 8, "rounds": 2}, loss={"gamma": 0.5})
     assert m.CHECKPOINT_TAG == LEARNED_SYNC_TAG == "posernet.LearnedSyncModule"
@@ -288,7 +288,7 @@ def test_module_sections_and_plain_hyper_parameters(tmp_path):
 
 
 def test_module_step_logs_losses_and_absolute_errors():
-    from posernet.lit_sync import LearnedSyncModule
+    from posernet.lit.sync import LearnedSyncModule
 
     m = LearnedSyncModule(net={"hidden": 8, "rounds": 2})
     logged = {}
@@ -304,7 +304,7 @@ def test_module_step_logs_losses_and_absolute_errors():
 
 
 def test_refined_input_uses_a_frozen_posernet_outside_the_checkpoint():
-    from posernet.lit_sync import LearnedSyncModule
+    from posernet.lit.sync import LearnedSyncModule
 
     shipped = str(default_checkpoint())
     m = LearnedSyncModule(net={"hidden": 8, "rounds": 2}, input={"refiner_ckpt": shipped})
@@ -324,7 +324,7 @@ def test_refined_input_uses_a_frozen_posernet_outside_the_checkpoint():
 
 @pytest.fixture(scope="module")
 def sync_ckpt(tmp_path_factory) -> Path:
-    from posernet.lit_sync import LearnedSyncModule
+    from posernet.lit.sync import LearnedSyncModule
 
     torch.manual_seed(0)
     m = LearnedSyncModule(net={"hidden": 8, "rounds": 3})
@@ -332,7 +332,7 @@ def sync_ckpt(tmp_path_factory) -> Path:
 
 
 def test_backend_solves_a_batch_like_the_network(sync_ckpt):
-    from posernet.lit_sync import LearnedSyncModule
+    from posernet.lit.sync import LearnedSyncModule
 
     assert "learned" in available_backends()
     be = get_backend("learned", ckpt_path=str(sync_ckpt))

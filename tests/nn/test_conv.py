@@ -24,14 +24,6 @@ from posernet.nn import PoserConv, graph_inputs
 from posernet.testing import random_view_graph
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _single_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
-
 def random_poses(n: int, seed: int, scale: float = 1.0) -> torch.Tensor:
     """Raw pose vectors with non-unit quaternions (like untrained network outputs)."""
     g = torch.Generator().manual_seed(seed)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-from test_sync_eig_se3 import errors, make_graph, rel_to_first
+from helpers import errors, make_graph, rel_to_first
 
 from posernet.graph import GraphBatch
 from posernet.sync import get_backend
@@ -13,14 +13,6 @@ from posernet.sync.backend import graph_structure
 from posernet.sync.components import connected_components
 from posernet.sync.padding import build_padded, edge_rotations
 from posernet.sync.rotation_translation import refine_rotations, translations_from_directions
-
-
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
 
 
 @pytest.mark.parametrize("n,extra", [(4, 4), (8, 10), (30, 120)])

@@ -14,7 +14,7 @@ import torch
 from posernet import GraphBatch, PoserNet, save_graphs
 from posernet.checkpoints import CHECKPOINT_TAG
 from posernet.geometry import rotation_error_deg
-from posernet.lit import SECTIONS, PoserNetModule, module_hparams
+from posernet.lit.refiner import SECTIONS, PoserNetModule, module_hparams
 from posernet.nn.adaptive import (
     CYCLE_DIM,
     HEAD_IN_DIM,

@@ -14,20 +14,14 @@ from posernet.checkpoints import CheckpointError, read_checkpoint
 from posernet.cli import CONFIG_DIR
 from posernet.graph import GraphBatch
 from posernet.lit import PoserNetModule, load_posernet_checkpoint
+from posernet.lit.trainer import build_trainer
 from posernet.nn import PoserNet
 from posernet.testing import random_view_graph
-from posernet.training import build_trainer
 
 pytestmark = pytest.mark.filterwarnings(
     "ignore::UserWarning", "ignore::DeprecationWarning", "ignore::FutureWarning")
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _single_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
 
 
 def graphs(n: int, seed: int) -> list:
@@ -127,7 +121,7 @@ def test_checkpoint_round_trip(data, tmp_path: Path) -> None:
 
 def test_last_checkpoint_is_the_latest_epoch_even_without_improvement(data,
                                                                        tmp_path: Path) -> None:
-    from conftest import posernet_train_callbacks
+    from helpers import posernet_train_callbacks
 
     train, val = data
     L.seed_everything(1, workers=True)
@@ -213,7 +207,7 @@ MODEL_CONFIG_DIR = Path(CONFIG_DIR) / "model"
 MODEL_CONFIGS = sorted(p.stem for p in MODEL_CONFIG_DIR.glob("*.yaml"))
 # the checkpoint shipped before input-adaptive refinement: the older layout (flat
 # hyper-parameters, last-round node MLP and its Adam state)
-SHIPPED = (Path(__file__).resolve().parents[1] / "src" / "posernet" / "checkpoints"
+SHIPPED = (Path(__file__).resolve().parents[2] / "src" / "posernet" / "checkpoints"
            / "posernet_synthetic_kp_v1.ckpt")
 
 

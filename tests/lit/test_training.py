@@ -1,4 +1,4 @@
-"""posernet.training: the one Trainer builder and its determinism policy, used by every caller."""
+"""posernet.lit.trainer: the one Trainer builder and its determinism policy, for every caller."""
 
 from __future__ import annotations
 
@@ -7,12 +7,12 @@ from pathlib import Path
 
 import pytest
 import torch
-from conftest import posernet_train_callbacks
+from helpers import posernet_train_callbacks
 from hydra import compose, initialize_config_dir
 from lightning.pytorch.callbacks import ModelCheckpoint
 
 from posernet.cli import CONFIG_DIR
-from posernet.training import (
+from posernet.lit.trainer import (
     build_trainer,
     determinism_policy,
     trainer_from_config,
@@ -54,7 +54,7 @@ def test_checkpoint_callbacks_best_and_last(tmp_path: Path) -> None:
 def test_trainer_configs_use_the_builder_and_its_policy(group: str) -> None:
     with initialize_config_dir(config_dir=CONFIG_DIR, version_base="1.3"):
         cfg = compose(config_name="train", overrides=[f"trainer={group}", "out_dir=x"])
-    assert cfg.trainer._target_ == "posernet.training.build_trainer"
+    assert cfg.trainer._target_ == "posernet.lit.build_trainer"
     assert cfg.trainer.deterministic is None  # the policy decides
 
 

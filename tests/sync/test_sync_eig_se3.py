@@ -8,12 +8,12 @@ import dataclasses
 import numpy as np
 import pytest
 import torch
+from helpers import F64, errors, make_graph, rel_to_first
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from posernet.geometry import (
     axis_angle_to_rotation_matrix,
-    compose_pose_vec,
     invert_pose_vec,
     make_se3,
     matrix_to_pose_vec,
@@ -21,70 +21,8 @@ from posernet.geometry import (
     relative_pose,
 )
 from posernet.graph import GraphBatch, ViewGraph
-from posernet.metrics import absolute_pose_errors
 from posernet.sync import get_backend
 from posernet.sync.reference import eig_se3_reference
-from posernet.testing import random_absolute_poses, random_edges
-
-F64 = torch.float64
-
-
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    """The CI box has 2 cores shared with other jobs: oversubscribed OpenMP threads make small
-    batched linear algebra 10-50x slower, so these tests run torch single-threaded."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
-
-def make_graph(n: int, extra: int, seed: int, rot_noise_deg: float = 0.0,
-               trans_noise: float = 0.0, outlier_frac: float = 0.0,
-               dtype: torch.dtype = F64) -> ViewGraph:
-    """Graph with metric ground truth; ``edge_pose`` = GT plus Gaussian rotation noise (deg),
-    translation noise (m) and a fraction of random outlier edges."""
-    g = torch.Generator().manual_seed(seed)
-    P = random_absolute_poses(n, g, F64)
-    ei = random_edges(n, extra, g)
-    gt = matrix_to_pose_vec(relative_pose(P[ei[0]], P[ei[1]]))
-    E = ei.shape[1]
-    ax = torch.nn.functional.normalize(torch.randn(E, 3, generator=g, dtype=F64), dim=-1)
-    ang = torch.deg2rad(torch.randn(E, 1, generator=g, dtype=F64) * rot_noise_deg)
-    noise = matrix_to_pose_vec(make_se3(axis_angle_to_rotation_matrix(ax * ang),
-                                        torch.zeros(E, 3, dtype=F64)))
-    ep = compose_pose_vec(noise, gt)
-    ep[:, 4:] += trans_noise * torch.randn(E, 3, generator=g, dtype=F64)
-    if outlier_frac > 0:
-        bad = torch.rand(E, generator=g) < outlier_frac
-        rnd = matrix_to_pose_vec(make_se3(
-            axis_angle_to_rotation_matrix(torch.randn(E, 3, generator=g, dtype=F64) * 2),
-            torch.randn(E, 3, generator=g, dtype=F64)))
-        ep = torch.where(bad[:, None], rnd, ep)
-    z = torch.zeros(0, dtype=torch.long)
-    graph = ViewGraph(
-        node_attr=torch.zeros(n, 4, dtype=F64), K=torch.eye(3, dtype=F64).expand(n, 3, 3),
-        image_size=torch.ones(n, 2, dtype=F64), edge_index=ei, edge_pose=ep,
-        det_box=torch.zeros(0, 4, dtype=F64), det_node=z, pair_edge=z, pair_src=z, pair_dst=z,
-        edge_pose_gt=gt, pose_gt=P, meta={"name": f"g{seed}"},
-    )
-    return graph.apply(lambda x: x.to(dtype) if x.is_floating_point() else x)
-
-
-def rel_to_first(M: torch.Tensor) -> np.ndarray:
-    """Gauge-free view of absolute poses: ``M_i M_0^{-1}`` for all i."""
-    M = torch.as_tensor(M, dtype=F64)
-    return (M @ torch.linalg.inv(M[0])).numpy()
-
-
-def errors(poses, graph_or_batch, alignment="rigid"):
-    b = graph_or_batch
-    nb = getattr(b, "node_batch", None)
-    if nb is None:
-        nb = torch.zeros(b.num_nodes, dtype=torch.long)
-    B = getattr(b, "num_graphs", 1) if isinstance(b, GraphBatch) else 1
-    return absolute_pose_errors(poses, b.pose_gt, nb, B, alignment=alignment)
-
 
 # --------------------------------------------------------------------------- exactness
 

@@ -8,18 +8,10 @@ import torch
 
 gtsam = pytest.importorskip("gtsam")
 
-from test_sync_eig_se3 import errors, make_graph, rel_to_first  # noqa: E402
+from helpers import errors, make_graph, rel_to_first  # noqa: E402
 
 from posernet.graph import GraphBatch  # noqa: E402
 from posernet.sync import available_backends, get_backend  # noqa: E402
-
-
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
 
 
 def test_listed_and_scale_free_only():

@@ -6,20 +6,12 @@ import dataclasses
 
 import pytest
 import torch
-from test_sync_eig_se3 import make_graph
+from helpers import make_graph
 
 from posernet.graph import GraphBatch
 from posernet.metrics import METRE_THRESHOLDS
 from posernet.sync import get_backend
 from posernet.sync.evaluate import absolute_table, format_absolute_table
-
-
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
 
 
 def test_noise_free_table_is_perfect_and_labelled():
