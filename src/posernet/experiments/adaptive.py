@@ -549,7 +549,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                         "test graphs of several datasets together")
     p.add_argument("--model", action="append", required=True,
                    help="NAME=CHECKPOINT (repeatable); NAME=shipped for the shipped one")
-    p.add_argument("--out", required=True, help="output folder (e.g. results/adaptive)")
+    p.add_argument("--out", required=True, help="output folder (e.g. research/adaptive)")
     p.add_argument("--split", default="test")
     p.add_argument("--no-absolute", action="store_true", help="skip motion averaging")
     p.add_argument("--max-graphs", type=int, default=None)
