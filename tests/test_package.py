@@ -123,3 +123,16 @@ def test_no_private_name_is_imported_from_another_module() -> None:
                           f"import {a.name}" for a in node.names
                           if a.name.startswith("_") and not a.name.startswith("__")]
     assert not found, "\n".join(found)
+
+
+def test_hydra_instantiate_only_in_the_command_layer() -> None:
+    """The library takes built objects; configs become objects in ``posernet.cli`` only."""
+    found = []
+    for path in SRC.rglob("*.py"):
+        if (SRC / "cli") in path.parents:
+            continue
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ImportFrom) and (node.module or "").startswith("hydra") \
+                    and any(a.name == "instantiate" for a in node.names):
+                found.append(_module_name(path))
+    assert not found, found

@@ -191,6 +191,7 @@ def test_sevenscenes_keys_are_refused_for_synthetic_data(tmp_path, capsys):
 
 
 def test_unconnected_scene_names_scene_split_and_the_fix(scenes_root, tmp_path):
+    from posernet.cli.build import frontend_stages
     from posernet.data.sevenscenes_graphs import generate_sevenscenes
     from posernet.data.synthetic import SamplingError
 
@@ -203,7 +204,8 @@ def test_unconnected_scene_names_scene_split_and_the_fix(scenes_root, tmp_path):
                   "matcher": {"_target_": "posernet.frontend.features.SiftMatcher"},
                   "proposals": {"_target_": "posernet.frontend.proposals.EdgeBoxes"}}
     with pytest.raises(SamplingError, match=r"scene 'chess' split 'train'.*connected") as e:
-        generate_sevenscenes(opts, tmp_path / "ds", frontend=impossible, progress=False,
+        generate_sevenscenes(opts, tmp_path / "ds", frontend=frontend_stages(impossible),
+                             progress=False,
                              echo=None)
     assert "min_boxes" in str(e.value) and "small.train=0" in str(e.value)
     assert not (tmp_path / "ds" / "manifest.json").exists()

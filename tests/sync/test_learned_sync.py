@@ -16,6 +16,7 @@ from omegaconf import OmegaConf
 
 from posernet.checkpoints import CheckpointError, default_checkpoint
 from posernet.cli import CONFIG_DIR
+from posernet.cli.build import backend_from_config
 from posernet.geometry import (
     axis_angle_to_rotation_matrix,
     make_se3,
@@ -25,7 +26,7 @@ from posernet.geometry import (
     se3_log,
 )
 from posernet.graph import GraphBatch, ViewGraph
-from posernet.sync import available_backends, backend_from_config, get_backend
+from posernet.sync import available_backends, get_backend
 from posernet.sync.learned import (
     LEARNED_SYNC_TAG,
     LearnedSync,

@@ -19,9 +19,20 @@ from typing import Any, NoReturn, TypeVar
 
 from .validation import ConfigValueError, check_config, writable_dir, writable_file
 
-__all__ = ["check_config", "interrupted", "quiet_lightning", "quote_list_args", "report_error",
-           "resolve_device", "run_app", "run_task", "set_threads", "user_errors", "writable_dir",
-           "writable_file"]
+__all__ = [
+    "check_config",
+    "interrupted",
+    "quiet_lightning",
+    "quote_list_args",
+    "report_error",
+    "resolve_device",
+    "run_app",
+    "run_task",
+    "set_threads",
+    "user_errors",
+    "writable_dir",
+    "writable_file",
+]
 
 T = TypeVar("T")
 
@@ -301,5 +312,3 @@ def quote_list_args(argv: list[str], keys: tuple[str, ...]) -> list[str]:
     string instead (``intrinsics=585,585,320,240`` is what users type)."""
     pattern = re.compile(rf"^({'|'.join(map(re.escape, keys))})=([^'\"\[].*,.*)$")
     return [pattern.sub(r"\1='\2'", a) for a in argv]
-
-

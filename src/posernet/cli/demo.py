@@ -100,7 +100,7 @@ def demo(cfg: DictConfig) -> dict[str, Any]:
     from ..nn import PoserNet
     from ..pipeline import evaluate_result, refine_graphs, result_tables
     from ..plots import plot_cameras, plot_sorted_errors
-    from ..sync import backend_from_config
+    from .build import backend_from_config
 
     check_config(cfg, "demo")
     t0 = time.perf_counter()

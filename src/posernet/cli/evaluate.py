@@ -97,11 +97,9 @@ def evaluate(cfg: DictConfig) -> dict[str, Any]:
 
 
 def _sync_backend(cfg: DictConfig) -> Any:
-    try:
-        from .. import sync as sync_lib
-    except ImportError as exc:
-        raise FileNotFoundError(f"motion averaging is not available ({exc})") from exc
-    return sync_lib.backend_from_config(OmegaConf.to_container(cfg.sync, resolve=True))
+    from .build import backend_from_config
+
+    return backend_from_config(OmegaConf.to_container(cfg.sync, resolve=True))
 
 
 @hydra.main(version_base="1.3", config_path=CONFIG_DIR, config_name="eval")

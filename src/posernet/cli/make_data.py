@@ -49,18 +49,20 @@ def _dataset_config(cfg: DictConfig) -> Any:
     return OmegaConf.to_container(OmegaConf.merge(base, dot), resolve=True)
 
 
-FRONTEND_GROUPS = ("proposals", "matcher", "box_matching", "relpose")
 _SEVENSCENES_KEYS = ("root", "scenes", "intrinsics")
 
 
 def _run_sevenscenes(cfg: DictConfig) -> dict[str, Any]:
     """``source=sevenscenes``: graphs of the images under ``root`` through the front end."""
-    from posernet.data.sevenscenes_graphs import generate_sevenscenes
+    from posernet.data.sevenscenes_graphs import FRONTEND_GROUPS, generate_sevenscenes
+
+    from .build import frontend_stages
 
     return generate_sevenscenes(
         OmegaConf.to_container(cfg.sevenscenes, resolve=True),
         _out_dir(cfg),
-        frontend={g: OmegaConf.to_container(cfg[g], resolve=True) for g in FRONTEND_GROUPS},
+        frontend=frontend_stages({g: OmegaConf.to_container(cfg[g], resolve=True)
+                                  for g in FRONTEND_GROUPS}),
         seed=cfg.seed,
         overwrite=bool(cfg.overwrite),
         resume=bool(cfg.resume),

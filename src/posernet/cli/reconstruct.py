@@ -174,7 +174,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     from ..io import atomic_write_json
     from ..pipeline import evaluate_result, result_tables
     from ..reconstruct import NothingPlaced, poses_json, reconstruct, write_colmap_models
-    from ..sync import backend_from_config
+    from .build import backend_from_config
 
     check_config(cfg, "reconstruct")  # out_dir included: made only once there is output
     t0 = time.perf_counter()

@@ -41,7 +41,7 @@ def refine(cfg: DictConfig) -> dict[str, Any]:
         result_tables,
         result_to_json,
     )
-    from ..sync import backend_from_config
+    from .build import backend_from_config
 
     check_config(cfg, "refine")
     set_threads(cfg.get("num_threads"))

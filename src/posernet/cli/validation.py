@@ -332,7 +332,7 @@ def _check_sync(cfg: Any) -> None:
     if not isinstance(sync, dict) or sync.get("name") == "none" or \
             (sync.get("name") is None and sync.get("_target_") is None):
         return
-    from ..sync import backend_from_config
+    from .build import backend_from_config
 
     try:
         backend_from_config(sync)

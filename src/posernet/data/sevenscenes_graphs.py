@@ -56,6 +56,7 @@ __all__ = [
     "FORMAT",
     "FRONTEND_GROUPS",
     "SOURCE",
+    "FrontendStages",
     "ScenePools",
     "SevenScenesOptions",
     "build_chunk",
@@ -493,19 +494,15 @@ def build_chunk(
     return graphs, stats
 
 
-def build_parts(frontend: Mapping[str, Any] | None) -> tuple[dict[str, Any], dict[str, Any]]:
-    """Front-end stages built from ``_target_`` configs (missing ones: the paper defaults);
-    returns ``(built, their plain configs)``."""
-    from hydra.utils import instantiate
-    from omegaconf import OmegaConf
+@dataclass(frozen=True)
+class FrontendStages:
+    """The front-end stages the builder runs, built (``proposals``, ``matcher``,
+    ``box_matching``, ``relpose``: see :data:`FRONTEND_GROUPS`), with the plain configs they
+    were built from (recorded in the manifest; a resumed run must match them).
+    :func:`posernet.cli.build.frontend_stages` builds them from Hydra ``_target_`` configs."""
 
-    cfgs: dict[str, Any] = {}
-    for k, default in frontend_defaults().items():
-        c = (frontend or {}).get(k)
-        c = default if c is None else c
-        cfgs[k] = OmegaConf.to_container(c, resolve=True) if OmegaConf.is_config(c) else dict(c)
-    built = {k: instantiate(c) for k, c in cfgs.items()}
-    return built, cfgs
+    built: Mapping[str, Any]
+    configs: Mapping[str, Mapping[str, Any]]
 
 
 # --------------------------------------------------------------------------- public
@@ -515,7 +512,7 @@ def generate_sevenscenes(
     options: SevenScenesOptions | Mapping[str, Any],
     out_dir: str | Path,
     *,
-    frontend: Mapping[str, Any] | None = None,
+    frontend: FrontendStages,
     seed: int = 0,
     overwrite: bool = False,
     resume: bool = False,
@@ -525,8 +522,7 @@ def generate_sevenscenes(
 ) -> dict[str, Any]:
     """Write a graph dataset of a 7-Scenes-layout folder into ``out_dir``; returns the manifest.
 
-    ``frontend``: ``_target_`` configs of ``proposals``, ``matcher``, ``box_matching`` and
-    ``relpose`` (Hydra config groups of the same names; missing ones take the paper defaults).
+    ``frontend``: the built stages and their configs (:class:`FrontendStages`).
     Same layout, manifest, overwrite / resume rules and ``export_json`` as the synthetic
     :func:`~posernet.data.synthetic.generate_dataset`. Everything a user can get wrong (options,
     the root folder, intrinsics, a scene) fails before anything is written.
@@ -548,7 +544,7 @@ def generate_sevenscenes(
              if any(c.scene == s.name for c in chunks)}
     for c in chunks:
         _check_pool(c, pools[c.scene], opts)
-    parts, part_cfgs = build_parts(frontend)
+    parts, part_cfgs = dict(frontend.built), dict(frontend.configs)
     config = opts.to_dict()
     config.pop("workers")  # threads do not change the output
     config.pop("intrinsics")  # by value below: "585,585,320,240" and a file may be the same

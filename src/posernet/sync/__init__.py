@@ -18,12 +18,12 @@ Backends (``available_backends()``):
   use, as is ``posernet.sync.LearnedSync``).
 
 Hydra: ``posernet/conf/sync/<name>.yaml`` holds ``_target_`` (the backend class, or a factory
-returning a backend), a ``name`` label and the backend's options; :func:`backend_from_config`
-instantiates it through ``_target_``, so a backend written outside this package is chosen from a
-config like a built-in one (``_target_: mypkg.MyBackend`` plus its options; a
-:class:`SyncBackend` subclass). ``sync=none`` (``_target_: posernet.sync.no_backend``) means no
-motion averaging: the result is ``None``. Mappings without ``_target_`` (older configs) are
-still read by ``name`` through the registry of :func:`get_backend`.
+returning a backend), a ``name`` label and the backend's options; the commands build it
+(:func:`posernet.cli.build.backend_from_config`, through ``_target_``), so a backend written
+outside this package is chosen from a config like a built-in one (``_target_:
+mypkg.MyBackend`` plus its options; a :class:`SyncBackend` subclass). ``sync=none``
+(``_target_: posernet.sync.no_backend``) means no motion averaging. From Python, construct a
+backend class or call :func:`get_backend`.
 
 Modules: :mod:`~posernet.sync.backend` (interface, result, input checks, scale policy),
 :mod:`~posernet.sync.components` (connected components), :mod:`~posernet.sync.padding` (the
@@ -41,7 +41,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Any
 
-from .backend import SCALE_POLICIES, SyncBackend, SyncResult, as_mapping
+from .backend import SCALE_POLICIES, SyncBackend, SyncResult
 from .differentiable import aligned_pose_loss, differentiable_sync
 from .eig_se3 import EigSE3
 from .rotation_translation import RotationTranslation
@@ -55,7 +55,6 @@ __all__ = [
     "SyncResult",
     "aligned_pose_loss",
     "available_backends",
-    "backend_from_config",
     "differentiable_sync",
     "get_backend",
     "no_backend",
@@ -105,7 +104,7 @@ def get_backend(name: str, **options: Any) -> SyncBackend:
 
         _REGISTRY["gtsam"] = GtsamBackend
     if name not in _REGISTRY:
-        hint = " ('none' means no motion averaging: use backend_from_config)" \
+        hint = " ('none' means no motion averaging: use no backend)" \
             if name == "none" else ""
         raise ValueError(f"unknown sync backend {name!r}{hint}; available backends: "
                          f"{available_backends()}")
@@ -116,50 +115,6 @@ def no_backend(**_: Any) -> None:
     """The ``sync=none`` choice (``_target_`` of ``posernet/conf/sync/none.yaml``): no motion
     averaging, so there is no backend."""
     return None
-
-
-def backend_from_config(cfg: Any) -> SyncBackend | None:
-    """Backend from a ``posernet/conf/sync/*.yaml`` mapping; ``None`` for ``sync=none`` (no
-    motion averaging).
-
-    With ``_target_`` the backend is built by Hydra's ``instantiate`` from that class or factory
-    and the other keys (its options; a ``name`` key is only a label and is not passed on), so
-    any importable :class:`SyncBackend` can be chosen; without it, ``name`` picks a registered
-    backend (:func:`get_backend`) and ``name: none`` means no motion averaging. Bad options
-    raise the backend's own ``ValueError``.
-    """
-    d = dict(as_mapping(cfg))
-    if "_target_" in d:
-        return _instantiate(d)
-    if "name" not in d:
-        raise ValueError(f"sync config needs a '_target_' (a backend class) or a 'name' field "
-                         f"(one of {available_backends()} or 'none'); got keys {sorted(d)}")
-    name = d.pop("name")
-    if name in (None, "none"):
-        return None
-    return get_backend(str(name), **d)
-
-
-def _instantiate(d: dict[str, Any]) -> SyncBackend | None:
-    from hydra.errors import InstantiationException
-    from hydra.utils import instantiate
-
-    target = d.get("_target_")
-    if not isinstance(target, str) or not target:
-        raise ValueError(f"sync config: _target_ must be the dotted path of a backend class or "
-                         f"factory, got {target!r}")
-    d.pop("name", None)
-    try:
-        backend = instantiate(d, _convert_="all")
-    except InstantiationException as exc:
-        if isinstance(exc.__cause__, ValueError):  # the backend's own message (bad option)
-            raise exc.__cause__ from None
-        first = next((ln.strip() for ln in str(exc).splitlines() if ln.strip()), "")
-        raise ValueError(f"sync config: cannot build _target_ {target!r}: {first}") from exc
-    if backend is not None and not isinstance(backend, SyncBackend):
-        raise ValueError(f"sync config: _target_ {target!r} gave a {type(backend).__name__}, "
-                         "not a posernet.sync.SyncBackend")
-    return backend
 
 
 register_backend("eig_se3", EigSE3)
