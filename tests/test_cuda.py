@@ -64,7 +64,7 @@ def test_training_on_cuda_is_deterministic(tmp_path):
 
 
 def test_refine_pipeline_on_cuda_matches_cpu():
-    from posernet.pipeline import refine_graphs
+    from posernet.refine import refine_graphs
     from posernet.sync import get_backend
 
     torch.use_deterministic_algorithms(True)  # as after a Lightning fit with deterministic=True

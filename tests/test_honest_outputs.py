@@ -15,6 +15,8 @@ import torch
 
 from posernet import geometry as G
 from posernet.data import load_posernet_json, save_posernet_json
+from posernet.data.inputs import load_input_graphs
+from posernet.evaluation import evaluate_result, result_tables
 from posernet.graph import GraphValidationError, ViewGraph
 from posernet.metrics import (
     per_graph_mean,
@@ -23,13 +25,7 @@ from posernet.metrics import (
     threshold_row,
     translation_direction_error_deg,
 )
-from posernet.pipeline import (
-    evaluate_result,
-    load_input_graphs,
-    refine_graphs,
-    result_tables,
-    result_to_json,
-)
+from posernet.refine import refine_graphs, result_to_json
 from posernet.report import ResultTable
 from posernet.sync import get_backend
 from posernet.sync.evaluate import absolute_table, format_absolute_table

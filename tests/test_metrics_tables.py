@@ -7,6 +7,7 @@ import math
 import torch
 
 from posernet import GraphBatch
+from posernet.evaluation import evaluate_result
 from posernet.metrics import (
     ANGLE_THRESHOLDS_DEG,
     METRE_THRESHOLDS,
@@ -20,7 +21,7 @@ from posernet.metrics import (
     threshold_row,
     unplaced_per_graph,
 )
-from posernet.pipeline import evaluate_result, refine_graphs
+from posernet.refine import refine_graphs
 from posernet.report import relative_row
 from posernet.sync import get_backend
 from posernet.sync.evaluate import absolute_table

@@ -324,7 +324,7 @@ def absolute_pose_errors(
 #
 # The one path from (estimated poses, ground truth, batch structure) to per-graph errors and
 # threshold rows. ``posernet-eval`` (cli/evaluate.py), ``sync.evaluate.absolute_table``,
-# ``pipeline.evaluate_result`` (refine, demo, reconstruct, the experiment runner) and the
+# ``evaluation.evaluate_result`` (refine, demo, reconstruct, the experiment runner) and the
 # Lightning module's per-graph errors all call these; nothing else builds a table row from
 # errors.
 

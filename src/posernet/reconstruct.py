@@ -43,7 +43,7 @@ from .frontend.pipeline import ImageFrontend
 from .geometry import invert_se3
 from .graph import ViewGraph
 from .io import atomic_write_json
-from .pipeline import RefineResult, refine_graphs
+from .refine import RefineResult, refine_graphs
 from .sfm import BundleOptions, SfmResult, anchored_cameras, bundle_adjust_reconstruction
 
 __all__ = ["Reconstruction", "edge_weights", "focal_mode", "gauge_fixed",
@@ -160,7 +160,7 @@ def reconstruct(
     backend). ``refine_focal="auto"`` refines the focal length of guessed intrinsics
     (:func:`focal_mode`).
     ``guard``: keep the input pose where the model's confidence says refinement would not help
-    (:func:`posernet.pipeline.refine_graphs`; needs a confidence head). With a confidence head
+    (:func:`posernet.refine.refine_graphs`; needs a confidence head). With a confidence head
     the averaging starts from the model's per-edge confidence."""
     n = len(frontend.records)
     clock = _StageClock()

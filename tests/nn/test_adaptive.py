@@ -249,7 +249,7 @@ def _confident_model(keep: bool, gate: float = 3.0) -> PoserNet:
 
 
 def test_guard_keeps_the_input_where_the_confidence_says_so() -> None:
-    from posernet.pipeline import refine_graphs
+    from posernet.refine import refine_graphs
 
     gs = graphs(3)
     kept = refine_graphs(_confident_model(True), gs, progress=False, guard=True)
@@ -311,8 +311,9 @@ def test_refine_writes_confidence_and_the_guard_warning(tmp_path: Path, capsys) 
     assert rec["guard"] is True and rec["confidence_weights"] is True
     assert rec["input_check"]["warning"] is not None
     # the absolute table says the input's averaging was weighted by the model too
+    from posernet.evaluation import evaluate_result, result_tables
     from posernet.nn import PoserNet
-    from posernet.pipeline import evaluate_result, refine_graphs, result_tables
+    from posernet.refine import refine_graphs
     from posernet.sync import get_backend
 
     model = PoserNet.from_checkpoint(ckpt)

@@ -96,10 +96,11 @@ def demo(cfg: DictConfig) -> dict[str, Any]:
     from ..data.store import open_split
     from ..data.synthetic import generate_dataset
     from ..data.writer import GenerationError
+    from ..evaluation import evaluate_result, result_tables
     from ..metrics import align_to_ground_truth
     from ..nn import PoserNet
-    from ..pipeline import evaluate_result, refine_graphs, result_tables
     from ..plots import plot_cameras, plot_sorted_errors
+    from ..refine import refine_graphs
     from .build import backend_from_config
 
     check_config(cfg, "demo")

@@ -4,8 +4,8 @@ The table (paper Table 1 layout) gives, per graph, the % of test graphs whose me
 below 3/5/10/30/45 degrees and the median over graphs, for the orientation and the translation
 direction, for the initial poses and the PoserNet-refined ones. It is printed and written
 atomically as ``table.md`` and ``table.csv`` in the output folder. Refinement, averaging and
-the tables are ``posernet-refine``'s (:func:`posernet.pipeline.refine_graphs`,
-:func:`~posernet.pipeline.evaluate_result`, :func:`~posernet.pipeline.result_tables`), the
+the tables are ``posernet-refine``'s (:func:`posernet.refine.refine_graphs`,
+:func:`~posernet.evaluation.evaluate_result`, :func:`~posernet.evaluation.result_tables`), the
 code behind every other table. Examples::
 
     posernet-eval ckpt_path=outputs/train/.../checkpoints/best.ckpt data.root=outputs/data/tiny
@@ -33,7 +33,7 @@ __all__ = ["evaluate", "main"]
 
 def _test_graphs(cfg: DictConfig) -> tuple[list[Any], str]:
     """The test graphs and a short description of where they come from."""
-    from ..pipeline import load_input_graphs
+    from ..data.inputs import load_input_graphs
 
     if cfg.get("graphs"):
         path = Path(cfg.graphs)
@@ -49,15 +49,16 @@ def _test_graphs(cfg: DictConfig) -> tuple[list[Any], str]:
 def evaluate(cfg: DictConfig) -> dict[str, Any]:
     """Evaluate ``cfg.ckpt_path`` on the configured test set; return the tables and paths.
 
-    The same path as ``posernet-refine`` (:func:`posernet.pipeline.refine_graphs`,
-    :func:`~posernet.pipeline.evaluate_result`, :func:`~posernet.pipeline.result_tables`):
+    The same path as ``posernet-refine`` (:func:`posernet.refine.refine_graphs`,
+    :func:`~posernet.evaluation.evaluate_result`, :func:`~posernet.evaluation.result_tables`):
     the relative table, and with ``sync=`` the absolute one with the cameras placed per stage.
     Motion averaging is never weighted by the model's confidence here, so the ``Initial`` rows
     are the input's own."""
     from ..checkpoints import resolve_checkpoint
+    from ..evaluation import evaluate_result, result_tables
     from ..graph import GraphValidationError
     from ..nn import PoserNet
-    from ..pipeline import evaluate_result, refine_graphs, result_tables
+    from ..refine import refine_graphs
 
     check_config(cfg, "eval")
     quiet_lightning()

@@ -168,11 +168,11 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     from hydra.utils import instantiate
 
     from ..checkpoints import resolve_checkpoint
+    from ..evaluation import evaluate_result, result_tables
     from ..frontend.images import records_for_images
     from ..frontend.pipeline import ImageFrontend
     from ..guard import load_refiner
     from ..io import atomic_write_json
-    from ..pipeline import evaluate_result, result_tables
     from ..reconstruct import NothingPlaced, poses_json, reconstruct, write_colmap_models
     from .build import backend_from_config
 

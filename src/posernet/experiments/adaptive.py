@@ -78,7 +78,7 @@ def edge_errors_for(model: torch.nn.Module | None, graphs: Sequence[ViewGraph],
     """Per-edge errors (degrees) of the input and of the refined poses, with each edge's graph:
     ``rot_init, rot_ref, tdir_init, tdir_ref [E]``, ``graph [E]``; plus ``sigma [E, 4]``
     (degrees) when the model has a confidence head."""
-    from ..pipeline import refine_graphs
+    from ..refine import refine_graphs
 
     res = refine_graphs(model, graphs, progress=False, guard=guard)
     gt = torch.cat([g.edge_pose_gt for g in graphs]).double()
@@ -177,7 +177,8 @@ def absolute_rows(model: torch.nn.Module, graphs: Sequence[ViewGraph],
                   has_conf: bool) -> list[dict[str, Any]]:
     """KP input averaged with EIG-SE3 and rotation_translation: uniform vs confidence-weighted
     IRLS start (modes ``start`` and ``prior``) and the guard; median absolute errors."""
-    from ..pipeline import evaluate_result, refine_graphs
+    from ..evaluation import evaluate_result
+    from ..refine import refine_graphs
     from ..sync import get_backend
 
     rows = []
@@ -341,8 +342,8 @@ def evaluate_models(models: dict[str, str], data: str | Path | Sequence[str | Pa
     """Run the whole evaluation (module docstring) and write its files under ``out``.
 
     ``data``: a dataset root, or several whose ``split`` graphs are evaluated together."""
+    from ..data.inputs import load_input_graphs
     from ..nn import PoserNet
-    from ..pipeline import load_input_graphs
 
     out = Path(out)
     roots = [data] if isinstance(data, (str, Path)) else list(data)
@@ -439,7 +440,7 @@ def guard_report(models: dict[str, str], sets: dict[str, Sequence[ViewGraph]],
     from ..graph import GraphBatch
     from ..guard import check_inputs, cycle_inconsistency, warning_line
     from ..nn import PoserNet
-    from ..pipeline import refine_graphs
+    from ..refine import refine_graphs
 
     rows = []
     for name, ckpt in models.items():
@@ -490,8 +491,10 @@ def paper_tables(ckpt: str | Path, data: str | Path, out: str | Path, label: str
     put the new rows under the existing table, whose rows (paper, paper-faithful model) are
     kept verbatim.
     """
+    from ..data.inputs import load_input_graphs
+    from ..evaluation import evaluate_result, result_tables
     from ..nn import PoserNet
-    from ..pipeline import evaluate_result, load_input_graphs, refine_graphs, result_tables
+    from ..refine import refine_graphs
     from ..report import ABSOLUTE_GROUPS, ResultTable, TableRow
     from ..sync import get_backend
 
@@ -595,7 +598,7 @@ def _run(p: argparse.ArgumentParser, a: argparse.Namespace) -> int:
     for path in models.values():  # every checkpoint readable before any output
         read_checkpoint(path)
     if a.guard:
-        from ..pipeline import load_input_graphs
+        from ..data.inputs import load_input_graphs
 
         sets: dict[str, Sequence[ViewGraph]] = {}
         for spec in [f"{Path(a.data[0]).name}={a.data[0]}", *(a.guard_set or [])]:

@@ -369,9 +369,9 @@ class Context:
     # ---------------------------------------------------------------- evaluation
     def result(self, spec: ModelSpec, seed: int, size: str = "small",
                backend: str | None = None, scene: str | None = None) -> Any:
-        """:class:`~posernet.pipeline.RefineResult` of ``spec``/``seed`` on the test graphs."""
+        """:class:`~posernet.refine.RefineResult` of ``spec``/``seed`` on the test graphs."""
         from ..nn import PoserNet
-        from ..pipeline import refine_graphs
+        from ..refine import refine_graphs
         from ..sync import get_backend
 
         key = (spec, seed, size, backend, scene)
@@ -384,12 +384,12 @@ class Context:
         return self._results[key]
 
     def sync_result(self, estimate: str, seed: int, refined: bool) -> Any:
-        """:class:`~posernet.pipeline.RefineResult` of the learned synchronisation trained on
+        """:class:`~posernet.refine.RefineResult` of the learned synchronisation trained on
         raw (``refined=False``: the initial stage) or on refined input (the PoserNet model of
         the same estimate and seed refines first: the refined stage), on the small test
         graphs."""
         from ..nn import PoserNet
-        from ..pipeline import refine_graphs
+        from ..refine import refine_graphs
         from ..sync.learned import LearnedSync
 
         key = ("learned", estimate, seed, refined)
@@ -405,8 +405,8 @@ class Context:
         return self._results[key]
 
     def sync_evaluation(self, estimate: str, seed: int, refined: bool) -> dict[str, Any]:
-        """:func:`~posernet.pipeline.evaluate_result` of :meth:`sync_result` (cached)."""
-        from ..pipeline import evaluate_result
+        """:func:`~posernet.evaluation.evaluate_result` of :meth:`sync_result` (cached)."""
+        from ..evaluation import evaluate_result
 
         key = ("learned", estimate, seed, refined)
         if key not in self._evals:
@@ -415,8 +415,8 @@ class Context:
 
     def evaluation(self, spec: ModelSpec, seed: int, size: str = "small",
                    backend: str | None = None, scene: str | None = None) -> dict[str, Any]:
-        """:func:`~posernet.pipeline.evaluate_result` of :meth:`result` (cached)."""
-        from ..pipeline import evaluate_result
+        """:func:`~posernet.evaluation.evaluate_result` of :meth:`result` (cached)."""
+        from ..evaluation import evaluate_result
 
         key = (spec, seed, size, backend, scene)
         if key not in self._evals:

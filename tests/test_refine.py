@@ -13,9 +13,10 @@ import torch
 
 from posernet import GraphBatch, PoserNet, save_graphs
 from posernet.data import save_posernet_json
+from posernet.evaluation import evaluate_result, result_tables
 from posernet.geometry import relative_pose_vec, rotation_error_deg
 from posernet.lit import PoserNetModule
-from posernet.pipeline import evaluate_result, refine_graphs, result_tables, result_to_json
+from posernet.refine import refine_graphs, result_to_json
 from posernet.sync import get_backend
 from posernet.testing import random_view_graph
 
@@ -111,8 +112,8 @@ def fake_dataset(root: Path) -> Path:
 
 
 def test_dataset_root_uses_one_split_and_says_which(tmp_path):
+    from posernet.data.inputs import load_input_graphs
     from posernet.data.store import DatasetError
-    from posernet.pipeline import load_input_graphs
 
     root = fake_dataset(tmp_path / "ds")
     said: list[str] = []
@@ -132,8 +133,8 @@ def test_dataset_root_uses_one_split_and_says_which(tmp_path):
 
 
 def test_folder_mixing_splits_without_manifest_is_refused(tmp_path):
+    from posernet.data.inputs import load_input_graphs
     from posernet.graph import GraphValidationError
-    from posernet.pipeline import load_input_graphs
 
     root = fake_dataset(tmp_path / "ds")
     (root / "manifest.json").unlink()
