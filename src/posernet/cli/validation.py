@@ -5,7 +5,10 @@
 1. every plain value of the command's top-level keys and of its groups (``model``, ``data``,
    ``trainer``, ``sync``, the front end's ``proposals``/``matcher``/``box_matching``/
    ``relpose``, the demo's ``images``) against a small schema: type, range or choices, and that
-   a required value (``???``) was given;
+   a required value (``???``) was given. Groups backed by a dataclass or a constructor
+   (``bundle``, ``verify``, ``pairs``, ``relpose``, ``box_matching``, ``model.net``) take their
+   keys and types from it (:func:`typed`), so the schema cannot drift from the code; the
+   ranges are written here;
 2. what a group's own constructor checks across fields (the sync backend: its scale policy,
    gtsam installed; the demo's synthetic dataset options), by building it early;
 3. the machine: ``device=cuda`` (``trainer.accelerator=gpu``) needs CUDA;
@@ -136,6 +139,42 @@ def one_of(*rules: Rule, expected: str | None = None) -> Rule:
                 lambda v: any(r.ok(v) for r in rules), null)
 
 
+def typed(owner: Any, prefix: str = "", **specific: Rule) -> dict[str, Rule]:
+    """A rule for every argument of ``owner`` (a dataclass or a class's constructor), from its
+    type annotation (``int``, ``float``, ``bool``, ``str``, ``... | None``); ``specific`` rules
+    (ranges, choices; keys without ``prefix``) take precedence. The schema thus follows the
+    code: an option added there is checked here (by type at least), and the owner's own range
+    checks run when the command builds it."""
+    import dataclasses
+    import inspect
+    import typing
+
+    if dataclasses.is_dataclass(owner):
+        names = [f.name for f in dataclasses.fields(owner)]
+        hints = typing.get_type_hints(owner)
+    else:
+        names = [n for n in inspect.signature(owner).parameters if n != "self"]
+        hints = typing.get_type_hints(owner.__init__)
+    out: dict[str, Rule] = {}
+    for name in names:
+        if name in specific:
+            out[prefix + name] = specific[name]
+            continue
+        hint = hints.get(name, Any)
+        args = set(typing.get_args(hint)) if typing.get_origin(hint) in (
+            typing.Union, __import__("types").UnionType) else {hint}
+        null = type(None) in args
+        args.discard(type(None))
+        base = args.pop() if len(args) == 1 else None
+        out[prefix + name] = ({bool: boolean, int: integer, float: number, str: text}
+                              .get(base, lambda null=False: anything())(null=null))
+    unknown = set(specific) - set(names)
+    if unknown:
+        raise TypeError(f"typed({getattr(owner, '__name__', owner)}): no such argument(s) "
+                        f"{sorted(unknown)}")
+    return out
+
+
 DEVICE = Rule("one of cpu, cuda, cuda:N, auto",
               lambda v: isinstance(v, str) and bool(re.fullmatch(r"cpu|cuda|cuda:\d+|auto", v)))
 THREADS = integer(1, null=True)
@@ -153,11 +192,21 @@ INTRINSICS = "FX,FY,CX,CY, [FX,FY,CX,CY], a JSON / 3x3 text file, or auto"
 
 Schema = Mapping[str, Rule]
 
-MODEL: Schema = {
-    "net.depth": integer(1), "net.node_hidden": integer(1), "net.edge_hidden": integer(0),
-    "net.mlp_hidden": integer(1), "net.mlp_layers": integer(1), "net.negative_slope": number(),
-    "net.shared_weights": boolean(), "net.residual": boolean(), "net.unit_output": boolean(),
-    "net.nested_mean": boolean(), "loss.alpha": number(0), "loss.end_to_end": boolean(),
+
+def _model(cfg: Any) -> Schema:
+    """``model``: the network's arguments from its constructor (:func:`typed`), the training
+    sections' values here."""
+    from ..nn import PoserNet
+
+    return {**typed(PoserNet, "net.", depth=integer(1), node_hidden=integer(1),
+                    edge_hidden=integer(0), mlp_hidden=integer(1), mlp_layers=integer(1),
+                    node_in=integer(1), head_hidden=integer(1)),
+            **MODEL_TRAINING}
+
+
+#: the training sections of ``model`` (loss, optimizer, scheduler)
+MODEL_TRAINING: Schema = {
+    "loss.alpha": number(0), "loss.end_to_end": boolean(),
     "loss.raw": number(0), "loss.confidence": number(0), "loss.correction": number(0),
     "loss.harm": number(0), "loss.harm_scale": number(0),
     "loss.relative_weight": number(0), "loss.absolute_weight": number(0),
@@ -223,11 +272,21 @@ PROPOSALS: Schema = {
     "strategy": choice("single", "fast", "quality"), "resize": integer(32, null=True),
 }
 
-PAIRS: Schema = {
-    "mode": choice("auto", "exhaustive", "sequential", "retrieval"), "auto_max": integer(1),
-    "k": integer(1), "window": integer(1), "loop_k": integer(0), "words": integer(1),
-    "sample": integer(1), "seed": SEED,
-}
+
+def _pairs(cfg: Any) -> Schema:
+    """``pairs``: every option of :class:`posernet.frontend.PairOptions`
+    (:func:`typed`), with its ranges."""
+    from ..frontend.pairs import PairOptions
+
+    return {**typed(PairOptions,
+                  mode=choice("auto", "exhaustive", "sequential", "retrieval"),
+                  auto_max=integer(1),
+                  k=integer(1),
+                  window=integer(1),
+                  loop_k=integer(0),
+                  words=integer(1),
+                  sample=integer(1),
+                  seed=SEED, repair_links=integer(0))}
 
 MATCHER: Schema = {
     "name": choice("auto", "sift", "xfeat", "xfeat+lighterglue"),
@@ -237,37 +296,81 @@ MATCHER: Schema = {
     "lighterglue": boolean(), "min_cossim": number(-1, 1), "device": DEVICE,
 }
 
-BOX_MATCHING: Schema = {
-    "min_keypoints": integer(1), "min_span": number(0, 1), "min_boxes": integer(1),
-    "one_to_one": boolean(),
-}
 
-RELPOSE: Schema = {
-    "method": choice("usac", "ransac"), "ransac_prob": number(0, 1, lo_open=True, hi_open=True),
-    "kp_threshold": positive(), "bb_threshold": positive(), "max_iters": integer(1),
-}
+def _box_matching(cfg: Any) -> Schema:
+    """``box_matching``: every option of :class:`posernet.frontend.BoxMatchRules`
+    (:func:`typed`), with its ranges."""
+    from ..frontend.boxmatch import BoxMatchRules
 
-FRONTEND = {"proposals": PROPOSALS, "matcher": MATCHER, "box_matching": BOX_MATCHING,
-            "relpose": RELPOSE}
+    return {**typed(BoxMatchRules,
+                  min_keypoints=integer(1),
+                  min_span=number(0, 1),
+                  min_boxes=integer(1),
+                  one_to_one=boolean())}
 
-VERIFY: Schema = {
-    "_target_": text(), "min_inliers": integer(5), "min_inlier_ratio": number(0, 1),
-    "min_front": number(0, 1), "max_rotation_ratio": number(0, 1), "min_tri_angle": number(0),
-    "static_px": number(0), "max_static_ratio": number(0, 1), "min_contrast": number(0),
-    "contrast_radius": integer(1),
-}
 
-BUNDLE: Schema = {
-    "_target_": text(), "loss": choice("cauchy", "huber", "soft_l1", "linear", "arctan"),
-    "f_scale": positive(), "max_nfev": integer(1), "ftol": positive(), "xtol": positive(),
-    "gtol": positive(), "refine_focal": choice("auto", "none", "shared", "per_camera"),
-    "gauge": choice("max_degree", "first"), "accept_unconverged": boolean(),
-    "anneal_factor": number(0), "anneal_step": number(1, lo_open=True),
-    "robust": choice("lm", "irls", "scipy"), "max_outer": integer(1), "inner_nfev": integer(1),
-    "irls_tol": positive(),
-    "max_reproj_px": positive(), "initial_reproj_factor": positive(),
-    "min_angle_deg": number(0), "rounds": integer(1), "min_points_per_camera": integer(0),
-}
+def _relpose(cfg: Any) -> Schema:
+    """``relpose``: every option of :class:`posernet.frontend.PoseOptions`
+    (:func:`typed`), with its ranges."""
+    from ..frontend.relpose import PoseOptions
+
+    return {**typed(PoseOptions,
+                  method=choice("usac", "ransac"),
+                  ransac_prob=number(0, 1, lo_open=True, hi_open=True),
+                  kp_threshold=positive(),
+                  bb_threshold=positive(),
+                  max_iters=integer(1))}
+
+FRONTEND = {"proposals": PROPOSALS, "matcher": MATCHER, "box_matching": _box_matching,
+            "relpose": _relpose}
+
+
+def _verify(cfg: Any) -> Schema:
+    """``verify``: every option of :class:`posernet.frontend.VerifyRules`
+    (:func:`typed`), with its ranges."""
+    from ..frontend.verify import VerifyRules
+
+    return {**typed(VerifyRules,
+                  min_inliers=integer(5),
+                  min_inlier_ratio=number(0, 1),
+                  min_front=number(0, 1),
+                  max_rotation_ratio=number(0, 1),
+                  min_tri_angle=number(0),
+                  static_px=number(0),
+                  max_static_ratio=number(0, 1),
+                  min_contrast=number(0),
+                  contrast_radius=integer(1)), "_target_": text()}
+
+
+def _bundle(cfg: Any) -> Schema:
+    """``bundle``: every option of :class:`posernet.sfm.BundleOptions`
+    (:func:`typed`), with its ranges."""
+    from ..sfm.bundle import BundleOptions
+
+    return {**typed(BundleOptions,
+                  loss=choice("cauchy", "huber", "soft_l1", "linear", "arctan"),
+                  f_scale=positive(),
+                  max_nfev=integer(1),
+                  ftol=positive(),
+                  xtol=positive(),
+                  gtol=positive(),
+                  refine_focal=choice("auto", "none", "shared", "per_camera"),
+                  gauge=choice("max_degree", "first"),
+                  accept_unconverged=boolean(),
+                  anneal_factor=number(0),
+                  anneal_step=number(1, lo_open=True),
+                  robust=choice("lm", "irls", "scipy"),
+                  max_outer=integer(1),
+                  inner_nfev=integer(1),
+                  irls_tol=positive(),
+                  max_reproj_px=positive(),
+                  initial_reproj_factor=positive(),
+                  min_angle_deg=number(0),
+                  rounds=integer(1),
+                  min_points_per_camera=integer(0),
+                  start=choice("auto", "averaged", "incremental"),
+                  incremental_max_cameras=integer(2), explained_min=number(0, 1)),
+            "_target_": text()}
 
 
 def _matcher_configs() -> tuple[str, ...]:
@@ -361,7 +464,7 @@ COMMANDS: dict[str, Command] = {
                       r"|abs_pos_err(_init)?)", v) is not None),
               "test_after_training": boolean(),
               "num_threads": THREADS, "out_dir": path()},
-        groups={"data": DATA, "model": MODEL, "trainer": TRAINER, "sync": SYNC},
+        groups={"data": DATA, "model": _model, "trainer": TRAINER, "sync": SYNC},
         outputs=_outputs(("out_dir", "dir")), devices=("trainer.accelerator",),
         checks=(_check_sync, _check_init)),
     "eval": Command(
@@ -394,7 +497,7 @@ COMMANDS: dict[str, Command] = {
               "edge_rule": choice("verified", "boxes"),
               "seed": SEED, "workers": integer(0), "pictures": integer(0), "device": DEVICE,
               "num_threads": THREADS, "progress": boolean(), "digits": DIGITS},
-        groups={**FRONTEND, "verify": VERIFY, "bundle": BUNDLE, "sync": SYNC, "pairs": PAIRS},
+        groups={**FRONTEND, "verify": _verify, "bundle": _bundle, "sync": SYNC, "pairs": _pairs},
         outputs=_outputs(("out_dir", "dir")),
         devices=("device", "matcher.device"), checks=(_check_sync,)),
     "make_data": Command(
