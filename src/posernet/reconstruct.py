@@ -264,10 +264,6 @@ def gauge_fixed(poses: Tensor, solved: Tensor, component: Tensor) -> Tensor:
     return out
 
 
-def _mat(T: Tensor) -> list[list[float]]:
-    return [[float(f"{float(v):.9g}") for v in row] for row in T.tolist()]
-
-
 def _num(v: Any) -> Any:
     """JSON-safe scalar (numpy numbers to Python, non-finite floats to None)."""
     if isinstance(v, dict):
@@ -319,7 +315,8 @@ def _start_record(start: dict[str, Any] | None, keys: list[str]) -> dict[str, An
 
 def poses_json(rec: Reconstruction, info: dict[str, Any] | None = None) -> dict[str, Any]:
     """JSON-ready record (format ``posernet-poses``, version 1), see docs/formats.md."""
-    from .geometry import matrix_to_pose_vec, pose_vec_to_matrix
+    from .geometry import pose_vec_to_matrix
+    from .records import camera_record, pose_record
 
     g, res, stage = rec.graph, rec.result, rec.stage
     cams: dict[str, Any] = {}
@@ -335,19 +332,14 @@ def poses_json(rec: Reconstruction, info: dict[str, Any] | None = None) -> dict[
     degree = torch.bincount(g.edge_index.flatten(), minlength=g.num_nodes)
     n_boxes = torch.bincount(g.det_node, minlength=g.num_nodes)
     for i, r in enumerate(rec.frontend.records):
-        cam: dict[str, Any] = {"solved": False, "component": None, "camera_to_world": None,
-                               "world_to_camera": None, "q_wxyz": None, "t": None,
+        placed = res.absolute and bool(solved[i])
+        cam: dict[str, Any] = {**camera_record(fixed[i] if placed else None,
+                                               comp[i] if placed else None, digits=9),
                                "edges": int(degree[i]), "boxes": int(n_boxes[i]),
                                "size": list(r.size) if r.size else None,
                                "K": [[round(float(v), 6) for v in row] for row in K_out[i]],
                                "dist": None if r.dist is None else [float(v) for v in r.dist],
                                "intrinsics_source": r.intrinsics_source}
-        if res.absolute and bool(solved[i]):
-            T = fixed[i]
-            cam.update(solved=True, component=int(comp[i]), world_to_camera=_mat(T),
-                       camera_to_world=_mat(invert_se3(T)),
-                       q_wxyz=[float(v) for v in matrix_to_pose_vec(T)[:4]],
-                       t=[float(v) for v in T[:3, 3]])
         if any(bool(run.undetermined[i]) for run in rec.sfm.get(stage, [])):
             cam["note"] = ("position not determined: a single edge's direction and too few "
                            "3D points shared with the other cameras")
@@ -362,9 +354,7 @@ def poses_json(rec: Reconstruction, info: dict[str, Any] | None = None) -> dict[
                                 "track_matches": 0 if pr.inliers is None else len(pr.inliers),
                                 "verification": dict(pr.info)}
         for s, p in res.edge_pose.items():
-            item[s] = {"q_wxyz": [float(v) for v in p[0][e, :4]],
-                       "t": [float(v) for v in p[0][e, 4:]],
-                       "matrix": _mat(pose_vec_to_matrix(p[0][e].double()))}
+            item[s] = pose_record(pose_vec_to_matrix(p[0][e].double()), digits=9)
         edges.append(item)
     bundle = {s: [sfm_record(r, keys) for r in runs] for s, runs in rec.sfm.items()}
     return {"format": "posernet-poses", "version": 1, **(info or {}), "stage": stage,

@@ -170,13 +170,6 @@ def keep_input(edge_pose: Tensor, refined: Tensor, keep: Tensor) -> Tensor:
     return torch.cat((q, t), dim=-1)
 
 
-def _pose_record(T: Tensor) -> dict[str, Any]:
-    from .geometry import matrix_to_pose_vec
-
-    p = matrix_to_pose_vec(T.double())
-    return {"q_wxyz": p[:4].tolist(), "t": p[4:].tolist(), "matrix": T.double().tolist()}
-
-
 #: keys of an edge's ``confidence`` record in refined.json (degrees): the predicted error of
 #: the refined rotation / direction and of the input rotation / direction
 CONFIDENCE_KEYS = ("rot_err_deg", "tdir_err_deg", "input_rot_err_deg", "input_tdir_err_deg")
@@ -197,7 +190,8 @@ def result_to_json(result: RefineResult, info: dict[str, Any] | None = None) -> 
     has ``null`` poses and component: no pose is invented (as in ``posernet-poses``). The top
     level ``cameras_placed`` gives ``{stage: {"placed": k, "cameras": n}}`` over all graphs.
     """
-    from .geometry import invert_se3, pose_vec_to_matrix
+    from .geometry import pose_vec_to_matrix
+    from .records import camera_record, pose_record
 
     graphs_out = []
     totals = {s: {"placed": 0, "cameras": 0} for s in result.absolute}
@@ -212,7 +206,7 @@ def result_to_json(result: RefineResult, info: dict[str, Any] | None = None) -> 
         kept = result.kept_input[k].tolist() if result.kept_input else None
         for e, (i, j) in enumerate(g.edge_index.T.tolist()):
             rec: dict[str, Any] = {"source": str(ids[i]), "target": str(ids[j])}
-            rec.update({s: _pose_record(m[e]) for s, m in mats.items()})
+            rec.update({s: pose_record(m[e]) for s, m in mats.items()})
             if conf is not None:  # the model's predicted errors (degrees)
                 rec["confidence"] = dict(zip(CONFIDENCE_KEYS, conf[e], strict=True))
             if gate is not None:  # 0: the input kept, 1: the network's prediction
@@ -225,17 +219,10 @@ def result_to_json(result: RefineResult, info: dict[str, Any] | None = None) -> 
         for n, cid in enumerate(ids):
             cam: dict[str, Any] = {}
             for s, poses in result.absolute.items():
-                if not bool(result.solved[s][k][n]):
-                    cam[s] = {"world_to_camera": None, "camera_to_world": None,
-                              "q_wxyz": None, "t": None, "solved": False, "component": None}
-                    continue
-                T = poses[k][n].double()
-                cam[s] = {"world_to_camera": T.tolist(),
-                          "camera_to_world": invert_se3(T).tolist(),
-                          "q_wxyz": _pose_record(T)["q_wxyz"], "t": T[:3, 3].tolist(),
-                          "solved": True,
-                          "component": int(result.component[s][k][n])}
-                placed[s] += 1
+                solved = bool(result.solved[s][k][n])
+                cam[s] = camera_record(poses[k][n] if solved else None,
+                                       result.component[s][k][n])
+                placed[s] += solved
             cams[str(cid)] = cam
         for s, c in placed.items():
             totals[s]["placed"] += c
