@@ -28,7 +28,6 @@ from posernet.metrics import (
 from posernet.refine import refine_graphs, result_to_json
 from posernet.report import ResultTable
 from posernet.sync import get_backend
-from posernet.sync.evaluate import absolute_table, format_absolute_table
 from posernet.testing import random_view_graph
 
 F64 = torch.float64
@@ -132,11 +131,12 @@ def test_tables_with_every_camera_placed_print_as_before_plus_the_count():
 
 def test_absolute_table_counts_placed_cameras():
     g = with_isolated_camera(exact_graph(6))
-    tab = absolute_table(g, g.edge_pose, "eig_se3", scale="given")
-    assert (tab["cameras_placed"], tab["cameras"], tab["graphs_with_unplaced"]) == (6, 7, 1)
-    assert tab["per_graph"]["unplaced"].tolist() == [1]
-    text = format_absolute_table(tab)
-    assert "Cameras placed: 6 of 7." in text and "left out of their graph's mean" in text
+    res = refine_graphs(None, [g], backend=get_backend("eig_se3", scale="given"),
+                        progress=False)
+    ev = evaluate_result(res)
+    assert (ev["placed"]["initial"]["placed"], ev["placed"]["initial"]["cameras"]) == (6, 7)
+    md = result_tables(ev, backend=res.backend)["absolute"].to_markdown()
+    assert "Cameras placed: 6 of 7" in md and "unplaced cameras have no pose" in md
 
 
 # --------------------------------------------------------------------------- zero-length vectors

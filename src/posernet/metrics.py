@@ -323,8 +323,8 @@ def absolute_pose_errors(
 # --------------------------------------------------------------------------- the paper's tables
 #
 # The one path from (estimated poses, ground truth, batch structure) to per-graph errors and
-# threshold rows. ``posernet-eval`` (cli/evaluate.py), ``sync.evaluate.absolute_table``,
-# ``evaluation.evaluate_result`` (refine, demo, reconstruct, the experiment runner) and the
+# threshold rows. ``evaluation.evaluate_result`` (refine, eval, demo, reconstruct, the
+# experiment runner) and the
 # Lightning module's per-graph errors all call these; nothing else builds a table row from
 # errors.
 
