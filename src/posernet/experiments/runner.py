@@ -34,10 +34,18 @@ import torch
 from tqdm.auto import tqdm
 
 from ..io import atomic_write_json, atomic_write_text
-from ..report import ABSOLUTE_GROUPS, ResultTable, TableRow, mean_std_row
+from ..report import (
+    ABSOLUTE_GROUPS,
+    MedianRow,
+    MedianTable,
+    ResultTable,
+    TableRow,
+    interleave,
+    mean_std_row,
+    ours,
+)
 from . import paper_numbers as P
 from .digest import write_digest
-from .tables import MedianRow, MedianTable, interleave, ours
 
 __all__ = [
     "EXPERIMENTS",
