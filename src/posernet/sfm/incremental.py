@@ -87,8 +87,9 @@ def register_incrementally(xy: np.ndarray, track: np.ndarray, image: np.ndarray,
 
     Observations as in :func:`~posernet.sfm.triangulation.triangulate_tracks` (undistorted
     pixels ``xy (O, 2)`` of track ``track (O,)`` in image ``image (O,)``), ``K (N, 3, 3)``;
-    ``w2c (N, 4, 4)`` the averaged poses: the seed pair (the two members sharing the most
-    tracks) starts from them, and each PnP also tries the averaged pose as its start. A camera
+    ``w2c (N, 4, 4)`` the averaged poses: of the seed pair (the two members sharing the most
+    tracks) the first keeps its averaged pose and the second is placed by the pair's own
+    essential matrix; each PnP also tries the averaged pose as its start. A camera
     is registered when ``min_inliers`` and ``min_inlier_ratio`` of its correspondences agree
     within ``options.max_reproj_px``; the loop ends when no camera left sees ``min_inliers``
     points (a Python loop over cameras: meant for small components).
