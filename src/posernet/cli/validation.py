@@ -220,7 +220,20 @@ DATA: Schema = {
     "eval_batch_size": integer(1, null=True), "num_workers": integer(0),
     "leave_out_scene": text(null=True), "test_size": choice("small", "large", null=True),
     "val_size": choice("small", "large", null=True), "shuffle": boolean(), "seed": SEED,
+    "init_mix": Rule("a mapping of initial-pose sources (kp, bb, gt, recorrupt) to "
+                     "weights >= 0, not all 0", lambda v: _mixture_ok(v), True),
+    "gt_noise_deg": number(0), "recorrupt_deg": number(0), "mix_edge_fraction": number(0, 1),
 }
+
+
+def _mixture_ok(v: Any) -> bool:
+    from ..data.mixture import check_mixture
+
+    try:
+        check_mixture(v)
+    except (ValueError, TypeError):
+        return False
+    return True
 
 #: the Lightning Trainer arguments of posernet/conf/trainer/*.yaml (others pass through unchecked)
 TRAINER: Schema = {
