@@ -226,11 +226,7 @@ def test_make_data_execute_exits_1(tmp_path, capsys):
 
 @pytest.mark.parametrize(("argv", "message"), [
     (["model.net.depth=abc"], "model.net.depth: 'abc' is not an integer >= 1"),
-    # the flat names of the model config before it had sections: say where they went
-    (["model.depth=3"], "model.depth: no such key in this command's config (the model config "
-                        "has sections: model.net.depth)"),
-    (["model.lr_patience=5"], "model.lr_patience: no such key in this command's config (the "
-                              "model config has sections: model.scheduler.patience)"),
+    (["model.depth=3"], "model.depth: no such key in this command's config"),
     (["sync=nope"], "sync: 'nope' is not one of eig_se3, gtsam, learned, none, "
                    "rotation_translation"),
     (["model.dept=3"], "model.dept: no such key in this command's config"),

@@ -205,8 +205,7 @@ def test_optimizer_and_scheduler() -> None:
 
 MODEL_CONFIG_DIR = Path(CONFIG_DIR) / "model"
 MODEL_CONFIGS = sorted(p.stem for p in MODEL_CONFIG_DIR.glob("*.yaml"))
-# the checkpoint shipped before input-adaptive refinement: the older layout (flat
-# hyper-parameters, last-round node MLP and its Adam state)
+# the checkpoint shipped before input-adaptive refinement (converted once to the current layout)
 SHIPPED = (Path(__file__).resolve().parents[2] / "src" / "posernet" / "checkpoints"
            / "posernet_synthetic_kp_v1.ckpt")
 
@@ -235,71 +234,33 @@ def test_every_parameter_of_each_model_config_gets_a_gradient(name: str, data) -
         assert p.grad.abs().sum() > 0, f"model={name}: {pname} gets a zero gradient"
 
 
-def test_training_resumes_from_a_checkpoint_of_the_older_layout(data, tmp_path: Path) -> None:
-    """The shipped checkpoint still holds the last round's node MLP and its Adam state."""
-    import shutil
-
+def test_the_v1_checkpoint_loads_in_the_current_layout(data, tmp_path: Path) -> None:
+    """The checkpoint shipped before input-adaptive refinement, converted once: sections, no
+    unused last-round weights, no optimiser state; Lightning loads it and training can start
+    from its weights."""
+    ckpt = torch.load(SHIPPED, weights_only=True)
+    assert set(ckpt["hyper_parameters"]) == {"net", "loss", "optimizer", "scheduler"}
+    assert not any(".psi_node." in k and k.startswith("model.convs.1.")
+                   for k in ckpt["state_dict"])
+    assert "optimizer_states" not in ckpt
+    loaded = PoserNetModule.load_from_checkpoint(SHIPPED, map_location="cpu")
+    assert loaded.hparams.net["depth"] == 2 and loaded.hparams.optimizer["lr"] == 1e-3
+    assert loaded.hparams.scheduler["patience"] == 3
     train, val = data
-    old = tmp_path / "old.ckpt"
-    shutil.copy(SHIPPED, old)
-    ckpt = torch.load(old, weights_only=True)
-    assert any(k.startswith("model.convs.1.psi_node.") for k in ckpt["state_dict"])
-    L.seed_everything(0, workers=True)
-    assert ckpt["hyper_parameters"]["lr_patience"] == 3  # the flat layout of older configs
     module = PoserNetModule(**ckpt["hyper_parameters"])
-    assert module.hparams.scheduler["patience"] == 3
-    assert module.hparams.net["depth"] == ckpt["hyper_parameters"]["depth"]
-    t = trainer(tmp_path, epochs=ckpt["epoch"] + 2, limit_train_batches=2, limit_val_batches=1)
-    t.fit(module, loader(train[:16]), loader(val[:8]), ckpt_path=old)
-    assert t.current_epoch == ckpt["epoch"] + 2
-    assert t.global_step == ckpt["global_step"] + 2
+    module.load_state_dict(ckpt["state_dict"])  # strict
+    t = trainer(tmp_path, epochs=1, limit_train_batches=2, limit_val_batches=1)
+    t.fit(module, loader(train[:16]), loader(val[:8]))
+    assert t.global_step == 2
 
 
-def test_flat_hyper_parameters_of_older_checkpoints_map_to_sections(tmp_path: Path) -> None:
+def test_hyper_parameters_come_in_sections_only() -> None:
     from posernet.lit import module_hparams
 
-    flat = {"depth": 3, "alpha": 0.5, "lr": 0.01, "weight_decay": 1e-4, "lr_patience": 7,
-            "lr_factor": 0.5, "min_lr": 1e-5, "residual": True}
-    hp = module_hparams(**flat)
+    hp = module_hparams(net={"depth": 3, "residual": True}, loss={"alpha": 0.5})
     assert hp["net"]["depth"] == 3 and hp["net"]["residual"] is True
-    assert hp["loss"]["alpha"] == 0.5
-    assert not any(hp["loss"][k] for k in ("raw", "confidence", "correction", "harm",
-                                               "end_to_end"))
-    assert hp["optimizer"] == {"lr": 0.01, "weight_decay": 1e-4}
-    assert hp["scheduler"] == {"patience": 7, "factor": 0.5, "min_lr": 1e-5}
-    assert module_hparams(net={"depth": 4}, depth=3)["net"]["depth"] == 4  # sections win
-    with pytest.raises(TypeError, match="'dept'"):
-        module_hparams(dept=3)
+    assert hp["loss"]["alpha"] == 0.5 and hp["optimizer"] == {"lr": 1e-3, "weight_decay": 0.0}
     with pytest.raises(TypeError, match=r"unknown net hyper-parameter\(s\) \['lr'\]"):
         PoserNetModule(net={"lr": 0.1})
-    # Lightning's own loader on a checkpoint with flat hyper-parameters (the shipped one)
-    loaded = PoserNetModule.load_from_checkpoint(SHIPPED, map_location="cpu")
-    assert loaded.hparams.optimizer["lr"] == torch.load(
-        SHIPPED, weights_only=True)["hyper_parameters"]["lr"]
-
-
-def test_upgrade_optimizer_states_drops_and_cuts_the_old_entries() -> None:
-    from posernet.lit import upgrade_optimizer_states
-    from posernet.nn import PoserConv
-
-    module = PoserNetModule(net={"depth": 2, "edge_hidden": 3})
-    last = module.model.convs[1]
-    # the same module as built before: a full last layer (node MLP, hidden-state rows)
-    old = PoserNetModule(net={"depth": 2, "edge_hidden": 3})
-    old.model.convs[1] = PoserConv(last.node_in, last.node_out, 3)
-    opt = torch.optim.Adam(old.parameters(), lr=1e-3)
-    batch = GraphBatch.from_graphs(graphs(2, 5))
-    old(batch).square().sum().backward()
-    opt.step()
-    checkpoint = {"state_dict": old.state_dict(), "optimizer_states": [opt.state_dict()]}
-    assert upgrade_optimizer_states(checkpoint, module)
-    module.load_state_dict(checkpoint["state_dict"])  # strict
-    new_opt = torch.optim.Adam(module.parameters(), lr=1e-3)
-    new_opt.load_state_dict(checkpoint["optimizer_states"][0])
-    old_params = dict(old.named_parameters())
-    assert len(old_params) > len(list(module.parameters()))
-    for name, p in module.named_parameters():
-        ref = opt.state[old_params[name]]["exp_avg"]
-        torch.testing.assert_close(new_opt.state[p]["exp_avg"],
-                                   ref[tuple(slice(0, n) for n in p.shape)])
-    assert not upgrade_optimizer_states(checkpoint, module)  # already fits: left alone
+    with pytest.raises(TypeError):
+        PoserNetModule(depth=3)  # the flat names of an unreleased layout are gone

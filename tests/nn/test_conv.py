@@ -151,7 +151,7 @@ def test_isolated_node_gets_zero_state_and_layer_repr() -> None:
 @pytest.mark.parametrize("residual", [False, True])
 def test_last_round_layer_builds_only_what_its_edge_poses_need(residual: bool) -> None:
     """update_nodes=False / update_edge_state=False: no Psi_N, a pose-only Psi_E, the same
-    edge poses as a full layer with the same weights, and weights of a full layer load."""
+    edge poses as a full layer with the same pose weights."""
     g = graph(4)
     torch.manual_seed(3)
     full = PoserConv(4, 8, edge_dim=3, residual=residual).double()
@@ -160,7 +160,12 @@ def test_last_round_layer_builds_only_what_its_edge_poses_need(residual: bool) -
     assert last.psi_node is None and last.psi_edge.out_dim == 7
     assert not any(k.startswith("psi_node.") for k in last.state_dict())
     assert "update_nodes=False" in repr(last) and "update_edge_state=False" in repr(last)
-    last.load_state_dict(full.state_dict())  # strict: extra weights dropped, rows cut
+    # the full layer's weights that reach the edge poses: Psi_E, its last layer's pose rows
+    weights = {k: v for k, v in full.state_dict().items() if not k.startswith("psi_node.")}
+    index = len(full.psi_edge.net) - 1
+    for name in ("weight", "bias"):
+        weights[f"psi_edge.net.{index}.{name}"] = weights[f"psi_edge.net.{index}.{name}"][:7]
+    last.load_state_dict(weights)
     state = torch.randn(g.num_edges, 2, 3, dtype=torch.float64)
     a = full(g, edge_state=state)
     b = last(g, edge_state=state)
@@ -215,27 +220,19 @@ def test_nn_package_imports_neither_lightning_nor_hydra() -> None:
 # --------------------------------------------------------------------------- PyG-style API
 
 
-def test_pyg_argument_names_and_the_old_names_build_the_same_layer() -> None:
+def test_pyg_argument_names() -> None:
     torch.manual_seed(0)
     new = PoserConv(in_channels=4, out_channels=8, edge_dim=2, hidden_channels=16, num_layers=2)
     torch.manual_seed(0)
-    old = PoserConv(node_in=4, node_out=8, edge_dim=2, hidden=16, num_layers=2)
-    torch.manual_seed(0)
     positional = PoserConv(4, 8, 2, 16, 2)
-    for conv in (old, positional):
-        assert {k: v.shape for k, v in conv.state_dict().items()} == \
-            {k: v.shape for k, v in new.state_dict().items()}
-        for k, v in conv.state_dict().items():
-            torch.testing.assert_close(v, new.state_dict()[k], atol=0, rtol=0)
+    assert {k: v.shape for k, v in positional.state_dict().items()} == \
+        {k: v.shape for k, v in new.state_dict().items()}
+    for k, v in positional.state_dict().items():
+        torch.testing.assert_close(v, new.state_dict()[k], atol=0, rtol=0)
     assert (new.in_channels, new.out_channels, new.hidden_channels, new.num_layers) == \
         (4, 8, 16, 2)
-    assert (new.node_in, new.node_out, new.hidden) == (4, 8, 16)  # old attribute names
     assert new.message_dim == PoserConv.message_size(4, 2) == 2 * 4 + 7 + 2 + 8
     assert repr(new).startswith("PoserConv(node 4 -> 8, edge_dim=2, hidden=16, layers=2")
-    with pytest.raises(TypeError, match="in_channels or its old name node_in, not both"):
-        PoserConv(4, node_in=4)
-    with pytest.raises(TypeError, match="out_channels or its old name node_out"):
-        PoserConv(4, out_channels=8, node_out=8)
     with pytest.raises(TypeError, match="needs in_channels"):
         PoserConv()
     with pytest.raises(ValueError, match="sizes must be positive"):

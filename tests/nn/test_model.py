@@ -5,7 +5,6 @@ All checks use untrained (random-weight) models so they test the architecture, n
 
 from __future__ import annotations
 
-import copy
 import dataclasses
 from pathlib import Path
 
@@ -16,7 +15,7 @@ from hypothesis import strategies as st
 
 from posernet.geometry import invert_pose_raw, invert_pose_vec, quaternion_angle
 from posernet.graph import GraphBatch, ViewGraph
-from posernet.nn import PoserConv, PoserNet
+from posernet.nn import PoserNet
 from posernet.testing import random_view_graph
 
 CONFIGS = [
@@ -303,47 +302,8 @@ def test_every_parameter_reaches_the_output(cfg: dict) -> None:
         assert p.grad.abs().sum() > 0, f"{name} gets a zero gradient ({cfg})"
 
 
-def legacy_layout(model: PoserNet, seed: int = 0) -> PoserNet:
-    """``model`` as built before the last round lost its node MLP and hidden-state output: the
-    last round is a full layer (random extra weights, same pose weights)."""
-    old = copy.deepcopy(model)
-    k = len(old.convs) - 1
-    last = old.convs[k]
-    if last.update_nodes:  # one layer shared by several rounds: it was always a full one
-        return old
-    torch.manual_seed(seed)
-    full = PoserConv(last.node_in, last.node_out, last.edge_dim, last.psi_edge.hidden,
-                     last.psi_edge.num_layers, last.psi_edge.negative_slope,
-                     residual=last.residual, nested_mean=last.nested_mean)
-    full = full.to(next(last.parameters()).dtype)
-    with torch.no_grad():
-        for (name, p), (_, q) in zip(full.psi_edge.named_parameters(),
-                                     last.psi_edge.named_parameters(), strict=True):
-            p[: q.shape[0]] = q
-            assert name
-    old.convs[k] = full
-    return old
-
-
-@pytest.mark.parametrize("cfg", [*CONFIGS, {"depth": 1, "shared_weights": True, "edge_hidden": 2},
-                                 {"depth": 3, "edge_hidden": 4}])
-def test_old_state_dicts_load_and_give_the_same_outputs(cfg: dict) -> None:
-    g = make_graph(32)
-    model = make_model(9, **cfg)
-    old = legacy_layout(model)
-    state = old.state_dict()
-    if cfg.get("shared_weights") and cfg.get("depth", 2) > 1:
-        assert set(state) == set(model.state_dict())  # the shared layer needs its node MLP
-    else:
-        assert any(".psi_node." in k for k in set(state) - set(model.state_dict()))
-    fresh = make_model(10, **cfg)
-    fresh.load_state_dict(state)  # strict: the unused weights are dropped, nothing is missing
-    torch.testing.assert_close(fresh(g, return_all=True), model(g, return_all=True),
-                               atol=0, rtol=0)
-
-
-def test_mismatching_state_dicts_still_fail() -> None:
-    deeper = legacy_layout(make_model(0, depth=3)).state_dict()
+def test_mismatching_state_dicts_fail() -> None:
+    deeper = make_model(0, depth=3).state_dict()
     with pytest.raises(RuntimeError, match="Unexpected key"):
         make_model(0, depth=2).load_state_dict(deeper)
     with pytest.raises(RuntimeError, match="Missing key"):
@@ -354,8 +314,8 @@ def test_mismatching_state_dicts_still_fail() -> None:
 
 ROOT = Path(__file__).resolve().parents[2]
 # The checkpoint shipped before input-adaptive refinement (KP-only training, no gate), kept as
-# posernet_synthetic_kp_v1.ckpt: the file of the older layout (flat hyper-parameters, the last
-# round's node MLP) whose outputs are pinned here.
+# posernet_synthetic_kp_v1.ckpt (converted once to the current layout: sections, no unused
+# last-round weights, no optimiser state), whose outputs are pinned here.
 SHIPPED = ROOT / "src" / "posernet" / "checkpoints" / "posernet_synthetic_kp_v1.ckpt"
 # Refined poses of that checkpoint on simulate_graphs("tiny", count=1)[0], recorded with
 # the network as it was before the last round lost its (unused) node MLP.

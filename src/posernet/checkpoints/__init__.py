@@ -98,12 +98,10 @@ def read_checkpoint(path: str | os.PathLike[str], tag: str = CHECKPOINT_TAG) -> 
 
 
 def network_hparams(ckpt: dict[str, Any]) -> dict[str, Any]:
-    """The network's arguments stored in a checkpoint: its ``hyper_parameters["net"]``.
-
-    Checkpoints written before the model config had sections hold one flat mapping (network,
-    loss and optimiser values side by side); it is returned whole and the caller keeps the
-    names it knows.
-    """
-    hp = dict(ckpt.get("hyper_parameters") or {})
-    net = hp.get("net")
-    return dict(net) if isinstance(net, dict) else hp
+    """The network's arguments stored in a checkpoint: its ``hyper_parameters["net"]``;
+    :class:`CheckpointError` when there is no such section."""
+    net = dict(ckpt.get("hyper_parameters") or {}).get("net")
+    if not isinstance(net, dict):
+        raise CheckpointError("checkpoint has no 'net' hyper-parameters (not written by "
+                              "posernet.lit.PoserNetModule)")
+    return dict(net)

@@ -245,22 +245,12 @@ def hydra_error_message(exc: BaseException, config_name: str = "") -> str:
     override = re.match(r"Could not override '([^']+)'", msg)
     if override and "not in struct" in str(exc.__cause__):
         key = override.group(1)
-        hint = _KEY_HINTS.get((config_name, key)) or _model_key_hint(key)
+        hint = _KEY_HINTS.get((config_name, key))
         return f"{key}: no such key in this command's config" + (f" ({hint})" if hint else "")
     cause = exc.__cause__
     if cause is not None and str(cause) and str(cause) not in msg:
         msg = f"{msg}: {cause}"
     return _one_line(msg)
-
-
-def _model_key_hint(key: str) -> str | None:
-    """Where a flat model name of older configs (``model.depth``) lives now."""
-    if not key.startswith("model.") or key.count(".") != 1:
-        return None
-    from ..lit import flat_name_section
-
-    moved = flat_name_section(key.split(".", 1)[1])
-    return f"the model config has sections: model.{moved}" if moved else None
 
 
 def resolve_device(name: Any) -> str:

@@ -5,10 +5,8 @@ and the one Trainer builder with its determinism policy (:mod:`.trainer`)."""
 from .base import SectionedModule, fill_sections
 from .refiner import (
     PoserNetModule,
-    flat_name_section,
     load_posernet_checkpoint,
     module_hparams,
-    upgrade_optimizer_states,
 )
 from .sync import LearnedSyncModule, sync_module_hparams
 from .trainer import build_trainer, determinism_policy, trainer_from_config
@@ -20,10 +18,8 @@ __all__ = [
     "build_trainer",
     "determinism_policy",
     "fill_sections",
-    "flat_name_section",
     "load_posernet_checkpoint",
     "module_hparams",
     "sync_module_hparams",
     "trainer_from_config",
-    "upgrade_optimizer_states",
 ]

@@ -28,8 +28,7 @@ from ..nn import PoserNet
 from ..nn.loss import relative_objective
 from .base import SectionedModule, fill_sections
 
-__all__ = ["SECTIONS", "PoserNetModule", "flat_name_section", "load_posernet_checkpoint",
-           "module_hparams", "upgrade_optimizer_states"]
+__all__ = ["SECTIONS", "PoserNetModule", "load_posernet_checkpoint", "module_hparams"]
 
 
 #: the sections of a model config and of ``PoserNetModule``'s hyper-parameters, with defaults
@@ -44,43 +43,13 @@ SECTIONS: dict[str, dict[str, Any]] = {
     "scheduler": {"patience": 3, "factor": 0.316, "min_lr": 1e-6},
 }
 
-#: where each flat name of checkpoints written before the config had sections now lives
-_FLAT_NAMES: dict[str, tuple[str, str]] = {
-    **{k: ("net", k) for k in SECTIONS["net"]},
-    "alpha": ("loss", "alpha"), "end_to_end": ("loss", "end_to_end"),
-    "lr": ("optimizer", "lr"),
-    "weight_decay": ("optimizer", "weight_decay"), "lr_patience": ("scheduler", "patience"),
-    "lr_factor": ("scheduler", "factor"), "min_lr": ("scheduler", "min_lr"),
-}
-
-
-def flat_name_section(name: str) -> str | None:
-    """``"section.name"`` of an older flat hyper-parameter name (``lr`` -> ``optimizer.lr``)."""
-    where = _FLAT_NAMES.get(name)
-    return f"{where[0]}.{where[1]}" if where else None
-
-
 def module_hparams(net: Mapping[str, Any] | None = None, loss: Mapping[str, Any] | None = None,
                    optimizer: Mapping[str, Any] | None = None,
-                   scheduler: Mapping[str, Any] | None = None,
-                   **flat: Any) -> dict[str, dict[str, Any]]:
-    """``PoserNetModule``'s hyper-parameters as plain nested dicts, every value filled in.
-
-    ``flat`` takes the single-level names of older checkpoints (``depth``, ``alpha``, ``lr``,
-    ``lr_patience``, ...); a given section value wins over a flat one. Unknown names raise
-    ``TypeError`` naming them.
-    """
-    unknown = [k for k in flat if k not in _FLAT_NAMES]
-    if unknown:
-        raise TypeError(f"unknown PoserNetModule hyper-parameter(s) {unknown}; sections: "
-                        f"{list(SECTIONS)}")
+                   scheduler: Mapping[str, Any] | None = None) -> dict[str, dict[str, Any]]:
+    """``PoserNetModule``'s hyper-parameters as plain nested dicts, every value filled in;
+    ``TypeError`` naming an unknown section key."""
     given = {"net": net, "loss": loss, "optimizer": optimizer, "scheduler": scheduler}
-    out = fill_sections(SECTIONS, "PoserNetModule", given)
-    for key, value in flat.items():
-        section, name = _FLAT_NAMES[key]
-        if name not in (given[section] or {}):  # a section value wins over a flat one
-            out[section][name] = value
-    return out
+    return fill_sections(SECTIONS, "PoserNetModule", given)
 
 
 class PoserNetModule(SectionedModule):
@@ -115,8 +84,6 @@ class PoserNetModule(SectionedModule):
             ``weight_decay`` (0).
         scheduler: reduce-on-plateau on ``val/loss``: ``patience`` epochs without improvement
             (3), multiplicative ``factor`` (0.316), lower bound ``min_lr`` (1e-6).
-        **flat: the single-level names of checkpoints written before the sections existed
-            (``depth=2, alpha=0.1, lr=1e-3, lr_patience=3, ...``), so they still load.
     """
 
     CHECKPOINT_TAG = CHECKPOINT_TAG
@@ -126,9 +93,9 @@ class PoserNetModule(SectionedModule):
     def __init__(self, net: Mapping[str, Any] | None = None,
                  loss: Mapping[str, Any] | None = None,
                  optimizer: Mapping[str, Any] | None = None,
-                 scheduler: Mapping[str, Any] | None = None, **flat: Any) -> None:
+                 scheduler: Mapping[str, Any] | None = None) -> None:
         super().__init__()
-        hp = module_hparams(net, loss, optimizer, scheduler, **flat)
+        hp = module_hparams(net, loss, optimizer, scheduler)
         self.save_hyperparameters(hp)
         self.model = PoserNet(**hp["net"])
 
@@ -204,64 +171,6 @@ class PoserNetModule(SectionedModule):
         stats = getattr(self, "input_stats", None)
         if stats:
             checkpoint["posernet"]["input_stats"] = stats
-
-    def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
-        # Checkpoints written before the last round lost its unused node MLP: the network drops
-        # those weights itself (PoserConv._load_from_state_dict); the optimiser state of a
-        # resumed run must lose them too, or Adam's state would not fit the parameters.
-        upgrade_optimizer_states(checkpoint, self)
-
-
-
-# --------------------------------------------------------------------------- old checkpoints
-
-
-def _fit_to(value: Any, shape: torch.Size) -> Any:
-    """A per-parameter optimiser tensor cut to ``shape`` (leading rows), others unchanged."""
-    if (isinstance(value, Tensor) and value.ndim == len(shape) and value.shape != shape
-            and all(a >= b for a, b in zip(value.shape, shape, strict=True))):
-        return value[tuple(slice(0, n) for n in shape)].clone()
-    return value
-
-
-def upgrade_optimizer_states(checkpoint: dict[str, Any], module: torch.nn.Module) -> bool:
-    """Fit the optimiser states of an older checkpoint to ``module``'s parameters, in place.
-
-    The checkpoint's ``state_dict`` names the parameters the optimiser was built on (in
-    ``module.parameters()`` order; PoserNet has no buffers). When some of them no longer exist
-    (the last round's node MLP) or lost rows (its hidden edge state output), their entries are
-    dropped / cut and the others renumbered. Returns True when something was changed; leaves
-    checkpoints that do not fit this pattern alone (Lightning then reports the mismatch).
-    """
-    state_dict = checkpoint.get("state_dict")
-    opt_states = checkpoint.get("optimizer_states")
-    if not isinstance(state_dict, dict) or not opt_states:
-        return False
-    params = dict(module.named_parameters())
-    old_names = list(state_dict)
-    new_names = list(params)
-    if old_names == new_names or not set(new_names) <= set(old_names):
-        return False
-    changed = False
-    for opt in opt_states:
-        groups = opt.get("param_groups") if isinstance(opt, dict) else None
-        if not groups or len(groups) != 1 or len(groups[0]["params"]) != len(old_names):
-            continue  # not one group over all parameters: cannot tell which is which
-        old_ids = list(groups[0]["params"])
-        position = {name: i for i, name in enumerate(old_names)}
-        old_state = opt.get("state", {})
-        new_state = {}
-        for j, name in enumerate(new_names):
-            entry = old_state.get(old_ids[position[name]])
-            if entry is not None:
-                new_state[j] = {k: _fit_to(v, params[name].shape) for k, v in entry.items()}
-        groups[0]["params"] = list(range(len(new_names)))
-        opt["state"] = new_state
-        changed = True
-    return changed
-
-
-# --------------------------------------------------------------------------- loading
 
 
 def load_posernet_checkpoint(path: str | os.PathLike[str],

@@ -57,8 +57,7 @@ Only the edge poses of the last round are read. A layer built with ``update_node
 predicts the pose only and it returns ``edge_state = None``. Nothing that cannot reach the
 output is built or computed, so every parameter gets a gradient (distributed data parallel
 training needs that) and the edge poses are exactly those of a full layer with the same
-``Psi_E`` pose weights. Weights saved from a full layer load into such a layer: the unused
-``Psi_N`` entries are dropped and ``Psi_E``'s last layer keeps its pose rows.
+``Psi_E`` pose weights.
 
 Fast path
 ---------
@@ -258,17 +257,15 @@ def validate_inputs(
 class PoserConv(nn.Module):
     """One round of PoserNet message passing (see the module docstring for the update rule).
 
-    The size arguments follow PyTorch Geometric's names; the names this layer had before
-    (``node_in``, ``node_out``, ``hidden``) are accepted as keyword aliases.
+    The size arguments follow PyTorch Geometric's names.
 
     Args:
-        in_channels: size of the incoming node state ``h`` (4 for the raw camera attributes;
-            alias ``node_in``).
-        out_channels: size of the new node state (default 32; alias ``node_out``).
+        in_channels: size of the incoming node state ``h`` (4 for the raw camera attributes).
+        out_channels: size of the new node state (default 32).
         edge_dim: size of the hidden edge state kept per direction (default 0: the edge
             state is the 7-vector pose only, as in the paper).
-        hidden_channels: units of the hidden layers of ``Psi_E`` and ``Psi_N`` (default 32;
-            alias ``hidden``). Unused by a network passed as ``psi_edge`` / ``psi_node``.
+        hidden_channels: units of the hidden layers of ``Psi_E`` and ``Psi_N`` (default 32).
+            Unused by a network passed as ``psi_edge`` / ``psi_node``.
         num_layers: linear layers per MLP (default 3).
         negative_slope: leaky ReLU slope (default 0.01).
         residual: predict a correction composed with the current pose instead of the pose
@@ -317,18 +314,14 @@ class PoserConv(nn.Module):
         psi_edge: nn.Module | None = None,
         psi_node: nn.Module | None = None,
         *,
-        node_in: int | None = None,
-        node_out: int | None = None,
-        hidden: int | None = None,
         fused: bool = True,
     ) -> None:
         super().__init__()
         self.fused = bool(fused)
-        in_channels = _alias("in_channels", in_channels, "node_in", node_in, None)
         if in_channels is None:
             raise TypeError("PoserConv needs in_channels (the size of the node input)")
-        out_channels = _alias("out_channels", out_channels, "node_out", node_out, 32)
-        hidden_channels = _alias("hidden_channels", hidden_channels, "hidden", hidden, 32)
+        out_channels = 32 if out_channels is None else out_channels
+        hidden_channels = 32 if hidden_channels is None else hidden_channels
         if in_channels < 1 or out_channels < 1 or edge_dim < 0:
             raise ValueError(f"PoserConv sizes must be positive: in_channels={in_channels}, "
                              f"out_channels={out_channels}, edge_dim={edge_dim}")
@@ -358,22 +351,6 @@ class PoserConv(nn.Module):
                 in_dim, out_channels, hidden_channels, num_layers, negative_slope,
                 act_last=True)
 
-    # old names of the sizes (kept: code and saved configs use them)
-    @property
-    def node_in(self) -> int:
-        """Alias of :attr:`in_channels`."""
-        return self.in_channels
-
-    @property
-    def node_out(self) -> int:
-        """Alias of :attr:`out_channels`."""
-        return self.out_channels
-
-    @property
-    def hidden(self) -> int:
-        """Alias of :attr:`hidden_channels`."""
-        return self.hidden_channels
-
     @staticmethod
     def message_size(in_channels: int, edge_dim: int = 0) -> int:
         """Input size of ``Psi_E`` / ``Psi_N`` for these sizes (to build your own networks):
@@ -396,24 +373,6 @@ class PoserConv(nn.Module):
         _reset(self.psi_edge)
         if self.psi_node is not None:
             _reset(self.psi_node)
-
-    def _load_from_state_dict(self, state_dict: dict[str, Any], prefix: str,
-                              *args: Any, **kwargs: Any) -> None:
-        """Load weights saved from a full layer (checkpoints written before the last round of a
-        network lost its unused parts): drop ``Psi_N`` when this layer has none, and keep only
-        the pose rows of ``Psi_E``'s last layer when this layer predicts no edge state."""
-        if self.psi_node is None:
-            for key in [k for k in state_dict if k.startswith(prefix + "psi_node.")]:
-                del state_dict[key]
-        if self.edge_dim and not self.update_edge_state and isinstance(self.psi_edge, MLP):
-            index = len(self.psi_edge.net) - 1  # the last module of Psi_E is its last Linear
-            for name in ("weight", "bias"):
-                key = f"{prefix}psi_edge.net.{index}.{name}"
-                value = state_dict.get(key)
-                if isinstance(value, Tensor) and value.ndim and \
-                        value.shape[0] == POSE_DIM + self.edge_dim:
-                    state_dict[key] = value[:POSE_DIM]
-        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     def __repr__(self) -> str:
         if isinstance(self.psi_edge, MLP):
@@ -794,15 +753,6 @@ def _leaky(t: Tensor, slope: float | None, inplace: bool = True) -> Tensor:
     if inplace and slope >= 0:
         return nn.functional.leaky_relu_(t, slope)
     return nn.functional.leaky_relu(t, slope)
-
-
-def _alias(name: str, value: Any, old: str, old_value: Any, default: Any) -> Any:
-    """Resolve an argument that also has an older name (one of the two, not both)."""
-    if value is not None and old_value is not None:
-        raise TypeError(f"PoserConv: give {name} or its old name {old}, not both")
-    if value is not None:
-        return value
-    return default if old_value is None else old_value
 
 
 def _reset(module: nn.Module) -> None:

@@ -13,9 +13,7 @@ for why the output of a flipped edge is exactly the inverse pose.
 
 Only the edge poses of the last round are read, so the last round has no node-update network
 (and no hidden-edge-state output): every parameter reaches the loss, as distributed data
-parallel training requires. Checkpoints written before that change still load (their unused
-last-round weights are dropped, see :class:`~posernet.nn.conv.PoserConv`) and give the same
-outputs.
+parallel training requires.
 """
 
 from __future__ import annotations
@@ -144,8 +142,6 @@ class PoserNet(nn.Module):
         """The network of a ``PoserNetModule`` checkpoint, in eval mode, without Lightning.
 
         Raises :class:`CheckpointError` for a missing, foreign or mismatching checkpoint.
-        Checkpoints that still hold the last round's node-update weights load too (the unused
-        weights are dropped; the outputs are the same).
         """
         from ..checkpoints import read_checkpoint  # the checkpoint file format (torch only)
 
@@ -159,23 +155,25 @@ class PoserNet(nn.Module):
 
         The one place that turns a checkpoint into weights: :meth:`from_checkpoint` and
         ``posernet.lit.load_posernet_checkpoint`` both use it. The network's arguments are
-        :func:`posernet.checkpoints.network_hparams` (``hyper_parameters["net"]``; in older
-        checkpoints the flat mapping, whose loss and optimiser values are ignored); every entry
+        :func:`posernet.checkpoints.network_hparams` (``hyper_parameters["net"]``); every entry
         of ``state_dict`` must be a ``model.`` weight that fits, else
         :class:`posernet.checkpoints.CheckpointError` (naming ``path``) is raised.
         """
         from ..checkpoints import CheckpointError, network_hparams
 
-        hp = network_hparams(ckpt)
         names = set(inspect.signature(cls).parameters)
         prefix = "model."
         state_dict = ckpt["state_dict"]
         foreign = [k for k in state_dict if not k.startswith(prefix)]
         state = {k[len(prefix):]: v for k, v in state_dict.items() if k.startswith(prefix)}
         try:
+            hp = network_hparams(ckpt)
             if foreign:
                 raise RuntimeError(f"unexpected weights {foreign[:3]}")
-            model = cls(**{k: v for k, v in hp.items() if k in names})
+            unknown = sorted(set(hp) - names)
+            if unknown:
+                raise TypeError(f"unknown network arguments {unknown}")
+            model = cls(**hp)
             model.load_state_dict(state)
         except (TypeError, RuntimeError, ValueError) as exc:
             raise CheckpointError(f"{path}: checkpoint does not fit this PoserNet ({exc})") from exc
