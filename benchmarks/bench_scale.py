@@ -128,6 +128,7 @@ def main(argv: list[str] | None = None) -> int:
         raise SystemExit("bench_scale: --sizes must be >= 2")
     work = Path(args.work or Path(tempfile.gettempdir()) / "posernet-bench-scale")
     work.mkdir(parents=True, exist_ok=True)
+    compiled = br.compile_bytecode()
     rows = []
     for n in sizes:
         for mode in args.modes:
@@ -143,7 +144,8 @@ def main(argv: list[str] | None = None) -> int:
         f"- packages: {', '.join(f'{k} {v}' for k, v in br.versions().items() if k != 'python')}",
         f"- scene: rendered `{args.scene}` sequence ({'320x240' if args.quick else '640x480'}, "
         f"ground-truth poses); {args.threads} worker thread(s) per run; `cache=false`; other "
-        "options at their defaults (SIFT, verification, rotation+translation averaging, BA)",
+        "options at their defaults (SIFT, verification, rotation+translation averaging, BA); "
+        f"{compiled}",
         "- errors on the largest component: abs. rot after the best global rotation, abs. pos "
         "after a similarity on the camera centres (medians). Stage times from the run's "
         "summary.json (images: features; pairs: matching + verification; BA: tracks, "
