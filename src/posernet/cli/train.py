@@ -16,7 +16,9 @@ function returns the best value of ``optimized_metric`` (default ``val/loss``) s
 minimise it.
 
 Resuming (``ckpt_path=RUN/checkpoints/last.ckpt``) continues the run in its own folder ``RUN``
-(unless ``hydra.run.dir`` or ``out_dir`` is given): the best checkpoint keeps competing with the
+(unless ``hydra.run.dir`` or ``out_dir`` is given); ``ckpt_path=last`` resumes the output
+folder's own ``checkpoints/last.ckpt`` when there is one and starts afresh otherwise (what a
+multirun that may have been interrupted wants): the best checkpoint keeps competing with the
 best model found before the interruption, ``metrics.json`` is rewritten there, the new epochs
 are appended to ``logs/metrics.csv`` and the resumed job's Hydra config goes to
 ``RUN/.hydra/resume_<date>_<time>`` (the original ``.hydra`` files stay).
@@ -266,7 +268,11 @@ def train(cfg: DictConfig) -> float:
     L.seed_everything(int(cfg.seed), workers=True)
     out_dir = Path(cfg.out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
+    t_start = time.perf_counter()
     ckpt_path = cfg.get("ckpt_path")
+    if ckpt_path == "last":  # this run folder's own last checkpoint, when it has one
+        found = out_dir / "checkpoints" / "last.ckpt"
+        ckpt_path = str(found) if found.is_file() else None
     in_place = _continues_run(ckpt_path, out_dir)
 
     datamodule = hydra.utils.instantiate(cfg.data)
@@ -348,6 +354,7 @@ def train(cfg: DictConfig) -> float:
             "epochs": int(trainer.current_epoch),
             "num_parameters": num_parameters,
             "seed": int(cfg.seed),
+            "train_seconds": round(time.perf_counter() - t_start, 3),
             "final_metrics": {k: float(v) for k, v in trainer.callback_metrics.items()
                               if torch.is_tensor(v) and v.numel() == 1
                               and math.isfinite(float(v))},

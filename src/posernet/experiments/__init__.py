@@ -2,25 +2,29 @@
 
 ``table1`` (KP/BB refinement), ``table2`` (small/large graphs), ``table3`` (motion averaging),
 ``depth`` (GNN depth and alpha sweeps), ``loo`` (leave-one-scene-out) and ``plots`` (the
-supplementary's figures), at scale ``quick`` (tiny synthetic data, minutes on a CPU),
-``medium`` (the ``paper`` preset with a tenth of its small graphs, about an hour on 2 cores) or
-``paper`` (the ``paper`` synthetic preset, three seeds, the paper's epochs). See
+supplementary's figures), at a scale of ``conf/scale/``: ``quick`` (tiny synthetic data,
+minutes on a CPU), ``medium`` (the ``paper`` preset with a tenth of its small graphs, about an
+hour on 2 cores) or ``paper``. The models are trained by ``posernet-train`` Hydra multiruns
+(:mod:`~posernet.experiments.models`, any Hydra launcher plugin) and collected into tables by
 :func:`run_experiments`; :func:`write_digest` condenses a run's tables into ``digest.md``.
 """
 
 from __future__ import annotations
 
+from .collect import TABLES, run_experiments
 from .digest import digest_markdown, write_digest
-from .runner import (
+from .models import (
     EXPERIMENTS,
-    MODELS,
-    SCALES,
+    ModelSpec,
+    Multirun,
     Scale,
+    load_scale,
+    multirun_commands,
     parse_only,
     required_models,
-    run_experiments,
-    train_models,
+    scale_names,
 )
 
-__all__ = ["EXPERIMENTS", "MODELS", "SCALES", "Scale", "digest_markdown", "parse_only",
-           "required_models", "run_experiments", "train_models", "write_digest"]
+__all__ = ["EXPERIMENTS", "TABLES", "ModelSpec", "Multirun", "Scale", "digest_markdown",
+           "load_scale", "multirun_commands", "parse_only", "required_models",
+           "run_experiments", "scale_names", "write_digest"]

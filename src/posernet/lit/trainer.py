@@ -1,9 +1,9 @@
 """The one place that builds Lightning Trainers for PoserNet.
 
 ``posernet-train`` (``conf/trainer/*.yaml``, via :func:`trainer_from_config`) builds every
-Trainer of the project -- the demo's fallback training and the paper experiments
-(:mod:`posernet.experiments.runner`) run ``posernet-train``'s ``train(cfg)`` -- so they share
-one determinism policy:
+Trainer of the project -- the demo's fallback training runs ``posernet-train``'s
+``train(cfg)`` and the paper experiments (:mod:`posernet.experiments`) run ``posernet-train``
+multiruns -- so they share one determinism policy:
 
 * **CPU**: ``deterministic=True`` (``torch.use_deterministic_algorithms(True)``). Seeded CPU
   runs are bit-for-bit reproducible; the committed ``results/`` tables rely on it.

@@ -1,16 +1,11 @@
-"""Run the paper's experiments: train what each needs, evaluate, write paper-layout tables.
+"""Collect the paper's tables from trained models: evaluate them and write paper-layout tables.
 
 Every experiment writes ``<out>/<experiment>/table.md`` and ``table.csv`` (the paper's numbers
 beside ours); :func:`run_experiments` also writes ``<out>/summary.md`` with the wall time of
-each. Trained models are cached in ``<out>/models/<model>/seed<k>/`` and shared between
-experiments (a model is trained by the first experiment that needs it, and a rerun into the same
-``out`` folder reuses every finished model), so a wall time includes the training it triggered.
-
-Training is ``posernet-train``'s: each model is the ``train`` config composed with one
-``conf/experiment/*.yaml`` file (:meth:`ModelSpec.experiment`), the scale's overrides (sizes,
-epochs) and the model's folder, passed to :func:`posernet.cli.train.train`. So
-``posernet-train +experiment=table1_kp data.root=DATA seed=0`` trains the same model as the
-runner at the ``paper`` scale.
+each. The models are read from ``<out>/models/<model>/seed<k>/``, where the ``posernet-train``
+multiruns of :mod:`posernet.experiments.models` put them; :func:`run_experiments` first generates
+the scale's dataset and runs the multiruns for the models not trained yet (``collect_only``
+skips that and names the missing models).
 """
 
 from __future__ import annotations
@@ -25,8 +20,7 @@ import time
 import traceback
 import warnings
 from collections.abc import Callable, Sequence
-from contextlib import redirect_stdout
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -46,212 +40,38 @@ from ..report import (
 )
 from . import paper_numbers as P
 from .digest import write_digest
+from .models import (
+    EXPERIMENTS,
+    ModelSpec,
+    Scale,
+    finished_run,
+    launcher_available,
+    launcher_overrides,
+    load_scale,
+    multirun_commands,
+    parse_only,
+    required_models,
+    sweep_values,
+    train_models,
+)
 
-__all__ = [
-    "EXPERIMENTS",
-    "MODELS",
-    "SCALES",
-    "Context",
-    "ModelSpec",
-    "Scale",
-    "parse_only",
-    "required_models",
-    "run_experiments",
-    "train_models",
-]
+__all__ = ["TABLES", "Context", "run_experiments"]
 
 log = logging.getLogger(__name__)
 
 
-_POLL_SECONDS = 5.0
-
-
-class _TrainLock:
-    """An exclusive lock file ``path`` (holding the owner's pid) across processes on one machine.
-
-    ``acquired`` is False when another live process holds it; a lock left by a dead process
-    (killed run) is taken over.
-    """
-
-    def __init__(self, path: Path) -> None:
-        self.path = path
-        self.acquired = False
-
-    def __enter__(self) -> _TrainLock:
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        for _ in range(2):
-            try:
-                fd = os.open(self.path, os.O_CREAT | os.O_EXCL | os.O_WRONLY)
-            except FileExistsError:
-                if _alive(self.path):
-                    return self
-                self.path.unlink(missing_ok=True)  # stale: its owner died
-                continue
-            with os.fdopen(fd, "w") as fh:
-                fh.write(str(os.getpid()))
-            self.acquired = True
-            break
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        if self.acquired:
-            self.path.unlink(missing_ok=True)
-
-
-def _alive(lock: Path) -> bool:
-    """Whether the process named in ``lock`` still runs (unreadable / empty: assume it does)."""
-    try:
-        pid = int(lock.read_text().strip())
-    except FileNotFoundError:
-        return False
-    except ValueError:  # being written right now
-        return True
-    if pid == os.getpid():
-        return False
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
-
-
-# --------------------------------------------------------------------------- configuration
-@dataclass(frozen=True)
-class Scale:
-    """Sizes of one run: dataset, seeds, training overrides and evaluation settings.
-
-    ``seeds`` are used where the paper reports mean ± std (Tables 1-3); ``ablation_seeds`` for
-    the depth / alpha sweeps and the leave-one-scene-out test (medians only in the paper).
-    ``train``/``train_large`` are Hydra overrides of ``posernet-train``'s config for the models
-    trained on small / large graphs (e.g. fewer epochs); empty: the experiment files' values
-    (the paper's).
-    """
-
-    name: str
-    dataset: str | dict[str, Any]
-    seeds: tuple[int, ...] = (0, 1, 2)
-    ablation_seeds: tuple[int, ...] = (0,)
-    train: dict[str, Any] = field(default_factory=dict)
-    train_large: dict[str, Any] = field(default_factory=dict)
-    eval_batch: int = 64
-    camera_plots: int = 3
-    data_seed: int = 0
-    progress_bar: bool = True
-
-
-def _quick_dataset() -> dict[str, Any]:
-    """The ``tiny`` preset with three scenes and a few more test graphs."""
-    from ..data.synthetic.config import load_preset
-
-    data = load_preset("tiny").to_dict()
-    data["name"] = "quick"
-    data["scenes"] = ["chess", "fire", "heads"]
-    data["small"] = {"graph_size": 4, "train": 3, "val": 1, "test": 3}
-    data["large"] = {"graph_size": 8, "train": 1, "val": 0, "test": 1, "scenes": ["chess"]}
-    return data
-
-
-def _medium_dataset() -> dict[str, Any]:
-    """The ``paper`` preset with a tenth of its small graphs and all its large graphs."""
-    from ..data.synthetic.config import load_preset
-
-    data = load_preset("paper").to_dict()
-    data["name"] = "medium"
-    data["small"] = {**data["small"], "train": 200, "val": 20, "test": 100}
-    return data
-
-
-SCALES: dict[str, Callable[[], Scale]] = {
-    "quick": lambda: Scale("quick", _quick_dataset(), seeds=(0, 1), ablation_seeds=(0,),
-                           train={"trainer.max_epochs": 2, "data.batch_size": 4,
-                                  "data.eval_batch_size": 4},
-                           train_large={"trainer.max_epochs": 1, "data.batch_size": 1,
-                                        "data.eval_batch_size": 4},
-                           camera_plots=2, progress_bar=False),
-    # every experiment of the paper on a 2-core CPU in about an hour
-    "medium": lambda: Scale("medium", _medium_dataset()),
-    "paper": lambda: Scale("paper", "paper"),
-}
-
-
-@dataclass(frozen=True)
-class ModelSpec:
-    """One model to train: input estimate, graph size, depth, alpha, left-out scene, and its
-    kind: ``posernet`` (the paper's training), ``end_to_end`` (trained through a differentiable
-    synchronisation) or ``sync`` (the learned synchronisation, on raw input or, ``refined``, on
-    the edges of the ``posernet`` model of the same estimate and seed)."""
-
-    estimate: str = "kp"
-    size: str = "small"
-    depth: int = 2
-    alpha: float = 0.1
-    leave_out: str | None = None
-    kind: str = "posernet"
-    refined: bool = False
-
-    @property
-    def key(self) -> str:
-        """Folder name of the model, e.g. ``kp-small-d2-a0.1``, ``kp-small-d2-a0.1-loo_fire``,
-        ``e2e-kp-small-d2-a0.1`` or ``sync-kp-refined``."""
-        if self.kind == "sync":
-            return f"sync-{self.estimate}-{'refined' if self.refined else 'raw'}"
-        k = f"{self.estimate}-{self.size}-d{self.depth}-a{self.alpha:g}"
-        k = ("e2e-" + k) if self.kind == "end_to_end" else k
-        return k + (f"-loo_{self.leave_out}" if self.leave_out else "")
-
-    def experiment(self) -> tuple[str, dict[str, Any]]:
-        """The ``conf/experiment`` file that trains this model and the overrides that make it
-        this one (the swept value; the others restate the file's own values)."""
-        if self.kind == "sync":
-            return "learned_sync", {"data.estimate": self.estimate, "data.size": self.size}
-        if self.kind == "end_to_end":
-            name = "end_to_end"
-        elif self.size == "large":
-            name = "large_graphs"
-        elif self.leave_out:
-            name = "leave_one_out"
-        elif self.depth != 2:
-            name = "depth_sweep"
-        elif self.alpha != 0.1:
-            name = "alpha_sweep"
-        else:
-            name = f"table1_{self.estimate}"
-        overrides: dict[str, Any] = {"data.estimate": self.estimate, "data.size": self.size,
-                                     "model.net.depth": self.depth,
-                                     "model.loss.alpha": self.alpha}
-        if self.leave_out:
-            overrides["data.leave_out_scene"] = self.leave_out
-        return name, overrides
-
-
-def sweep_values(experiment: str, key: str) -> list[Any]:
-    """The values a sweep file (``depth_sweep``, ``alpha_sweep``) declares for ``key``."""
-    from omegaconf import OmegaConf
-
-    from ..conf import compose
-
-    cfg = compose("train", [f"+experiment={experiment}"], return_hydra_config=True)
-    params = cfg.hydra.sweeper.get("params") or {}
-    if key not in params:
-        raise ValueError(f"experiment/{experiment}.yaml declares no sweep over {key}")
-    return list(OmegaConf.create(f"v: [{params[key]}]").v)  # "2,3,4,5" -> [2, 3, 4, 5]
-
-
 @dataclass
 class Context:
-    """State shared by the experiments of one run: folders, caches of models and results."""
+    """State shared by the experiments of one run: folders, caches of results."""
 
     scale: Scale
     out: Path
     device: str = "cpu"
     data_root: Path | None = None  # default: ``<out>/data``
-    threads: int | None = 1  # torch CPU threads while training (None: torch's default)
+    threads: int | None = 1  # torch CPU threads of each training job (None: torch's default)
     _graphs: dict[tuple[Any, ...], list[Any]] = field(default_factory=dict)
     _evals: dict[tuple[Any, ...], dict[str, Any]] = field(default_factory=dict)
     _results: dict[tuple[Any, ...], Any] = field(default_factory=dict)
-    trained: list[str] = field(default_factory=list)
     used: list[str] = field(default_factory=list)
 
     def __post_init__(self) -> None:
@@ -263,15 +83,9 @@ class Context:
         """Generate the scale's synthetic dataset (resumed / reused when already there)."""
         from ..data.synthetic import generate_dataset
 
-        while True:  # one process generates; parallel runners into one ``out`` wait for it
-            with _TrainLock(self.out / "data.lock") as lock:
-                if lock.acquired:
-                    generate_dataset(self.scale.dataset, self.data_root,
-                                     seed=self.scale.data_seed, workers=workers,
-                                     resume=self.data_root.exists(),
-                                     progress=self.scale.progress_bar, echo=None)
-                    return
-            time.sleep(_POLL_SECONDS)
+        generate_dataset(self.scale.dataset, self.data_root, seed=self.scale.data_seed,
+                         workers=workers, resume=self.data_root.exists(),
+                         progress=self.scale.progress_bar, echo=None)
 
     def graphs(self, size: str, estimate: str, scene: str | None = None) -> list[Any]:
         """Test graphs of ``size`` (optionally one scene) with ``estimate`` as initial poses."""
@@ -296,83 +110,39 @@ class Context:
         return sorted(have)
 
     # ---------------------------------------------------------------- models
-    def _finished(self, run_dir: Path) -> Path | None:
-        done = run_dir / "done.json"
-        if done.is_file():
-            path = run_dir / json.loads(done.read_text())["checkpoint"]  # absolute in old runs
-            if path.is_file():
-                return path
-        return None
+    @property
+    def models(self) -> Path:
+        """Folder of the trained models: ``<key>/seed<k>/`` each."""
+        return self.out / "models"
 
-    def checkpoint(self, spec: ModelSpec, seed: int, wait: bool = True) -> Path | None:
-        """Path of the trained model ``spec``/``seed``, training it first when not cached.
-
-        Several runners may share one ``out`` folder (e.g. ``--only table1`` and ``--only loo``
-        in two processes): a model being trained by another live process is waited for, or,
-        with ``wait=False``, skipped (``None``) so the caller can train something else first.
-        """
-        run_dir = self.out / "models" / spec.key / f"seed{seed}"
-        while True:
-            found = self._finished(run_dir)
-            if found is not None:
-                return found
-            with _TrainLock(run_dir / "lock") as lock:
-                if lock.acquired:
-                    found = self._finished(run_dir)  # finished while we were waiting
-                    return found if found is not None else self._train(spec, seed, run_dir)
-            if not wait:
-                return None
-            time.sleep(_POLL_SECONDS)
+    def checkpoint(self, spec: ModelSpec, seed: int) -> Path:
+        """The checkpoint of the finished model ``spec``/``seed``; FileNotFoundError naming the
+        multirun that trains it when it has not finished."""
+        run_dir = self.models / spec.key / f"seed{seed}"
+        found = finished_run(run_dir)
+        if found is None:
+            run = multirun_commands(self.scale, [(spec, seed)], self.models, self.data_root,
+                                    self.device, self.threads)[0]
+            raise FileNotFoundError(
+                f"model {spec.key} seed {seed} is not trained ({run_dir} has no finished "
+                f"run); train it with: posernet-train {' '.join(run.argv(self.models))}")
+        return found
 
     def epochs(self) -> tuple[int, int]:
         """Training epochs of the small- and the large-graph models (from their configs)."""
         return tuple(int(self.train_config(ModelSpec(size=z)).trainer.max_epochs)
                      for z in ("small", "large"))  # type: ignore[return-value]
 
-    def train_config(self, spec: ModelSpec, seed: int = 0, run_dir: Path | None = None,
-                     resume: Path | None = None) -> Any:
-        """``posernet-train``'s config for model ``spec``/``seed``: the experiment file, the
-        spec's and the scale's overrides, this run's data, device and folder."""
-        from ..conf import compose, quote_value
+    def train_config(self, spec: ModelSpec) -> Any:
+        """``posernet-train``'s config of model ``spec``: its experiment file, the spec's and
+        the scale's overrides (what the multirun composes, less folders and seed)."""
+        from ..conf import compose
 
         name, values = spec.experiment()
-        values = {**values, **self.scale.train,
-                  **(self.scale.train_large if spec.size == "large" else {})}
-        if spec.kind == "sync" and spec.refined:  # its input: that PoserNet's refined edges
-            refiner = self.checkpoint(ModelSpec(estimate=spec.estimate, size=spec.size), seed)
-            values["model.input.refiner_ckpt"] = quote_value(refiner)
-        run_dir = run_dir or self.out / "models" / spec.key / f"seed{seed}"
-        overrides = [f"+experiment={name}", f"trainer={'gpu' if self.device == 'cuda' else 'cpu'}",
-                     *(f"{k}={v}" for k, v in values.items()),
-                     f"data.root={quote_value(self.data_root)}", f"seed={seed}",
-                     f"out_dir={quote_value(run_dir)}", "test_after_training=false",
-                     f"num_threads={self.threads or 'null'}",
-                     # the runner's own bar counts models; a model's printout goes to its log
-                     "trainer.enable_progress_bar=false",
-                     "trainer.enable_model_summary=false"]
-        if resume is not None:
-            overrides.append(f"ckpt_path={quote_value(resume)}")
-        return compose("train", overrides)
-
-    def _train(self, spec: ModelSpec, seed: int, run_dir: Path) -> Path:
-        """Train with ``posernet-train``'s ``train(cfg)`` into ``run_dir`` (its printed lines
-        go to ``run_dir/train.log``); an interrupted run resumes from its ``last.ckpt``."""
-        from ..cli.train import train
-
-        last = run_dir / "checkpoints" / "last.ckpt"
-        cfg = self.train_config(spec, seed, run_dir, resume=last if last.is_file() else None)
-        t0 = time.perf_counter()
-        run_dir.mkdir(parents=True, exist_ok=True)
-        with open(run_dir / "train.log", "a") as log_file, redirect_stdout(log_file):
-            train(cfg)
-        summary = json.loads((run_dir / "metrics.json").read_text())
-        best = Path(summary["best_checkpoint"] or summary["last_checkpoint"])
-        atomic_write_json(run_dir / "done.json", {
-            "checkpoint": _relative_to(best, run_dir), "model": spec.key, "seed": seed,
-            "experiment": spec.experiment()[0], "epochs": summary["epochs"],
-            "best_val_loss": summary["best"], "train_seconds": time.perf_counter() - t0})
-        self.trained.append(f"{spec.key}/seed{seed}")
-        return best
+        large = list(self.scale.train_large) if spec.size == "large" else []
+        return compose("train", [f"+experiment={name}",
+                                 *(f"{k}={v}" for k, v in values.items()),
+                                 *self.scale.train, *large])
 
     # ---------------------------------------------------------------- evaluation
     def result(self, spec: ModelSpec, seed: int, size: str = "small",
@@ -383,6 +153,7 @@ class Context:
         from ..sync import get_backend
 
         key = (spec, seed, size, backend, scene)
+        self.used.append(f"{spec.key}/seed{seed}")
         if key not in self._results:
             model = PoserNet.from_checkpoint(self.checkpoint(spec, seed), map_location=self.device)
             self._results[key] = refine_graphs(
@@ -401,9 +172,11 @@ class Context:
         from ..sync.learned import LearnedSync
 
         key = ("learned", estimate, seed, refined)
+        sync_spec = ModelSpec(estimate=estimate, kind="sync", refined=refined)
+        self.used += [f"{sync_spec.key}/seed{seed}"] + (
+            [f"{ModelSpec(estimate=estimate).key}/seed{seed}"] if refined else [])
         if key not in self._results:
-            sync = self.checkpoint(ModelSpec(estimate=estimate, kind="sync", refined=refined),
-                                   seed)
+            sync = self.checkpoint(sync_spec, seed)
             model = (PoserNet.from_checkpoint(self.checkpoint(ModelSpec(estimate=estimate), seed),
                                               map_location=self.device) if refined else None)
             self._results[key] = refine_graphs(
@@ -432,34 +205,6 @@ class Context:
         return self._evals[key]
 
 
-def _relative_to(path: Path, root: Path) -> str:
-    """``path`` relative to ``root`` when inside it (so a moved ``out`` folder still works)."""
-    try:
-        return path.resolve().relative_to(root.resolve()).as_posix()
-    except ValueError:
-        return str(path.resolve())
-
-
-def _jobs(ctx: Context, jobs: Sequence[tuple[ModelSpec, int]], desc: str) -> None:
-    """Train (or find cached) every ``(spec, seed)`` with a progress bar.
-
-    Models another process is training are skipped on the first pass and waited for at the end.
-    """
-    pending = list(dict.fromkeys(jobs))
-    ctx.used += [f"{spec.key}/seed{seed}" for spec, seed in pending]
-    with tqdm(total=len(pending), desc=f"{desc}: models", unit="model", leave=False) as bar:
-        while pending:
-            busy = []
-            for job in pending:  # the bar moves with each finished model
-                if ctx.checkpoint(*job, wait=False) is None:
-                    busy.append(job)
-                else:
-                    bar.update(1)
-            if busy:
-                ctx.checkpoint(*busy[0])  # nothing left to do here: wait for the other process
-            pending = busy
-
-
 def _seed_row(evals: Sequence[dict[str, Any]], kind: str, stage: str,
               labels: tuple[str, ...]) -> TableRow:
     """Mean ± std over seeds of one stage's threshold rows (``kind``: relative/absolute)."""
@@ -480,7 +225,6 @@ def table1(ctx: Context, out: Path) -> list[Path]:
     """Table 1: initial vs refined relative poses, KP and BB, small graphs."""
     seeds = ctx.scale.seeds
     specs = {e: ModelSpec(estimate=e) for e in ("bb", "kp")}
-    _jobs(ctx, MODELS["table1"](ctx), "table1")
     paper = {k: P.paper_row(("paper", *k), v) for k, v in P.TABLE1.items()}
     mine: dict[tuple[str, ...], TableRow] = {}
     for est, spec in specs.items():
@@ -532,7 +276,6 @@ def table2(ctx: Context, out: Path) -> list[Path]:
     seeds = ctx.scale.seeds
     specs = {"Small": ModelSpec(size="small"), "Large": ModelSpec(size="large")}
     large = ctx.train_config(specs["Large"])
-    _jobs(ctx, MODELS["table2"](ctx), "table2")
     paper = {k: P.paper_row(("paper", *k), v, 7000 if k[1] == "Small" else 5)
              for k, v in P.TABLE2.items()}
     mine: dict[tuple[str, ...], TableRow] = {}
@@ -571,7 +314,6 @@ def table3(ctx: Context, out: Path) -> list[Path]:
     seeds = ctx.scale.seeds
     specs = {e: ModelSpec(estimate=e) for e in ("bb", "kp")}
     e2e = {e: ModelSpec(estimate=e, kind="end_to_end") for e in ("bb", "kp")}
-    _jobs(ctx, MODELS["table3"](ctx), "table3")
     rows: list[TableRow] = []
     notes: list[str] = []
     backends = table3_backends()
@@ -650,7 +392,6 @@ def depth(ctx: Context, out: Path) -> list[Path]:
     seeds = ctx.scale.ablation_seeds
     dspecs = {d: ModelSpec(depth=d) for d in sweep_values("depth_sweep", "model.net.depth")}
     aspecs = {a: ModelSpec(alpha=a) for a in sweep_values("alpha_sweep", "model.loss.alpha")}
-    _jobs(ctx, MODELS["depth"](ctx), "depth")
     files: list[Path] = []
     full: list[TableRow] = []
     for what, specs, paper in (("depth", dspecs, P.DEPTH_MEDIANS),
@@ -681,7 +422,6 @@ def loo(ctx: Context, out: Path) -> list[Path]:
         raise ValueError(f"loo needs at least two scenes, the dataset has {scenes}")
     specs = {sc: ModelSpec(leave_out=sc) for sc in scenes}
     allspec = ModelSpec()
-    _jobs(ctx, MODELS["loo"](ctx), "loo")
     mt = MedianTable("test scene", title="Leave-one-scene-out (KP, small graphs)")
     per_scene: list[tuple[list[float], list[float]]] = []
     tested = 0
@@ -761,116 +501,10 @@ def plots(ctx: Context, out: Path) -> list[Path]:
     return files
 
 
-Job = tuple[ModelSpec, int]
-
-
-def _table1_models(ctx: Context) -> list[Job]:
-    return [(ModelSpec(estimate=e), s) for e in ("bb", "kp") for s in ctx.scale.seeds]
-
-
-def _table3_models(ctx: Context) -> list[Job]:
-    extra = [ModelSpec(estimate=e, kind="end_to_end") for e in ("bb", "kp")]
-    extra += [ModelSpec(estimate=e, kind="sync", refined=r) for r in (False, True)
-              for e in ("bb", "kp")]  # the refined ones after the PoserNet models they use
-    return _table1_models(ctx) + [(sp, s) for sp in extra for s in ctx.scale.seeds]
-
-
-def _table2_models(ctx: Context) -> list[Job]:
-    return [(ModelSpec(size=z), s) for z in ("small", "large") for s in ctx.scale.seeds]
-
-
-def _depth_models(ctx: Context) -> list[Job]:
-    specs = [*(ModelSpec(depth=d) for d in sweep_values("depth_sweep", "model.net.depth")),
-             *(ModelSpec(alpha=a) for a in sweep_values("alpha_sweep", "model.loss.alpha"))]
-    return [(sp, s) for sp in specs for s in ctx.scale.ablation_seeds]
-
-
-def _loo_models(ctx: Context) -> list[Job]:
-    specs = [*(ModelSpec(leave_out=sc) for sc in ctx.scenes()), ModelSpec()]
-    return [(sp, s) for sp in specs for s in ctx.scale.ablation_seeds]
-
-
-def _plots_models(ctx: Context) -> list[Job]:
-    return [(ModelSpec(estimate=e), ctx.scale.seeds[0]) for e in ("kp", "bb")]
-
-
-# The models each experiment needs (trained on demand, or up front by ``train_models``).
-MODELS: dict[str, Callable[[Context], list[Job]]] = {
-    "table1": _table1_models, "table2": _table2_models, "table3": _table3_models,
-    "depth": _depth_models, "loo": _loo_models, "plots": _plots_models,
-}
-
-
-def required_models(ctx: Context, names: Sequence[str]) -> list[Job]:
-    """Every ``(spec, seed)`` the experiments ``names`` need, each once, in a stable order."""
-    return list(dict.fromkeys(job for n in names for job in MODELS[n](ctx)))
-
-
-def _train_one(scale: Scale, out: str, data_root: str, device: str, threads: int | None,
-               spec: ModelSpec, seed: int) -> tuple[str, float]:
-    """Worker process: train (or find) one model; returns its key and the seconds it took."""
-    if threads:
-        torch.set_num_threads(int(threads))
-    _quiet()
-    t0 = time.perf_counter()
-    ctx = Context(scale, Path(out), device=device, data_root=Path(data_root), threads=threads)
-    ctx.checkpoint(spec, seed)
-    return f"{spec.key}/seed{seed}", time.perf_counter() - t0
-
-
-def _train_one_packed(args: tuple[Any, ...]) -> tuple[str, float]:
-    return _train_one(*args)
-
-
-def train_models(ctx: Context, jobs: Sequence[Job], processes: int = 1,
-                 threads: int | None = 1) -> list[str]:
-    """Train every model of ``jobs`` not yet in ``<out>/models``, ``processes`` at a time.
-
-    Each model trains in its own process (spawned, so CUDA works; one torch thread each by
-    default); several processes may share one GPU. Lightning's progress bars are off in the
-    workers and one bar counts finished models. Returns the keys of the models trained now.
-    """
-    import multiprocessing as mp
-
-    todo = [j for j in dict.fromkeys(jobs)
-            if ctx._finished(ctx.out / "models" / j[0].key / f"seed{j[1]}") is None]
-    if not todo:
-        return []
-    if processes <= 1:
-        for spec, seed in tqdm(todo, desc="train: models", unit="model"):
-            ctx.checkpoint(spec, seed)
-        return [f"{sp.key}/seed{s}" for sp, s in todo]
-    quiet = replace(ctx.scale, progress_bar=False)
-    args = [(quiet, str(ctx.out), str(ctx.data_root), ctx.device, threads, sp, s)
-            for sp, s in todo]
-    trained = []
-    with mp.get_context("spawn").Pool(min(processes, len(todo)), maxtasksperchild=1) as pool, \
-            tqdm(total=len(todo), desc="train: models", unit="model") as bar:
-        for key, sec in pool.imap_unordered(_train_one_packed, args):
-            trained.append(key)
-            bar.update(1)
-            log.info("trained %s in %.0f s", key, sec)
-    return trained
-
-
-EXPERIMENTS: dict[str, Callable[[Context, Path], list[Path]]] = {
+TABLES: dict[str, Callable[[Context, Path], list[Path]]] = {
     "table1": table1, "table2": table2, "table3": table3, "depth": depth, "loo": loo,
     "plots": plots,
 }
-
-
-def parse_only(only: str | Sequence[str] | None) -> list[str]:
-    """Experiment names from ``"table1,table3"`` (or a list); all of them for ``None``/empty."""
-    if only is None:
-        return list(EXPERIMENTS)
-    names = [n.strip() for n in (only.split(",") if isinstance(only, str) else only)]
-    names = [n for n in names if n]
-    if not names:
-        return list(EXPERIMENTS)
-    bad = [n for n in names if n not in EXPERIMENTS]
-    if bad:
-        raise ValueError(f"unknown experiment(s) {bad}; valid: {list(EXPERIMENTS)}")
-    return list(dict.fromkeys(names))
 
 
 def _quiet() -> None:
@@ -888,20 +522,22 @@ def _quiet() -> None:
 def run_experiments(scale: str | Scale, out: str | Path, only: str | Sequence[str] | None = None,
                     device: str = "cpu", num_threads: int | None = 1, workers: int = 2,
                     echo: Callable[[str], None] | None = print, jobs: int = 1,
-                    train_only: bool = False,
+                    launcher: str | None = None, hydra: Sequence[str] = (),
+                    train_only: bool = False, collect_only: bool = False,
                     data: str | Path | None = None) -> dict[str, dict[str, Any]]:
     """Run the chosen experiments at ``scale`` into ``out``; return ``{name: status}``.
 
-    A failing experiment is recorded in ``summary.md`` (with its error) and the others still
-    run. ``device``: ``cpu``, ``cuda`` or ``auto``; ``workers``: data-generation processes.
-    ``jobs`` > 1 trains every model the experiments need first, that many processes at a time
-    (e.g. several per GPU); ``train_only`` stops after that. ``data``: an existing dataset
-    directory to use instead of generating the scale's into ``<out>/data``.
+    Three steps: the scale's synthetic dataset (``<out>/data``, or ``data``: an existing
+    dataset directory), the ``posernet-train`` multiruns of the models not trained yet
+    (``launcher``: ``basic``, ``joblib`` with ``jobs`` processes, ``submitit_local`` or
+    ``submitit_slurm``; default ``joblib`` when ``jobs`` > 1 and installed; ``hydra``: extra
+    overrides of every multirun, e.g. ``hydra.launcher.partition=gpu``), then the tables. A
+    failing experiment is recorded in ``summary.md`` (with its error) and the others still run.
+    ``train_only`` stops after training; ``collect_only`` trains nothing (a missing model fails
+    its experiments with the command that trains it). ``device``: ``cpu``, ``cuda`` or ``auto``.
     """
     if isinstance(scale, str):
-        if scale not in SCALES:
-            raise ValueError(f"unknown scale {scale!r}; valid: {list(SCALES)}")
-        scale = SCALES[scale]()
+        scale = load_scale(scale)
     names = parse_only(only)
     if device == "auto":
         device = "cuda" if torch.cuda.is_available() else "cpu"
@@ -909,6 +545,14 @@ def run_experiments(scale: str | Scale, out: str | Path, only: str | Sequence[st
         raise ValueError(f"device must be cpu, cuda or auto, got {device!r}")
     if isinstance(jobs, bool) or not isinstance(jobs, int) or jobs < 1:
         raise ValueError(f"jobs must be an integer >= 1, got {jobs!r}")
+    if launcher is None:
+        launcher = "joblib" if jobs > 1 and launcher_available("joblib") else "basic"
+    launch = [*launcher_overrides(launcher, jobs), *hydra]
+    if not collect_only and not launcher_available(launcher):
+        raise ValueError(f"launcher {launcher!r}: its Hydra plugin is not installed (pip "
+                         f"install hydra-{launcher.split('_')[0]}-launcher)")
+    if train_only and collect_only:
+        raise ValueError("train_only and collect_only exclude each other")
     if data is not None and not (Path(data) / "manifest.json").is_file():
         raise FileNotFoundError(f"--data {data}: not a complete posernet dataset (no "
                                 "manifest.json); generate one with posernet-make-data")
@@ -930,37 +574,43 @@ def run_experiments(scale: str | Scale, out: str | Path, only: str | Sequence[st
         say(f"[data] using the dataset in {ctx.data_root}")
     status["data"] = {"ok": True, "seconds": time.perf_counter() - t0, "files": [],
                       "error": None, "trained": [], "models": []}
-    if jobs > 1 or train_only:
+    if not collect_only:
         t0 = time.perf_counter()
-        models = required_models(ctx, names)
-        say(f"[train] {len(models)} models for {','.join(names)}, {jobs} at a time on {device}")
-        trained = train_models(ctx, models, processes=jobs, threads=num_threads)
+        models = required_models(scale, names, ctx.scenes())
+        todo = [(sp, s) for sp, s in models
+                if finished_run(ctx.models / sp.key / f"seed{s}") is None]
+        runs = multirun_commands(scale, todo, ctx.models, ctx.data_root, device, num_threads)
+        say(f"[train] {len(todo)} of {len(models)} models to train for {','.join(names)}: "
+            f"{len(runs)} posernet-train multirun(s), launcher {launcher}")
+        train_models(runs, ctx.models, launch, echo=say)
         status["train"] = {"ok": True, "seconds": time.perf_counter() - t0, "files": [],
-                           "error": None, "trained": trained,
+                           "error": None,
+                           "trained": [f"{sp.key}/seed{s}" for sp, s in todo],
                            "models": [f"{sp.key}/seed{s}" for sp, s in models]}
     for name in ([] if train_only else names):
         say(f"[{name}] running")
         t0 = time.perf_counter()
-        before, used_before = len(ctx.trained), len(ctx.used)
+        used_before = len(ctx.used)
         exp_dir = out / name
         exp_dir.mkdir(parents=True, exist_ok=True)
         try:
-            files = EXPERIMENTS[name](ctx, exp_dir)
+            files = TABLES[name](ctx, exp_dir)
             err = None
         except Exception as exc:  # recorded; the others still run
             files, err = [], f"{type(exc).__name__}: {exc}"
             log.debug("experiment %s failed", name, exc_info=True)
-            say(f"[{name}] FAILED: {err}\n{traceback.format_exc()}")
+            trace = "" if isinstance(exc, FileNotFoundError) else f"\n{traceback.format_exc()}"
+            say(f"[{name}] FAILED: {err}{trace}")
         dt = time.perf_counter() - t0
         status[name] = {"ok": err is None, "seconds": dt, "files": [str(f) for f in files],
-                        "error": err, "trained": ctx.trained[before:],
+                        "error": err, "trained": [],
                         "models": list(dict.fromkeys(ctx.used[used_before:]))}
         if err is None:
             say(f"[{name}] done in {dt:.1f} s -> {exp_dir}/table.md"
                 if (exp_dir / "table.md").exists() else f"[{name}] done in {dt:.1f} s")
     write_summary(out, scale, status, time.perf_counter() - t_all, device, ctx.epochs())
     say(f"summary: {out / 'summary.md'}")
-    if any(st["ok"] for n, st in status.items() if n in EXPERIMENTS) and any(
+    if any(st["ok"] for n, st in status.items() if n in TABLES) and any(
             out.glob("*/table.csv")):  # e.g. --only plots writes no table
         say(f"digest (medians, ours vs paper): {write_digest(out)}")
     return status
@@ -979,9 +629,10 @@ def machine_description(device: str) -> str:
 
 
 def _train_seconds(run_dir: Path) -> float:
-    """Training time recorded in a model's ``done.json`` (0 when missing)."""
+    """Training time recorded in a model's ``metrics.json`` (0 when missing)."""
     try:
-        return float(json.loads((run_dir / "done.json").read_text()).get("train_seconds", 0.0))
+        summary = json.loads((run_dir / "metrics.json").read_text())
+        return float(summary.get("train_seconds") or 0.0)
     except (OSError, ValueError):
         return 0.0
 
@@ -1013,9 +664,9 @@ def write_summary(out: Path, scale: Scale, status: dict[str, dict[str, Any]], to
     lines = [f"# PoserNet experiments, scale `{scale.name}`", "",
              f"Seeds {list(scale.seeds)} (tables 1-3), {list(scale.ablation_seeds)} (depth, "
              f"alpha, loo); epochs {epochs[0]} small / {epochs[1]} large. "
-             "Models are shared: each is trained by the first experiment that needs it (its "
-             "wall time includes that training); runs in parallel processes share the models "
-             "and may wait for each other.", "",
+             "The models are trained first (row `train`: posernet-train multiruns of the "
+             "models not yet in models/) and shared between the experiments; an experiment's "
+             "wall time is its evaluation.", "",
              "| experiment | status | wall time (s) | models trained | models used "
              "(their training, s) | table | finished |",
              "|---|---|---:|---:|---:|---|---|"]
@@ -1034,8 +685,3 @@ def write_summary(out: Path, scale: Scale, status: dict[str, dict[str, Any]], to
     lines += [f"- `{cmd}` on {machine}" for cmd, machine in commands]
     lines += ["", f"Total wall time of the last run: {total:.1f} s."]
     return atomic_write_text(out / "summary.md", "\n".join(lines) + "\n")
-
-
-def scale_with(scale: Scale, **changes: Any) -> Scale:
-    """A copy of ``scale`` with some fields changed (e.g. fewer seeds)."""
-    return replace(scale, **changes)
