@@ -129,6 +129,12 @@ def test_wheel_carries_configs_and_checkpoint(wheel):
     text = zipfile.ZipFile(wheel).read(entry_points).decode()
     for command in COMMANDS:
         assert f"{command} = " in text, command
+    # the library only: no research record, no results, no tests in the wheel
+    assert not [n for n in names if n.startswith(("research/", "results/", "tests/",
+                                                  "benchmarks/"))]
+    assert not [n for n in names if "vary_" in n or "heldout" in n]
+    assert "posernet/experiments/adaptive.py" not in names
+    assert "posernet/conf/scale/quick.yaml" in names
 
 
 @pytest.mark.slow

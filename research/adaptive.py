@@ -1,9 +1,10 @@
 """Input-adaptive refinement: its evaluation.
 
-``python -m posernet.experiments.adaptive --data DIR --model NAME=CKPT [--model ...] --out DIR``
+``python research/adaptive.py --data DIR --model NAME=CKPT [--model ...] --out DIR``
 
 For every model, on the ``test`` graphs of a dataset (the held-out generator variant,
-``conf/dataset/heldout.yaml``, for the final numbers; never used for training or selection):
+``research/conf/dataset/heldout.yaml``, for the final numbers; never used for training or
+selection):
 
 * ``graphs.md|csv``: per-graph median (paper style: median over graphs of each graph's mean
   edge error) of initial and refined rotation / direction errors, per input: ``KP``, ``BB``,
@@ -37,9 +38,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..graph import ViewGraph
-from ..io import atomic_path, atomic_write_json, atomic_write_text
-from ..metrics import per_graph_mean, relative_pose_errors
+from posernet.graph import ViewGraph
+from posernet.io import atomic_path, atomic_write_json, atomic_write_text
+from posernet.metrics import per_graph_mean, relative_pose_errors
 
 __all__ = ["BINS", "bin_table", "edge_errors_for", "evaluate_models", "main", "mean_change_ci"]
 
@@ -55,7 +56,7 @@ def bin_label(lo: float, hi: float) -> str:
 
 def make_inputs(graphs: Sequence[ViewGraph], seed: int = 0) -> dict[str, list[ViewGraph]]:
     """The four inputs of the evaluation (see the module docstring)."""
-    from ..data.mixture import perturb_poses
+    from posernet.data.mixture import perturb_poses
 
     gen = torch.Generator().manual_seed(seed)
     out: dict[str, list[ViewGraph]] = {k: [] for k in INPUTS}
@@ -78,7 +79,7 @@ def edge_errors_for(model: torch.nn.Module | None, graphs: Sequence[ViewGraph],
     """Per-edge errors (degrees) of the input and of the refined poses, with each edge's graph:
     ``rot_init, rot_ref, tdir_init, tdir_ref [E]``, ``graph [E]``; plus ``sigma [E, 4]``
     (degrees) when the model has a confidence head."""
-    from ..refine import refine_graphs
+    from posernet.refine import refine_graphs
 
     res = refine_graphs(model, graphs, progress=False, guard=guard)
     gt = torch.cat([g.edge_pose_gt for g in graphs]).double()
@@ -177,9 +178,9 @@ def absolute_rows(model: torch.nn.Module, graphs: Sequence[ViewGraph],
                   has_conf: bool) -> list[dict[str, Any]]:
     """KP input averaged with EIG-SE3 and rotation_translation: uniform vs confidence-weighted
     IRLS start (modes ``start`` and ``prior``) and the guard; median absolute errors."""
-    from ..evaluation import evaluate_result
-    from ..refine import refine_graphs
-    from ..sync import get_backend
+    from posernet.evaluation import evaluate_result
+    from posernet.refine import refine_graphs
+    from posernet.sync import get_backend
 
     rows = []
     variants: list[tuple[str, dict[str, Any], bool, bool]] = [("uniform", {}, False, False)]
@@ -342,8 +343,8 @@ def evaluate_models(models: dict[str, str], data: str | Path | Sequence[str | Pa
     """Run the whole evaluation (module docstring) and write its files under ``out``.
 
     ``data``: a dataset root, or several whose ``split`` graphs are evaluated together."""
-    from ..data.inputs import load_input_graphs
-    from ..nn import PoserNet
+    from posernet.data.inputs import load_input_graphs
+    from posernet.nn import PoserNet
 
     out = Path(out)
     roots = [data] if isinstance(data, (str, Path)) else list(data)
@@ -436,11 +437,11 @@ def guard_report(models: dict[str, str], sets: dict[str, Sequence[ViewGraph]],
                  out: str | Path) -> list[dict[str, Any]]:
     """The guard on named graph sets: its warning line (or none) per model and set, and the
     per-graph median rotation / direction errors without and with ``guard=true``."""
-    from ..checkpoints import read_checkpoint
-    from ..graph import GraphBatch
-    from ..guard import check_inputs, cycle_inconsistency, warning_line
-    from ..nn import PoserNet
-    from ..refine import refine_graphs
+    from posernet.checkpoints import read_checkpoint
+    from posernet.graph import GraphBatch
+    from posernet.guard import check_inputs, cycle_inconsistency, warning_line
+    from posernet.nn import PoserNet
+    from posernet.refine import refine_graphs
 
     rows = []
     for name, ckpt in models.items():
@@ -470,7 +471,7 @@ def guard_report(models: dict[str, str], sets: dict[str, Sequence[ViewGraph]],
 def random_graphs(n: int = 60, seed: int = 0) -> list[ViewGraph]:
     """Out-of-distribution graphs (random boxes and cameras, 10 deg initial noise, as in the
     test suite's authors'-schema files)."""
-    from ..testing import random_view_graph
+    from posernet.testing import random_view_graph
 
     gen = torch.Generator().manual_seed(seed)
     out = []
@@ -491,12 +492,12 @@ def paper_tables(ckpt: str | Path, data: str | Path, out: str | Path, label: str
     put the new rows under the existing table, whose rows (paper, paper-faithful model) are
     kept verbatim.
     """
-    from ..data.inputs import load_input_graphs
-    from ..evaluation import evaluate_result, result_tables
-    from ..nn import PoserNet
-    from ..refine import refine_graphs
-    from ..report import ABSOLUTE_GROUPS, ResultTable, TableRow
-    from ..sync import get_backend
+    from posernet.data.inputs import load_input_graphs
+    from posernet.evaluation import evaluate_result, result_tables
+    from posernet.nn import PoserNet
+    from posernet.refine import refine_graphs
+    from posernet.report import ABSOLUTE_GROUPS, ResultTable, TableRow
+    from posernet.sync import get_backend
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -545,7 +546,7 @@ def paper_tables(ckpt: str | Path, data: str | Path, out: str | Path, label: str
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m posernet.experiments.adaptive",
+    p = argparse.ArgumentParser(prog="python research/adaptive.py",
                                 description=__doc__.split("\n\n")[0])
     p.add_argument("--data", action="append", required=True,
                    help="dataset root (posernet-make-data output); repeat it to evaluate the "
@@ -589,16 +590,16 @@ def _run(p: argparse.ArgumentParser, a: argparse.Namespace) -> int:
             p.error(f"--model must be NAME=CHECKPOINT, got {spec!r}")
         name, path = spec.split("=", 1)
         if path == "shipped":
-            from ..checkpoints import default_checkpoint
+            from posernet.checkpoints import default_checkpoint
 
             path = str(default_checkpoint())
         models[name] = path
-    from ..checkpoints import read_checkpoint
+    from posernet.checkpoints import read_checkpoint
 
     for path in models.values():  # every checkpoint readable before any output
         read_checkpoint(path)
     if a.guard:
-        from ..data.inputs import load_input_graphs
+        from posernet.data.inputs import load_input_graphs
 
         sets: dict[str, Sequence[ViewGraph]] = {}
         for spec in [f"{Path(a.data[0]).name}={a.data[0]}", *(a.guard_set or [])]:
