@@ -10,8 +10,9 @@ module.
 confidence head, cycle-consistency feature) trained on the *synthetic* ``paper`` preset with a
 mixture of initial-pose qualities, then fine-tuned with the relative do-no-harm hinge
 (``loss.harm``, ``loss.harm_scale``), then on the ``paper`` preset plus generator variants
-(``research/conf/dataset/vary_*.yaml`` in the source tree: three, nine, then twelve) -- not on 7-Scenes. It exists so
-that ``posernet-refine`` and ``make demo`` work out of the box; train your own for real data.
+(``research/conf/dataset/vary_*.yaml`` in the source tree: three, nine, then twelve) -- not
+on 7-Scenes. It exists so that ``posernet-refine`` and ``make demo`` work out of the box; train
+your own for real data.
 ``posernet_synthetic_kp_v1.ckpt`` is the checkpoint shipped before it (residual PoserNet trained
 on KP input only, which regresses every input towards its error floor). ``docs/model-card.md``
 gives the commands that reproduce both.
