@@ -7,8 +7,10 @@
    ``relpose``, the demo's ``images``) against a small schema: type, range or choices, and that
    a required value (``???``) was given. Groups backed by a dataclass or a constructor
    (``bundle``, ``verify``, ``pairs``, ``relpose``, ``box_matching``, ``model.net``) take their
-   keys and types from it (:func:`typed`), so the schema cannot drift from the code; the
-   ranges are written here;
+   keys and types from it (:func:`typed`), and groups Hydra builds from a ``_target_``
+   (``sync``, ``matcher``, ``proposals``, ``data``) from that target's arguments or options
+   dataclass (:func:`targeted`), so the schema cannot drift from the code; only the ranges
+   and choices are written here;
 2. what a group's own constructor checks across fields (the sync backend: its scale policy,
    gtsam installed; the demo's synthetic dataset options), by building it early;
 3. the machine: ``device=cuda`` (``trainer.accelerator=gpu``) needs CUDA;
@@ -153,8 +155,8 @@ def typed(owner: Any, prefix: str = "", **specific: Rule) -> dict[str, Rule]:
         names = [f.name for f in dataclasses.fields(owner)]
         hints = typing.get_type_hints(owner)
     else:
-        names = [n for n in inspect.signature(owner).parameters if n != "self"]
-        hints = typing.get_type_hints(owner.__init__)
+        names = _parameters(owner)
+        hints = typing.get_type_hints(owner if inspect.isfunction(owner) else owner.__init__)
     out: dict[str, Rule] = {}
     for name in names:
         if name in specific:
@@ -173,6 +175,56 @@ def typed(owner: Any, prefix: str = "", **specific: Rule) -> dict[str, Rule]:
         raise TypeError(f"typed({getattr(owner, '__name__', owner)}): no such argument(s) "
                         f"{sorted(unknown)}")
     return out
+
+
+def _parameters(owner: Any) -> list[str]:
+    """Named arguments of a function or a class's constructor (not ``self``, ``*a``, ``**k``)."""
+    import inspect
+
+    return [n for n, p in inspect.signature(owner).parameters.items()
+            if n != "self" and p.kind not in (p.VAR_POSITIONAL, p.VAR_KEYWORD)]
+
+
+def _takes_any_keyword(owner: Any) -> bool:
+    import inspect
+
+    return any(p.kind == p.VAR_KEYWORD for p in inspect.signature(owner).parameters.values())
+
+
+def targeted(group: str, ranges: Schema) -> Callable[[Any], Schema]:
+    """Schema of a group that Hydra builds from its ``_target_`` (sync backends, matchers,
+    proposals, the datamodule): a rule for every argument of that target (:func:`typed`, so
+    the keys and types follow the code), the ranges and choices of ``ranges`` where they
+    apply (every one for a target taking ``**kwargs``), and ``_target_`` / ``name`` (a label).
+    A target with an ``Options`` dataclass (the sync backends) is checked against its fields.
+    Without a target it can import, the group gets ``ranges`` as they are (building it then
+    reports the bad target)."""
+
+    def schema(cfg: Any) -> Schema:
+        from hydra.utils import get_object
+
+        target = None if cfg is None else _value(cfg, f"{group}._target_")
+        try:
+            owner = get_object(target) if isinstance(target, str) else None
+        except Exception:  # a bad target: instantiating it says so
+            owner = None
+        base: Schema = {"_target_": text(), "name": text()}
+        if owner is None:
+            return {**base, **ranges}
+        import dataclasses
+
+        options = getattr(owner, "Options", None)  # a sync backend's options dataclass
+        if dataclasses.is_dataclass(options):
+            owner = options
+        names = ({f.name for f in dataclasses.fields(owner)} if dataclasses.is_dataclass(owner)
+                 else set(_parameters(owner)))
+        extra = ({k: r for k, r in ranges.items() if k not in names}
+                 if not dataclasses.is_dataclass(owner) and _takes_any_keyword(owner) else {})
+        return {**base, **extra, **typed(owner, **{k: r for k, r in ranges.items()
+                                                     if k in names})}
+
+    schema.ranges = ranges  # type: ignore[attr-defined]
+    return schema
 
 
 DEVICE = Rule("one of cpu, cuda, cuda:N, auto",
@@ -215,15 +267,16 @@ MODEL_TRAINING: Schema = {
     "scheduler.factor": number(0, 1, lo_open=True, hi_open=True), "scheduler.min_lr": number(0),
 }
 
-DATA: Schema = {
+#: ``data``: the datamodule's arguments (:func:`targeted`), with these ranges and choices
+DATA = targeted("data", {
     "root": paths(), "estimate": ESTIMATE, "size": SIZE, "batch_size": integer(1),
     "eval_batch_size": integer(1, null=True), "num_workers": integer(0),
-    "leave_out_scene": text(null=True), "test_size": choice("small", "large", null=True),
-    "val_size": choice("small", "large", null=True), "shuffle": boolean(), "seed": SEED,
+    "test_size": choice("small", "large", null=True),
+    "val_size": choice("small", "large", null=True), "seed": SEED,
     "init_mix": Rule("a mapping of initial-pose sources (kp, bb, gt, recorrupt) to "
                      "weights >= 0, not all 0", lambda v: _mixture_ok(v), True),
     "gt_noise_deg": number(0), "recorrupt_deg": number(0), "mix_edge_fraction": number(0, 1),
-}
+})
 
 
 def _mixture_ok(v: Any) -> bool:
@@ -261,29 +314,30 @@ TRAINER: Schema = {
     "default_root_dir": path(null=True),
 }
 
-#: options of every motion-averaging backend (posernet/conf/sync/*.yaml); cross-field rules (the
-#: scale policies a backend supports, p_min <= p_max) are the backend's own, checked by building it
-SYNC: Schema = {
-    "_target_": text(), "name": text(), "scale": choice("unit", "given", "oracle", "free"),
-    "disconnected": choice("components", "error"), "robust": boolean(),
+#: ``sync``: the backend's arguments (:func:`targeted`), with these ranges and choices;
+#: cross-field rules (the scale policies a backend supports, p_min <= p_max) are the backend's
+#: own, checked by building it
+SYNC = targeted("sync", {
+    "scale": choice("unit", "given", "oracle", "free"),
+    "disconnected": choice("components", "error"),
     "max_iters": integer(1), "tol": positive(), "theta": positive(),
     "solver": choice("auto", "dense", "krylov"), "dense_max_nodes": integer(1),
     "krylov_tol": positive(), "krylov_max_cycles": integer(1), "seed": integer(),
     "refine_iters": integer(0), "translation_iters": integer(1),
     "weight_mode": choice("start", "prior"), "translation": choice("bata", "lud", "linear"),
-    "triangle_weights": boolean(), "linear_fallback": boolean(),
     "max_rotation_residual_deg": number(0, null=True),
     "max_direction_residual_deg": number(0, null=True), "outlier_mad": positive(),
     "rotation_sigma": positive(), "direction_sigma": positive(), "p_min": integer(3),
-    "p_max": integer(3), "huber": boolean(), "lm_tol": positive(), "max_iterations": integer(1),
+    "p_max": integer(3), "lm_tol": positive(), "max_iterations": integer(1),
     "ckpt_path": path(), "device": DEVICE,  # the learned backend's
-}
+})
 
-PROPOSALS: Schema = {
+#: ``proposals``: the proposal source's arguments (:func:`targeted`), with these ranges
+PROPOSALS = targeted("proposals", {
     "path": path(), "top_k": integer(1, null=True),
     "max_area": number(0, 1, lo_open=True, null=True), "min_size": number(0),
     "strategy": choice("single", "fast", "quality"), "resize": integer(32, null=True),
-}
+})
 
 
 def _pairs(cfg: Any) -> Schema:
@@ -301,13 +355,13 @@ def _pairs(cfg: Any) -> Schema:
                   sample=integer(1),
                   seed=SEED, repair_links=integer(0))}
 
-MATCHER: Schema = {
+#: ``matcher``: the matcher's arguments (:func:`targeted`), with these ranges and choices
+MATCHER = targeted("matcher", {
     "name": choice("auto", "sift", "xfeat", "xfeat+lighterglue"),
-    "max_features": integer(1), "ratio": number(0, 1, lo_open=True), "mutual": boolean(),
-    "rootsift": boolean(), "contrast_threshold": number(0, 1), "min_features": integer(0),
-    "top_k": integer(1),
-    "lighterglue": boolean(), "min_cossim": number(-1, 1), "device": DEVICE,
-}
+    "max_features": integer(1), "ratio": number(0, 1, lo_open=True),
+    "contrast_threshold": number(0, 1), "min_features": integer(0), "top_k": integer(1),
+    "min_cossim": number(-1, 1), "device": DEVICE,
+})
 
 
 def _box_matching(cfg: Any) -> Schema:
