@@ -38,6 +38,7 @@ from tqdm.auto import tqdm
 from posernet.io import atomic_path, atomic_write_json, atomic_write_text
 
 from ..frontend.proposals import BOXES_FORMAT, BOXES_VERSION
+from .degrade import Degradation
 from .synthetic.camera import cuboid_corners, look_at
 from .synthetic.scenes import FURNITURE, OBJECT, SCENE_PRESETS, STEP, Scene, build_scene
 from .synthetic.seeding import make_rng
@@ -669,6 +670,7 @@ def render_sevenscenes(
     name: str | None = None,
     supersample: int = 1,
     min_visible_px: int | None = None,
+    degrade: Degradation | None = None,
 ) -> Path:
     """Render one scene into ``ROOT/<scene>`` in the 7-Scenes layout; returns the scene folder.
 
@@ -676,7 +678,10 @@ def render_sevenscenes(
     the same ``seed``); ``name`` renames the folder. Train sequences are numbered first
     (``seq-01`` ...), then test ones. Boxes in ``objects.json`` cover every cuboid with at least
     ``min_visible_px`` visible pixels (default: 200 at 640x480, scaled with the image area).
-    Same arguments give byte-identical files.
+    ``degrade``: camera degradations (:class:`~posernet.data.degrade.Degradation`: an
+    uncorrected lens per scene; exposure, vignetting, blur, noise and JPEG per frame) applied
+    to each frame, depth and boxes warped with the pixels; what was drawn goes to
+    ``render.json``. Same arguments give byte-identical files.
     """
     if scene not in SCENE_PRESETS:
         raise ValueError(f"unknown scene {scene!r}; choose from {sorted(SCENE_PRESETS)}")
@@ -707,6 +712,8 @@ def render_sevenscenes(
 
     geometry = build_scene(scene, make_rng(seed, scene, "layout"))
     renderer = Renderer(geometry, seed, width, height, float(focal), supersample)
+    lens = None if degrade is None else degrade.draw_lens(make_rng(seed, scene, "lens"))
+    drawn: dict[str, dict[str, float]] = {}
     splits = ["train"] * train_sequences + ["test"] * test_sequences
     images: dict[str, dict[str, list]] = {}
     sequences: dict[str, dict[str, object]] = {}
@@ -719,12 +726,18 @@ def render_sevenscenes(
         w2c = make_trajectory(geometry, frames_per_sequence, make_rng(seed, scene, "render", n))
         for k in range(frames_per_sequence):
             view = renderer.render(w2c[k])
+            rgb, depth, object_id = view.rgb, view.depth, view.object_id
+            if degrade is not None and lens is not None:
+                rgb, depth, object_id, rec = degrade.apply(
+                    rgb, depth, object_id, renderer.K, lens, make_rng(seed, scene, "degrade",
+                                                                       n, k))
+                drawn[f"{seq}/frame-{k:06d}"] = rec
             stem = folder / seq / f"frame-{k:06d}"
-            _write_png(stem.with_name(stem.name + ".color.png"), view.rgb[..., ::-1])
-            _write_png(stem.with_name(stem.name + ".depth.png"), _depth_mm(view.depth))
+            _write_png(stem.with_name(stem.name + ".color.png"), rgb[..., ::-1])
+            _write_png(stem.with_name(stem.name + ".depth.png"), _depth_mm(depth))
             pose = _pose_text(_invert_rigid(w2c[k]))
             atomic_write_text(stem.with_name(stem.name + ".pose.txt"), pose)
-            boxes, oids = _boxes(view.object_id, min_visible_px)
+            boxes, oids = _boxes(object_id, min_visible_px)
             images[f"{seq}/frame-{k:06d}.color.png"] = {
                 "boxes": boxes,
                 "scores": [1.0] * len(boxes),
@@ -759,6 +772,8 @@ def render_sevenscenes(
         "min_visible_px": int(min_visible_px),
         "pose": "camera-to-world",
     }
+    if degrade is not None:  # the intrinsics above stay the pinhole's: the lens is uncorrected
+        info["degradation"] = {"ranges": degrade.to_dict(), "k1": lens, "frames": drawn}
     atomic_write_json(folder / "render.json", info)
     return folder
 
