@@ -175,9 +175,10 @@ def lever_row(name: str, m: dict[str, Any]) -> dict[str, Any]:
 
 
 def absolute_rows(model: torch.nn.Module, graphs: Sequence[ViewGraph],
-                  has_conf: bool) -> list[dict[str, Any]]:
-    """KP input averaged with EIG-SE3 and rotation_translation: uniform vs confidence-weighted
-    IRLS start (modes ``start`` and ``prior``) and the guard; median absolute errors."""
+                  has_conf: bool, label_in: str = "KP") -> list[dict[str, Any]]:
+    """One input (``label_in``: KP or BB) averaged with EIG-SE3 and rotation_translation:
+    uniform vs confidence-weighted IRLS start (modes ``start`` and ``prior``) and the guard;
+    median absolute errors."""
     from posernet.evaluation import evaluate_result
     from posernet.refine import refine_graphs
     from posernet.sync import get_backend
@@ -198,8 +199,8 @@ def absolute_rows(model: torch.nn.Module, graphs: Sequence[ViewGraph],
                 if stage == "initial" and (guard or label == "confidence (start)"):
                     continue  # the guard does not change the input; one weighted input row
                 a = ev["absolute"][stage]
-                rows.append({"backend": bname, "poses": "KP" if stage == "initial"
-                             else "KP + PoserNet", "weights": label,
+                rows.append({"backend": bname, "poses": label_in if stage == "initial"
+                             else f"{label_in} + PoserNet", "weights": label,
                              "rot_median_deg": a["rot"].median,
                              "pos_median": a["trans"].median})
     return rows
@@ -391,7 +392,9 @@ def evaluate_models(models: dict[str, str], data: str | Path | Sequence[str | Pa
             lever_rows.append(lever_row(f"{name} + guard", {"per_graph": m["guard_per_graph"],
                                                            "bins": m["guard_bins"]}))
         if absolute:
-            rows = absolute_rows(model, inputs["KP"], bool(getattr(model, "confidence", False)))
+            conf = bool(getattr(model, "confidence", False))
+            rows = [*absolute_rows(model, inputs["KP"], conf, "KP"),
+                    *absolute_rows(model, inputs["BB"], conf, "BB")]
             abs_rows += [{"model": name, **r} for r in rows]
             m["absolute"] = rows
         summary["models"][name] = m
@@ -415,7 +418,7 @@ def evaluate_models(models: dict[str, str], data: str | Path | Sequence[str | Pa
                     f"3 deg from 3-10 deg ones: {title}")
     if abs_rows:
         write_table(out, "absolute", abs_rows,
-                    f"Absolute poses after motion averaging, KP input (median rotation deg, "
+                    f"Absolute poses after motion averaging, KP and BB input (median rotation deg, "
                     f"median position, similarity-aligned, unit-norm translations): {title}")
     plot_binned(curves, out / "refined_vs_initial.png")
     atomic_write_json(out / "summary.json", _finite(summary))
