@@ -42,6 +42,8 @@ def main() -> int:
     ap.add_argument("--min-boxes", type=int, default=5,
                     help="box_matching.min_boxes: matched boxes an edge needs")
     ap.add_argument("--graph-size", type=int, default=8)
+    ap.add_argument("--edge-rule", default="boxes", choices=["boxes", "verified"],
+                    help="sevenscenes.edge_rule: the paper's (boxes) or posernet-reconstruct's")
     ap.add_argument("--tag", default="", help="suffix of the data folders")
     args = ap.parse_args()
     out = Path(args.out)
@@ -63,6 +65,7 @@ def main() -> int:
                f"intrinsics={focal},{focal},{width / 2},{height / 2}", "frame_step=1",
                "matcher=sift", f"box_matching.min_boxes={args.min_boxes}",
                f"sevenscenes.small.graph_size={args.graph_size}",
+               f"sevenscenes.edge_rule={args.edge_rule}",
                f"sevenscenes.locality={args.locality}", f"sevenscenes.small.train={args.train}",
                f"sevenscenes.small.val={args.val}", f"sevenscenes.small.test={args.test}",
                "sevenscenes.large.train=0", "sevenscenes.large.test=0",

@@ -79,6 +79,34 @@ def one_line_error(capsys) -> str:
 
 
 @pytest.mark.slow
+def test_verified_edges_make_graphs_shaped_like_the_reconstructions(scenes_root: Path,
+                                                                   tmp_path: Path) -> None:
+    """``sevenscenes.edge_rule=verified``: every verified pair is an edge (as in
+    posernet-reconstruct), also those with fewer matched boxes than the paper's rule asks."""
+    import torch
+
+    from posernet.data.store import open_split
+
+    counts = {}
+    for rule in ("boxes", "verified"):
+        out = tmp_path / rule
+        # a rule no pair of this scene meets: only verified edges can make graphs
+        code, _, stderr = finish(cli(f"root={scenes_root}", f"out_dir={out}", "progress=false",
+                                     f"sevenscenes.edge_rule={rule}",
+                                     "box_matching.min_boxes=40", *ARGS))
+        if rule == "boxes":
+            assert code == 1 and "could not grow a connected" in stderr
+            continue
+        assert code == 0, stderr
+        graphs = open_split(out, "small", "train") + open_split(out, "small", "test")
+        counts[rule] = torch.cat([torch.bincount(g.pair_edge, minlength=g.num_edges)
+                                  for g in graphs])
+        assert json.loads((out / "manifest.json").read_text())["config"][
+            "edge_rule"] == rule
+    assert 0 < counts["verified"].max() < 40
+
+
+@pytest.mark.slow
 def test_cli_builds_loads_resumes_and_refuses_another_config(scenes_root: Path, tmp_path: Path):
     from posernet.data.posernet_json import load_posernet_json
     from posernet.data.store import open_split
@@ -253,6 +281,7 @@ def test_pools_subsample_split_and_cap(scenes_root):
         ({"scenes": []}, "sevenscenes.scenes"),
         ({"bogus": 1}, "bogus"),
         ({"root": None}, "root=DIR"),
+        ({"edge_rule": "all"}, "sevenscenes.edge_rule"),
     ],
 )
 def test_bad_options_name_the_field(patch, field):

@@ -109,6 +109,9 @@ class SevenScenesOptions:
         default_factory=lambda: GraphCounts(graph_size=125, train=1, val=0, test=1,
                                             scenes=list(LARGE_SCENES)))
     kp_top_pairs: int = 0  # KP input from the N box pairs sharing most matches (0: all)
+    # "boxes" (the paper's: an edge needs box_matching.min_boxes matched boxes) or "verified"
+    # (posernet-reconstruct's: every pair with verified two-view geometry, boxes or not)
+    edge_rule: str = "boxes"
     max_tries_per_node: int = 100  # rejected candidates in a row before a restart
     restarts: int = 10  # attempts at one small graph before giving up
     workers: int = 1  # threads for per-image stages (read, proposals, features)
@@ -195,6 +198,8 @@ def sevenscenes_options(options: SevenScenesOptions | Mapping[str, Any]) -> Seve
     _float("locality", o.locality, 0.0, 1.0)
     _int("window", o.window, 0)
     _int("kp_top_pairs", o.kp_top_pairs, 0)
+    if o.edge_rule not in ("boxes", "verified"):
+        _fail("edge_rule", f"must be 'boxes' or 'verified', got {o.edge_rule!r}")
     _int("max_tries_per_node", o.max_tries_per_node, 1)
     _int("restarts", o.restarts, 1)
     _int("workers", o.workers, 1)
@@ -335,6 +340,7 @@ def make_frontend(pools: ScenePools, parts: Mapping[str, Any], seed: int, opts: 
     return ImageFrontend(pools.records, parts["proposals"], parts["matcher"],
                          rules=parts["box_matching"], pose=parts["relpose"],
                          kp_top_pairs=opts.kp_top_pairs, seed=seed, workers=opts.workers,
+                         edge_rule=opts.edge_rule,
                          keep_matches=False)  # thousands of pairs: keep only their results
 
 
