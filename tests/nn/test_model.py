@@ -403,6 +403,35 @@ def test_adaptive_shipped_checkpoint_gives_the_recorded_output(tiny_graph: ViewG
                                    atol=1e-6, rtol=0)
 
 
+FRONTEND_SHIPPED = ROOT / "src" / "posernet" / "checkpoints" / "posernet_frontend_kp.ckpt"
+
+
+def test_frontend_checkpoint_gives_the_recorded_output_and_covers_ordinary_cameras(
+        tiny_graph: ViewGraph) -> None:
+    """The refiner ``posernet-reconstruct`` uses: the adaptive network fine-tuned on front-end
+    graphs of rendered, degraded photos. Its guard statistics cover the cameras of ordinary
+    photos (640-1024 px wide, focal 486-1142 px, few matched boxes per edge, dense graphs)."""
+    from posernet.guard import FEATURES
+
+    model = PoserNet.from_checkpoint(FRONTEND_SHIPPED)
+    assert model.gate and model.confidence and model.depth == 3
+    with torch.no_grad():
+        out = model(tiny_graph).double()
+    weights = torch.arange(1, 22, dtype=torch.float64).view(3, 7)
+    got = (float(out.sum()), float(out.abs().sum()), float((out * weights).sum()))
+    assert got == pytest.approx((1.3125537503510714, 7.934179585427046, 1.582710174843669),
+                                abs=1e-5)
+    ckpt = torch.load(FRONTEND_SHIPPED, map_location="cpu", weights_only=True)
+    assert "optimizer_states" not in ckpt
+    stats = ckpt["posernet"]["input_stats"]
+    lo, hi = (dict(zip(FEATURES, stats[k], strict=True)) for k in ("lo", "hi"))
+    width = lambda v: (v + 1.0) * 640  # noqa: E731 - the stored node features are normalised
+    assert width(lo["node_width"]) <= 640 and width(hi["node_width"]) >= 1024
+    assert lo["pairs_per_edge"] < 3 and hi["edges_per_node"] >= 7
+    roots = [Path(r).name for r in ckpt["datamodule_hyper_parameters"]["root"]]
+    assert "sim" in roots and sum(r.endswith("_v3") for r in roots) == 6
+
+
 @pytest.mark.parametrize("key", sorted(RESULTS_OUTPUT))
 def test_committed_models_give_the_recorded_output(key: str, tiny_graph: ViewGraph) -> None:
     path = ROOT / "results" / "paper" / "models" / key / "checkpoints" / "best.ckpt"
