@@ -134,6 +134,11 @@ BAD = [
      "sync.triangle_weights: 3 is not true or false"),
     ("reconstruct", "matcher=sift matcher.mutual=often", "matcher.mutual: 'often' is not true"),
     ("train", "data.shuffle=sometimes", "data.shuffle: 'sometimes' is not true or false"),
+    # a value where a group of options belongs
+    ("reconstruct", "pairs=exhaustive",
+     r"pairs: 'exhaustive' is not a group of options; did you mean pairs.mode=exhaustive\?"),
+    ("reconstruct", "bundle=3", r"bundle: 3 is not a group of options; set its options as "
+                                r"bundle.<option>=..."),
 ]
 
 

@@ -664,9 +664,17 @@ def check_config(cfg: Any, command: str) -> None:
     for group, schema in spec.groups.items():
         if spec.when and group in spec.when and not spec.when[group](cfg):
             continue
-        if _value(cfg, group) in (_ABSENT, None):
+        value = _value(cfg, group)
+        if value is _ABSENT or value is None:
             continue
-        _check_schema(cfg, schema(cfg) if callable(schema) else schema, group + ".")
+        rules = schema(cfg) if callable(schema) else schema
+        if not isinstance(value, dict):  # e.g. pairs=exhaustive for pairs.mode=exhaustive
+            fits = [k for k, r in rules.items() if not k.startswith("_") and r.ok(value)
+                    and r.expected.startswith("one of")]
+            hint = (f"did you mean {group}.{fits[0]}={value}?" if fits
+                    else f"set its options as {group}.<option>=...")
+            raise ConfigValueError(f"{group}: {value!r} is not a group of options; {hint}")
+        _check_schema(cfg, rules, group + ".")
         _check_required(cfg, group)
     _check_schema(cfg, spec.keys)
     for check in spec.checks:
