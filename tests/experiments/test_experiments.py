@@ -432,6 +432,9 @@ def test_bad_data_or_jobs_are_clear_errors(tmp_path: Path) -> None:
         run_experiments("quick", tmp_path, data=tmp_path / "nope", echo=None)
     with pytest.raises(ValueError, match="jobs must be an integer >= 1"):
         run_experiments("quick", tmp_path, jobs=0, echo=None)
+    (tmp_path / "file").write_text("x")
+    with pytest.raises(ValueError, match="--out .*file/out: cannot create the folder"):
+        run_experiments("quick", tmp_path / "file" / "out", echo=None)
     assert main(["--out", str(tmp_path), "--data", str(tmp_path / "nope")]) == 1
 
 

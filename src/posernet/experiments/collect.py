@@ -561,7 +561,10 @@ def run_experiments(scale: str | Scale, out: str | Path, only: str | Sequence[st
     _quiet()
     say = echo or (lambda _msg: None)
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise ValueError(f"--out {out}: cannot create the folder ({exc.strerror})") from None
     ctx = Context(scale, out, device=device, data_root=None if data is None else Path(data),
                   threads=num_threads)
     t_all = time.perf_counter()
