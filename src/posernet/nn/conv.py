@@ -113,7 +113,7 @@ POSE_DIM = 7
 class PoserConvOutput(NamedTuple):
     """Result of one :class:`PoserConv` round.
 
-    ``x [N, node_out]`` new node states (``None`` when the layer does not update nodes),
+    ``x [N, out_channels]`` new node states (``None`` when the layer does not update nodes),
     ``edge_pose [E, 7]`` new pose of every stored direction ``i -> j``,
     ``edge_state [E, 2, edge_dim]`` hidden state of the forward (index 0) and backward (index 1)
     direction, or ``None`` when ``edge_dim == 0`` or the layer does not update it.
