@@ -372,3 +372,31 @@ def test_out_dir_with_other_files_or_an_interrupted_run(scene, tmp_path):
     (other / "matches_9.png").write_bytes(b"old")
     r = _run(*args, f"out_dir={other}", "overwrite=true")
     assert r.returncode == 0 and not (other / "matches_9.png").exists()
+
+
+@pytest.mark.slow
+def test_front_end_refiner_guard_quiet_on_an_ordinary_camera_warns_on_a_long_lens(tmp_path):
+    """``refine=true`` uses the front-end checkpoint, whose guard statistics describe the
+    front end's graphs of ordinary cameras: degraded 640x480 photos at f = 585 px pass without
+    a word; the same photos declared as taken with a 4x longer lens get one warning naming
+    the focal length."""
+    from posernet.data.degrade import Degradation
+
+    folder = render_sevenscenes(tmp_path / "render", "office", seed=5, train_sequences=0,
+                                test_sequences=1, frames_per_sequence=10, progress=False,
+                                degrade=Degradation())
+    imgs = tmp_path / "photos"
+    imgs.mkdir()
+    for p in sorted((folder / "seq-01").glob("*.color.png")):
+        shutil.copy(p, imgs / p.name.replace(".color", ""))
+    ordinary = _run(f"images={imgs}", "intrinsics=585,585,320,240", "refine=true",
+                    "pictures=0", f"out_dir={tmp_path / 'a'}")
+    assert ordinary.returncode == 0, ordinary.stderr
+    assert "WARNING" not in ordinary.stderr
+    record = json.loads((tmp_path / "a" / "poses.json").read_text())
+    assert record["stage"] == "refined+ba" and not record["input_check"]["warning"]
+    long_lens = _run(f"images={imgs}", "intrinsics=2340,2340,320,240", "refine=true",
+                     "pictures=0", f"out_dir={tmp_path / 'b'}")
+    assert long_lens.returncode == 0, long_lens.stderr
+    (warning,) = [ln for ln in long_lens.stderr.splitlines() if "WARNING" in ln]
+    assert "node_focal median 2340 outside the training range" in warning
