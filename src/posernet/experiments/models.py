@@ -232,21 +232,22 @@ class Multirun:
     subdir: str  # hydra.sweep.subdir, with ${...} for the swept value and the seed
     keys: tuple[str, ...]  # the model folders it writes (for messages)
 
+    @property
+    def jobs(self) -> int:
+        """Models this multirun trains: seeds x swept values."""
+        return len(self.seeds) * (len(self.swept[1]) if self.swept else 1)
+
     def argv(self, models: Path, launcher: Sequence[str] = ()) -> list[str]:
         """The Hydra command-line arguments (after ``posernet-train``)."""
         from ..conf import quote_value
 
-        swept = ([f"{self.swept[0]}={','.join(_value(v) for v in self.swept[1])}"]
+        swept = ([f"{self.swept[0]}={','.join(str(v) for v in self.swept[1])}"]
                  if self.swept else [])
         return ["-m", f"+experiment={self.experiment}", *self.overrides, *swept,
                 f"seed={','.join(str(s) for s in self.seeds)}",
                 f"hydra.sweep.dir={quote_value(models.resolve())}",
                 f"hydra.sweep.subdir='{self.subdir}'",  # keeps its ${...}: not quote_value
                 "~hydra.callbacks.sweep_summary", *launcher]
-
-
-def _value(v: Any) -> str:
-    return str(v)
 
 
 def _common_overrides(scale: Scale, spec: ModelSpec, data_root: Path, device: str,
@@ -295,7 +296,7 @@ def multirun_commands(scale: Scale, jobs: Sequence[Job], models: Path, data_root
         for value, seeds in g["values"].items():
             by_seeds.setdefault(tuple(sorted(seeds)), []).append(value)
         for seeds, values in by_seeds.items():
-            overrides = [f"{k}={_value(v)}" for k, v in g["fixed"].items()]
+            overrides = [f"{k}={v}" for k, v in g["fixed"].items()]
             overrides += _common_overrides(scale, g["spec"], data_root, device, threads)
             field, key = g["field"], g["key"]
             template = base.key
@@ -351,7 +352,7 @@ def train_models(runs: Sequence[Multirun], models: Path, launcher: Sequence[str]
     log_dir = log_dir or models / "logs"
     log_dir.mkdir(parents=True, exist_ok=True)
     say = echo or (lambda _msg: None)
-    total = sum(len(r.seeds) * (len(r.swept[1]) if r.swept else 1) for r in runs)
+    total = sum(r.jobs for r in runs)
     with tqdm(total=total, desc="train: models", unit="model") as bar:
         for n, run in enumerate(runs):
             argv = [sys.executable, "-m", "posernet.cli.train", *run.argv(models, launcher)]
@@ -365,4 +366,4 @@ def train_models(runs: Sequence[Multirun], models: Path, launcher: Sequence[str]
                 tail = log.read_text(encoding="utf-8", errors="replace").splitlines()[-15:]
                 raise RuntimeError(f"training multirun {run.experiment} failed (exit {rc}); "
                                    f"log {log}:\n" + "\n".join(tail))
-            bar.update(len(run.seeds) * (len(run.swept[1]) if run.swept else 1))
+            bar.update(run.jobs)
