@@ -134,6 +134,27 @@ def _on_sigint(signum: int, frame: Any) -> None:
     raise KeyboardInterrupt
 
 
+_final_collection_skipped = False
+
+
+def _skip_final_collection() -> None:
+    """At interpreter exit, move every object into the garbage collector's permanent
+    generation (``gc.freeze``), so that Python's final cyclic collections skip them. Those
+    collections walk every object torch, OpenCV, SciPy and Hydra created and cost 0.3-0.45 s
+    of a few-second command, when everything is written and closed and the operating system
+    frees the memory anyway. Exit handlers still run (logging's flush, temporary folders) and
+    objects still go by reference counting; only reference cycles are left to the operating
+    system. Registered with ``atexit``, so it acts only when the process ends, never in a
+    caller's process that keeps running (a test calling ``main``)."""
+    global _final_collection_skipped
+    if not _final_collection_skipped:
+        import atexit
+        import gc
+
+        atexit.register(gc.freeze)
+        _final_collection_skipped = True
+
+
 def run_app(prog: str, config_name: str, app: Callable[[], Any], *,
             list_args: tuple[str, ...] = (),
             direct: Callable[[Any], Any] | None = None) -> None:
@@ -146,6 +167,7 @@ def run_app(prog: str, config_name: str, app: Callable[[], Any], *,
     compose it twice more (about 0.3 s of a few-second run)."""
     if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
         signal.signal(signal.SIGINT, _on_sigint)
+    _skip_final_collection()
     if any(a in ("--help", "-h") for a in sys.argv[1:]):
         from . import CONFIG_DIR
         from .help import command_help
