@@ -125,6 +125,29 @@ def test_sift_ratio_and_mutual_checks(pair):
     assert pair_set(default) <= pair_set(one_way) and len(default) < len(one_way)
 
 
+@pytest.mark.parametrize(("k", "l", "block"), [(1, 1, 8), (1, 6, 8), (6, 1, 8), (40, 30, 7),
+                                                (40, 30, 2048), (9, 50, 4)])
+def test_two_nearest_neighbours_match_brute_force(k, l, block):
+    """The blocked two-nearest-neighbour search against a dense argsort, both directions, with
+    duplicated descriptors so that ties occur: the smaller index wins a tie."""
+    import torch
+
+    rng = np.random.default_rng(k * 100 + l)
+    x = rng.integers(0, 3, (k, 4)).astype(np.float32)  # few values: many exact ties
+    y = rng.integers(0, 3, (l, 4)).astype(np.float32)
+    got = F._nn2(torch.from_numpy(x), torch.from_numpy(y), block=block)
+    d = ((x[:, None] - y[None]) ** 2).sum(-1)
+
+    def expect(d: np.ndarray) -> tuple[np.ndarray, ...]:
+        order = np.argsort(d, axis=1, kind="stable")  # stable: smaller index first on ties
+        v = np.take_along_axis(d, order, 1)
+        second = v[:, 1] if d.shape[1] > 1 else np.full(d.shape[0], np.inf)
+        return order[:, 0], v[:, 0], second
+
+    for g, e in zip(got, (*expect(d), *expect(d.T)), strict=True):
+        np.testing.assert_array_equal(g, e)
+
+
 def test_mutual_matching_is_symmetric(pair):
     m = SiftMatcher()
     fa, fb = m.extract(pair[0]), m.extract(pair[1])

@@ -197,44 +197,59 @@ def _number(value: Any, what: str, lo: float, hi: float) -> float:
 # SIFT
 
 
-def _nn2(x: torch.Tensor, y: torch.Tensor, block: int = 2048) -> tuple[torch.Tensor, ...]:
+def _two_smallest(d: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per row of the C-contiguous float32 ``d`` (R, C): the smallest value, its column (the
+    first on ties) and the second smallest (inf when C = 1). Row-wise numpy reductions: about
+    a third of the time of ``torch.topk(2)`` on a SIFT distance matrix. ``d`` is restored."""
+    rows = np.arange(d.shape[0])
+    i1 = d.argmin(1)
+    v1 = d[rows, i1]
+    d[rows, i1] = np.inf
+    v2 = d.min(1)
+    d[rows, i1] = v1
+    return v1, i1, v2
+
+
+def _nn2(x: torch.Tensor, y: torch.Tensor, block: int = 2048) -> tuple[np.ndarray, ...]:
     """Two nearest neighbours (squared L2) of each row of x in y, and of each row of y in x.
 
     Args:
         x: (K, D) float32; y: (L, D) float32, K, L >= 1.
     Returns:
         ``(i_xy, d1_xy, d2_xy, i_yx, d1_yx, d2_yx)``: nearest index (K,) / (L,) and the smallest
-        two squared distances (inf when there is no second neighbour). Computed in row blocks so
-        memory stays at ``block * L`` floats; each block serves both directions.
+        two squared distances (inf when there is no second neighbour). On ties the smaller
+        index wins. Computed in row blocks so memory stays at ``block * L`` floats; each block
+        serves both directions.
     """
     k, l_ = x.shape[0], y.shape[0]
     nx, ny = (x * x).sum(1), (y * y).sum(1)
-    i_xy = torch.empty(k, dtype=torch.long)
-    d_xy = torch.full((k, 2), float("inf"))
+    i_xy = np.empty(k, dtype=np.int64)
+    d1_xy, d2_xy = np.empty(k, np.float32), np.empty(k, np.float32)
     # per column of the distance matrix: best two so far over the row blocks
-    d_yx = torch.full((2, l_), float("inf"))
-    i_yx = torch.zeros((2, l_), dtype=torch.long)
+    d1_yx, d2_yx = np.full(l_, np.inf, np.float32), np.full(l_, np.inf, np.float32)
+    i_yx = np.zeros(l_, dtype=np.int64)
     for s in range(0, k, block):
         xb = x[s : s + block]
         # |x|^2 - 2 x.y in one fused BLAS call, then + |y|^2 in place (2x faster than
         # building the sum from temporaries)
         d = torch.addmm(nx[s : s + block, None], xb, y.T, alpha=-2.0)
         d.add_(ny[None, :]).clamp_min_(0.0)
-        v, i = d.topk(min(2, l_), dim=1, largest=False)
-        i_xy[s : s + block] = i[:, 0]
-        d_xy[s : s + block, : v.shape[1]] = v
-        v, i = d.topk(min(2, d.shape[0]), dim=0, largest=False)
-        v, i = torch.cat([d_yx, v]), torch.cat([i_yx, i + s])
-        # stable sort: on ties the earlier (smaller) row index wins, as in argmin
-        order = torch.sort(v, dim=0, stable=True).indices[:2]
-        d_yx, i_yx = v.gather(0, order), i.gather(0, order)
-    return i_xy, d_xy[:, 0], d_xy[:, 1], i_yx[0], d_yx[0], d_yx[1]
+        e = slice(s, s + d.shape[0])
+        d1_xy[e], i_xy[e], d2_xy[e] = _two_smallest(d.numpy())
+        # columns as rows of the transpose (torch copies it faster than numpy)
+        b1, bi, b2 = _two_smallest(d.T.contiguous().numpy())
+        # merge with the earlier blocks (their rows come first: they win ties)
+        new = b1 < d1_yx
+        d2_yx = np.where(new, np.minimum(d1_yx, b2), np.minimum(d2_yx, b1))
+        i_yx = np.where(new, bi + s, i_yx)
+        d1_yx = np.where(new, b1, d1_yx)
+    return i_xy, d1_xy, d2_xy, i_yx, d1_yx, d2_yx
 
 
-def _distance_ratio(d1: torch.Tensor, d2: torch.Tensor) -> np.ndarray:
+def _distance_ratio(d1: np.ndarray, d2: np.ndarray) -> np.ndarray:
     """Lowe's ratio from squared distances (N,): 0 without a second neighbour (d2 = inf), 1 for
     two equally near ones (d1 = d2 = 0: as ambiguous as it gets)."""
-    d1, d2 = d1.double().numpy(), d2.double().numpy()
+    d1, d2 = d1.astype(np.float64), d2.astype(np.float64)
     with np.errstate(divide="ignore", invalid="ignore"):
         return np.where(d2 > 0, np.sqrt(d1 / d2), 1.0)
 
@@ -324,7 +339,6 @@ class SiftMatcher:
         db = torch.from_numpy(np.ascontiguousarray(b.desc, dtype=np.float32))
         with torch.inference_mode():
             i_ab, d1_ab, d2_ab, i_ba, d1_ba, d2_ba = _nn2(da, db)
-        i_ab, i_ba = i_ab.numpy(), i_ba.numpy()
         r_ab = _distance_ratio(d1_ab, d2_ab)
         ratio = r_ab
         keep = r_ab < self.ratio
