@@ -395,10 +395,12 @@ def compile_bytecode() -> str:
 def posernet_command(s: ImageSet, m: Method, out: Path, threads: int) -> list[str]:
     exe = Path(sys.executable).parent / "posernet-reconstruct"
     base = [str(exe)] if exe.is_file() else [sys.executable, "-m", "posernet.cli.reconstruct"]
-    # gt_poses=none: the benchmark scores the poses itself; posernet need not evaluate them
+    # gt_poses=none: the benchmark scores the poses itself; posernet need not evaluate them.
+    # workers: the threads over images and pairs (COLMAP's num_threads); torch's own threads
+    # inside each worker stay at the default (num_threads=1)
     return [*base, f"images={s.images}", f"intrinsics={s.intrinsics}", f"out_dir={out}",
-            "progress=false", "pictures=0", "gt_poses=none", f"num_threads={threads}",
-            f"workers={threads}", *m.overrides]
+            "progress=false", "pictures=0", "gt_poses=none", f"workers={threads}",
+            *m.overrides]
 
 
 def read_posernet(out: Path) -> tuple[dict[str, np.ndarray], dict[str, int], dict[str, Any]]:
