@@ -2,8 +2,8 @@
 
 Not run by tests; kept so the conversions are reproducible. Raw inputs are expected under
 ``--raw`` (default /tmp/raw): ``dino/`` (Middlebury dinoSparseRing), ``hj/`` and
-``fountain/`` (Strecha Herz-Jesu-P25 / fountain-P11 images + ``.camera`` files as in
-openMVG/SfM_quality_evaluation), ``7s/`` (the 7-Scenes frames of andyzeng/tsdf-fusion-python
+``fountain/``, ``entry/`` (Strecha Herz-Jesu-P25 / fountain-P11 / entry-P10 images +
+``.camera`` files as in openMVG/SfM_quality_evaluation), ``7s/`` (the 7-Scenes frames of andyzeng/tsdf-fusion-python
 ``data/``), ``cab/`` (TUM fr3_cabinet key frames of
 benchun123/cuboid_slam_with_bbox_constraints ``data/``; built only on request: it fails the
 checks for lack of texture).
@@ -186,6 +186,8 @@ if __name__ == "__main__":
             build_strecha(a.raw, "hj", "strecha_herzjesu_p25")
         elif s == "fountain":
             build_strecha(a.raw, "fountain", "strecha_fountain_p11", n_keep=11)
+        elif s == "entry":
+            build_strecha(a.raw, "entry", "strecha_entry_p10", n_keep=10)
         elif s == "7scenes":
             build_7scenes(a.raw)
         elif s == "cabinet":
