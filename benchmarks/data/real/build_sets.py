@@ -3,8 +3,8 @@
 Not run by tests; kept so the conversions are reproducible. Raw inputs are expected under
 ``--raw`` (default /tmp/raw): ``dino/`` (Middlebury dinoSparseRing), ``hj/`` and
 ``fountain/``, ``entry/`` (Strecha Herz-Jesu-P25 / fountain-P11 / entry-P10 images +
-``.camera`` files as in openMVG/SfM_quality_evaluation), ``7s/`` (the 7-Scenes frames of andyzeng/tsdf-fusion-python
-``data/``), ``cab/`` (TUM fr3_cabinet key frames of
+``.camera`` files as in openMVG/SfM_quality_evaluation), ``7s/`` (the 7-Scenes frames of
+andyzeng/tsdf-fusion-python ``data/``), ``cab/`` (TUM fr3_cabinet key frames of
 benchun123/cuboid_slam_with_bbox_constraints ``data/``; built only on request: it fails the
 checks for lack of texture).
 

@@ -4,15 +4,15 @@ refined neighbours' two-edge paths."""
 import sys
 
 import torch
+from posernet.experiments.adaptive import BINS, make_inputs
+from posernet.nn.scatter import scatter_count, scatter_mean
+from posernet.pipeline import load_input_graphs
 from sets import SETS
 
-from posernet.experiments.adaptive import BINS, make_inputs
 from posernet.geometry import quaternion_conjugate, quaternion_multiply, quaternion_normalize
 from posernet.graph import GraphBatch
 from posernet.metrics import relative_pose_errors
 from posernet.nn import PoserNet
-from posernet.nn.scatter import scatter_count, scatter_mean
-from posernet.pipeline import load_input_graphs
 
 
 def triangles(edge_index, N):

@@ -4,13 +4,13 @@ import sys
 
 import numpy as np
 import torch
+from posernet.experiments.adaptive import make_inputs
+from posernet.pipeline import load_input_graphs
 from sets import SETS
 
-from posernet.experiments.adaptive import make_inputs
 from posernet.graph import GraphBatch
 from posernet.metrics import relative_pose_errors
 from posernet.nn import PoserNet
-from posernet.pipeline import load_input_graphs
 
 ckpt, out = sys.argv[1], sys.argv[2]
 if len(sys.argv) > 3:

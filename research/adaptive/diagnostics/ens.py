@@ -3,15 +3,15 @@
 import sys
 
 import torch
+from posernet.experiments.adaptive import make_inputs
+from posernet.pipeline import load_input_graphs
 from sets import SETS
 
-from posernet.experiments.adaptive import make_inputs
 from posernet.geometry import quaternion_angle
 from posernet.graph import GraphBatch
 from posernet.metrics import relative_pose_errors
 from posernet.nn import PoserNet
 from posernet.nn.adaptive import blend_poses
-from posernet.pipeline import load_input_graphs
 
 main = PoserNet.from_checkpoint("src/posernet/checkpoints/posernet_synthetic_kp.ckpt").eval()
 others = [PoserNet.from_checkpoint(p).eval() for p in sys.argv[1:]]

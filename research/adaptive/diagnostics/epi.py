@@ -1,14 +1,14 @@
 """Do the edge's own matched box centres tell a good input from a poor raw prediction?"""
 
 import torch
+from posernet.experiments.adaptive import make_inputs
+from posernet.pipeline import load_input_graphs
 from sets import SETS
 
-from posernet.experiments.adaptive import make_inputs
 from posernet.geometry import quaternion_to_rotation_matrix
 from posernet.graph import GraphBatch
 from posernet.metrics import relative_pose_errors
 from posernet.nn import PoserNet
-from posernet.pipeline import load_input_graphs
 
 model = PoserNet.from_checkpoint("src/posernet/checkpoints/posernet_synthetic_kp.ckpt").eval()
 

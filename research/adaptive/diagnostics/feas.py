@@ -2,17 +2,17 @@ import sys
 
 import torch
 from arb import disc, triangles, views
+from posernet.experiments.adaptive import make_inputs
+from posernet.nn.scatter import scatter_mean
+from posernet.pipeline import load_input_graphs
 from sets import SETS
 
-from posernet.experiments.adaptive import make_inputs
 from posernet.geometry import quaternion_normalize
 from posernet.graph import GraphBatch
 from posernet.metrics import relative_pose_errors
 from posernet.nn import PoserNet
 from posernet.nn.adaptive import EdgeHead, _pair_stats, cycle_features
 from posernet.nn.conv import graph_inputs
-from posernet.nn.scatter import scatter_mean
-from posernet.pipeline import load_input_graphs
 
 # usage: feas.py CKPT OUT.pt [--embeddings]; --embeddings adds the last layer's node embeddings
 # of both end points (and its edge state) to the features

@@ -6,13 +6,13 @@ import sys
 
 import numpy as np
 import torch
+from posernet.pipeline import load_input_graphs
 
 import posernet.data.synthetic.world as W
 from posernet.data.synthetic.config import options_from_dict
 from posernet.graph import GraphBatch
 from posernet.metrics import relative_pose_errors
 from posernet.nn import PoserNet
-from posernet.pipeline import load_input_graphs
 
 REC = []
 orig = W.five_point

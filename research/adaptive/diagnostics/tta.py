@@ -6,16 +6,16 @@ import dataclasses
 import sys
 
 import torch
+from posernet.experiments.adaptive import make_inputs
+from posernet.pipeline import load_input_graphs
 from sets import SETS
 
 from posernet.data.mixture import perturb_poses
-from posernet.experiments.adaptive import make_inputs
 from posernet.geometry import quaternion_angle
 from posernet.graph import GraphBatch
 from posernet.metrics import relative_pose_errors
 from posernet.nn import PoserNet
 from posernet.nn.adaptive import blend_poses
-from posernet.pipeline import load_input_graphs
 
 MODE = sys.argv[1]
 K = int(sys.argv[2])

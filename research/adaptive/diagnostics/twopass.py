@@ -1,13 +1,13 @@
 import sys
 
 import torch
+from posernet.experiments.adaptive import BINS, make_inputs
+from posernet.pipeline import load_input_graphs
 from sets import SETS
 
-from posernet.experiments.adaptive import BINS, make_inputs
 from posernet.graph import GraphBatch
 from posernet.metrics import relative_pose_errors
 from posernet.nn import PoserNet
-from posernet.pipeline import load_input_graphs
 
 model = PoserNet.from_checkpoint(sys.argv[1]).eval()
 with torch.no_grad():
