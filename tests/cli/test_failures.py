@@ -249,3 +249,14 @@ def test_refine_writes_no_empty_log(dataset: Path, tmp_path: Path) -> None:
     assert r.returncode == 0, r.stderr
     assert (run / "refined.json").is_file()
     assert not list(run.glob("*.log"))
+
+
+def test_train_error_after_start_is_the_only_output(tmp_path: Path) -> None:
+    """An error found once training starts (a dataset folder that does not exist) is the one
+    line on stderr: nothing before it on either stream (no "Seed set to 0")."""
+    r = _run([*_cli("train"), f"data.root={tmp_path}/nope", f"hydra.run.dir={tmp_path}/run"],
+             cwd=tmp_path)
+    assert r.returncode == 1, r.stderr
+    assert r.stdout == ""
+    assert r.stderr.splitlines() == [
+        f"posernet-train: error: dataset directory not found: {tmp_path}/nope"]

@@ -265,7 +265,7 @@ def train(cfg: DictConfig) -> float:
     check_config(cfg, "train")  # every value, CUDA, a writable out_dir: before any output
     quiet_lightning()
     set_threads(cfg.get("num_threads"))
-    L.seed_everything(int(cfg.seed), workers=True)
+    L.seed_everything(int(cfg.seed), workers=True, verbose=False)  # the seed is in the config
     out_dir = Path(cfg.out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     t_start = time.perf_counter()
