@@ -98,3 +98,18 @@ def test_readme_is_short_and_every_relative_link_resolves():
                for target in _relative_links(page)
                if not (page.parent / target).is_file()]
     assert not missing, "links to missing files:\n" + "\n".join(missing)
+
+
+def test_install_says_how_to_put_the_commands_on_path():
+    """``make install`` leaves the ``posernet-*`` commands in ``.venv/bin`` (not on PATH): the
+    Install section says to activate the environment or call them there, and every command
+    of the README's command table is one that ``make install`` puts there."""
+    import tomllib
+
+    install = _section("## Install")
+    assert "source .venv/bin/activate" in install
+    assert ".venv/bin/posernet-" in install
+    scripts = tomllib.loads((ROOT / "pyproject.toml").read_text(encoding="utf-8"))[
+        "project"]["scripts"]
+    named = set(re.findall(r"^\| `(posernet-[a-z-]+)` \|", _section("## Commands"), re.M))
+    assert named and named <= set(scripts), sorted(named - set(scripts))
