@@ -51,6 +51,20 @@ def test_pyg_example_runs():
     assert len(ns["graphs_back"]) == 3
 
 
+def test_pyg_example_trains_the_gcn():
+    """The GCN of the PyG example gets node features that are not all zero, so a loss on
+    PoserConv's output gives every one of its parameters a non-zero gradient."""
+    import pytest
+
+    pytest.importorskip("torch_geometric")
+    code = re.findall(r"```python\n(.*?)```", _section("## Using `PoserConv`"), re.S)[1]
+    ns: dict = {}
+    exec(compile(code, "README.md", "exec"), ns)
+    ns["out"].edge_pose.square().sum().backward()
+    for name, p in ns["gcn"].named_parameters():
+        assert p.grad is not None and p.grad.abs().sum() > 0, name
+
+
 def test_reconstruct_example_runs(tmp_path):
     code = _block_after("## Quick start from Python").replace(
         "/tmp/posernet-example", str(tmp_path))
