@@ -30,3 +30,26 @@ def test_names_of_shipped_checkpoints(tmp_path, monkeypatch):
     assert resolve_checkpoint("posernet_synthetic_kp_v1.ckpt") == Path(
         "posernet_synthetic_kp_v1.ckpt")
     assert resolve_checkpoint("runs/x/last.ckpt") == Path("runs/x/last.ckpt")
+
+
+def test_python_loaders_take_the_same_names(tmp_path, monkeypatch):
+    """``load_refiner`` and ``PoserNet.from_checkpoint`` read what a command's ``ckpt_path``
+    names; an unknown name is one error listing the names that exist."""
+    import torch
+
+    from posernet.checkpoints import CheckpointError
+    from posernet.guard import load_refiner
+    from posernet.nn import PoserNet
+
+    monkeypatch.chdir(tmp_path)
+    model, _ = load_refiner("shipped")
+    default, _ = load_refiner(default_checkpoint())
+    for a, b in zip(model.state_dict().values(), default.state_dict().values(), strict=True):
+        assert torch.equal(a, b)
+    v1 = PoserNet.from_checkpoint("shipped:posernet_synthetic_kp_v1.ckpt")
+    assert not v1.confidence and load_refiner("posernet_synthetic_kp_v1.ckpt")[0].depth == v1.depth
+    with pytest.raises(CheckpointError) as exc:
+        load_refiner("shiped")
+    message = str(exc.value)
+    assert message.startswith("checkpoint not found: shiped")
+    assert all(name in message for name in ("shipped", "shipped:NAME", *shipped_checkpoints()))

@@ -206,8 +206,10 @@ class Guard:
 def load_refiner(path: str | os.PathLike[str], map_location: Any = "cpu",
                  keep_inputs: bool = False) -> tuple[PoserNet, Guard]:
     """The network of checkpoint ``path`` (eval mode) and its :class:`Guard`, from one reading
-    of the file. ``keep_inputs`` needs a confidence head: ``ValueError`` naming the checkpoint
-    otherwise; a bad checkpoint raises :class:`posernet.checkpoints.CheckpointError`."""
+    of the file. ``path`` is a path or a shipped checkpoint's name (``"shipped"``,
+    ``"shipped:NAME"``, a shipped file's name: :func:`posernet.checkpoints.resolve_checkpoint`).
+    ``keep_inputs`` needs a confidence head: ``ValueError`` naming the checkpoint otherwise; a
+    bad checkpoint or unknown name raises :class:`posernet.checkpoints.CheckpointError`."""
     from .checkpoints import read_checkpoint
     from .nn import PoserNet
 

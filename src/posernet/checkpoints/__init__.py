@@ -24,8 +24,9 @@ import os
 from pathlib import Path
 from typing import Any
 
-__all__ = ["CHECKPOINT_TAG", "DEFAULT_CHECKPOINT", "CheckpointError", "default_checkpoint",
-           "network_hparams", "read_checkpoint", "resolve_checkpoint", "shipped_checkpoints"]
+__all__ = ["CHECKPOINT_TAG", "DEFAULT_CHECKPOINT", "CheckpointError", "checkpoint_names",
+           "default_checkpoint", "network_hparams", "read_checkpoint", "resolve_checkpoint",
+           "shipped_checkpoints"]
 
 DEFAULT_CHECKPOINT = "posernet_synthetic_kp.ckpt"
 
@@ -41,10 +42,16 @@ def default_checkpoint(name: str = DEFAULT_CHECKPOINT) -> Path:
     """Path of a shipped checkpoint; ``FileNotFoundError`` naming it when it is absent."""
     path = Path(__file__).resolve().parent / name
     if not path.is_file():
-        shipped = sorted(p.name for p in path.parent.glob("*.ckpt"))
         raise FileNotFoundError(f"shipped checkpoint {name!r} not found in {path.parent} "
-                                f"(shipped: {shipped or 'none'}); pass ckpt_path=... instead")
+                                f"({checkpoint_names()})")
     return path
+
+
+def checkpoint_names() -> str:
+    """What may name a checkpoint (:func:`resolve_checkpoint`), with the shipped files."""
+    shipped = ", ".join(shipped_checkpoints()) or "none"
+    return (f"give a path, shipped (= {DEFAULT_CHECKPOINT}), or shipped:NAME or NAME for a "
+            f"shipped file: {shipped}")
 
 
 def shipped_checkpoints() -> list[str]:
@@ -72,14 +79,15 @@ def read_checkpoint(path: str | os.PathLike[str], tag: str = CHECKPOINT_TAG) -> 
     """Load a checkpoint dict on the CPU and check that the module tagged ``tag`` wrote it
     (default ``PoserNetModule``; the learned synchronisation has its own tag).
 
-    Uses ``torch.load(weights_only=True)``. Raises :class:`CheckpointError` naming the file for
-    a missing, unreadable or foreign checkpoint.
+    ``path`` is a path or a shipped checkpoint's name (:func:`resolve_checkpoint`). Uses
+    ``torch.load(weights_only=True)``. Raises :class:`CheckpointError` naming the file for a
+    missing (with the valid names), unreadable or foreign checkpoint.
     """
     import torch
 
-    p = Path(path)
+    p = resolve_checkpoint(path)
     if not p.is_file():
-        raise CheckpointError(f"checkpoint not found: {p}")
+        raise CheckpointError(f"checkpoint not found: {p} ({checkpoint_names()})")
     try:
         ckpt = torch.load(p, map_location="cpu", weights_only=True)
     except Exception as exc:  # torch raises many types for corrupt or foreign files

@@ -139,7 +139,8 @@ class PoserNet(nn.Module):
     @classmethod
     def from_checkpoint(cls, path: str | os.PathLike[str],
                         map_location: str | torch.device = "cpu") -> PoserNet:
-        """The network of a ``PoserNetModule`` checkpoint, in eval mode, without Lightning.
+        """The network of a ``PoserNetModule`` checkpoint, in eval mode, without Lightning;
+        ``path`` may name a shipped one (``"shipped"``, ``"shipped:NAME"``, a shipped file's name).
 
         Raises :class:`CheckpointError` for a missing, foreign or mismatching checkpoint.
         """
