@@ -8,7 +8,15 @@ andyzeng/tsdf-fusion-python ``data/``), ``cab/`` (TUM fr3_cabinet key frames of
 benchun123/cuboid_slam_with_bbox_constraints ``data/``; built only on request: it fails the
 checks for lack of texture).
 
-    python benchmarks/data/real/build_sets.py dino herzjesu fountain 7scenes
+Derived sparse sets (the trust benchmark's hard cases; same raw inputs, same conversions):
+``herzjesu_every3`` / ``fountain_every3`` / ``entry_every3`` keep every third view of the
+full Strecha set (views 0, 3, 6, ...: a chain of far-apart views); ``dino_far8`` and
+``herzjesu_far8`` keep 8 views chosen far apart by greedy farthest-point sampling on the
+viewing direction (:func:`farthest_views`, starting from the first view). ``trust`` builds
+all five.
+
+    python benchmarks/data/real/build_sets.py dino herzjesu fountain entry 7scenes
+    python benchmarks/data/real/build_sets.py trust
 """
 
 from __future__ import annotations
@@ -49,24 +57,44 @@ def clean(out: Path) -> None:
             p.unlink()
 
 
-def build_dino(raw: Path) -> None:
-    """Middlebury dinoSparseRing: x = K [R | t] X  (world-to-camera) -> c2w = [R^T | -R^T t]."""
+def farthest_views(c2w: list[np.ndarray], k: int, first: int = 0) -> list[int]:
+    """Indices (sorted) of ``k`` views chosen far apart: greedy farthest-point sampling on the
+    viewing direction (camera z axis in the world, ``c2w[:3, 2]``) by angle, starting from view
+    ``first``; ties go to the lower index."""
+    d = np.array([T[:3, 2] / np.linalg.norm(T[:3, 2]) for T in c2w])
+    sel = [first]
+    gap = np.arccos(np.clip(d @ d[first], -1, 1))
+    while len(sel) < min(k, len(d)):
+        i = int(np.argmax(gap))
+        sel.append(i)
+        gap = np.minimum(gap, np.arccos(np.clip(d @ d[i], -1, 1)))
+    return sorted(sel)
+
+
+def build_dino(raw: Path, name: str = "middlebury_dino_sparse_ring",
+               far: int = 0) -> None:
+    """Middlebury dinoSparseRing: x = K [R | t] X  (world-to-camera) -> c2w = [R^T | -R^T t].
+    ``far > 0``: only that many views, chosen by :func:`farthest_views`."""
     src = raw / "dino"
-    out = HERE / "middlebury_dino_sparse_ring"
+    out = HERE / name
     clean(out)
     lines = (src / "dinoSR_par.txt").read_text().split("\n")
     n = int(lines[0])
-    Ks = []
+    Ks, views = [], []
     for line in lines[1 : n + 1]:
         tok = line.split()
-        name, vals = tok[0], np.array([float(x) for x in tok[1:]])
+        vals = np.array([float(x) for x in tok[1:]])
         K, R, t = vals[:9].reshape(3, 3), vals[9:18].reshape(3, 3), vals[18:21]
         Ks.append(K)
         c2w = np.eye(4)
         c2w[:3, :3] = R.T
         c2w[:3, 3] = -R.T @ t
-        stem = Path(name).stem
-        img = cv2.imread(str(src / name), cv2.IMREAD_COLOR)
+        views.append((tok[0], c2w))
+    keep = farthest_views([T for _, T in views], far) if far else range(len(views))
+    for i in keep:
+        fname, c2w = views[i]
+        stem = Path(fname).stem
+        img = cv2.imread(str(src / fname), cv2.IMREAD_COLOR)
         write_jpeg(out / f"{stem}.jpg", img, 92)
         write_pose(out / f"{stem}.pose.txt", c2w)
     assert all(np.allclose(K, Ks[0]) for K in Ks), "per-image K differ"
@@ -87,13 +115,27 @@ def read_strecha_camera(path: Path):
     return K, R, t, (W, H)
 
 
-def build_strecha(raw: Path, sub: str, name: str, n_keep: int = 20, scale: int = 4) -> None:
-    """Strecha et al. 2008 set: every ``len/n_keep``-th image, downscaled by ``scale``."""
+def build_strecha(raw: Path, sub: str, name: str, n_keep: int = 20, scale: int = 4,
+                  step: int = 0, far: int = 0) -> None:
+    """Strecha et al. 2008 set: every ``len/n_keep``-th image (``step > 0``: every
+    ``step``-th, from the first; ``far > 0``: that many views by :func:`farthest_views`),
+    downscaled by ``scale``."""
     src = raw / sub
     out = HERE / name
     clean(out)
     cams = sorted(src.glob("*.jpg.camera"))
-    idx = sorted(set(np.round(np.linspace(0, len(cams) - 1, n_keep)).astype(int).tolist()))
+    if step:
+        idx = list(range(0, len(cams), step))
+    elif far:
+        c2w = []
+        for cam in cams:
+            _, R, t, _ = read_strecha_camera(cam)
+            T = np.eye(4)
+            T[:3, :3], T[:3, 3] = R, t
+            c2w.append(T)
+        idx = farthest_views(c2w, far)
+    else:
+        idx = sorted(set(np.round(np.linspace(0, len(cams) - 1, n_keep)).astype(int).tolist()))
     K0 = None
     for i in idx:
         cam = cams[i]
@@ -174,12 +216,15 @@ def build_cabinet(raw: Path, n_keep: int = 20) -> None:
     write_intrinsics(out, np.array([[535.4, 0, 320.1], [0, 539.2, 247.6], [0, 0, 1.0]]))
 
 
+TRUST = ("herzjesu_every3", "fountain_every3", "entry_every3", "dino_far8", "herzjesu_far8")
+
+
 if __name__ == "__main__":
     ap = argparse.ArgumentParser()
     ap.add_argument("sets", nargs="+")
     ap.add_argument("--raw", default="/tmp/raw", type=Path)
     a = ap.parse_args()
-    for s in a.sets:
+    for s in [x for t in a.sets for x in (TRUST if t == "trust" else (t,))]:
         if s == "dino":
             build_dino(a.raw)
         elif s == "herzjesu":
@@ -192,5 +237,15 @@ if __name__ == "__main__":
             build_7scenes(a.raw)
         elif s == "cabinet":
             build_cabinet(a.raw)
+        elif s == "herzjesu_every3":
+            build_strecha(a.raw, "hj", "strecha_herzjesu_p25_every3", step=3)
+        elif s == "fountain_every3":
+            build_strecha(a.raw, "fountain", "strecha_fountain_p11_every3", step=3)
+        elif s == "entry_every3":
+            build_strecha(a.raw, "entry", "strecha_entry_p10_every3", step=3)
+        elif s == "dino_far8":
+            build_dino(a.raw, "middlebury_dino_sparse_ring_far8", far=8)
+        elif s == "herzjesu_far8":
+            build_strecha(a.raw, "hj", "strecha_herzjesu_p25_far8", far=8)
         else:
             raise SystemExit(f"unknown set {s}")
