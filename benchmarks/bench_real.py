@@ -7,6 +7,14 @@ COLMAP through pycolmap in a worker process of this script), so wall time and pe
 
 * cameras placed (of N), the size of the largest connected component (COLMAP: the largest
   model) and the number of components (models);
+* trust: of the placed cameras, how many are placed right and how many wrong
+  (:func:`trust_counts`): right when, after a robust similarity alignment of the camera's
+  component onto the ground truth (RANSAC over 2- and 3-camera samples fitted on centres and
+  orientations, then the least-squares fit on the consensus, refitted until it settles), its
+  rotation is within 5 deg and its centre within 5 % of the scene's extent, the extent being
+  the diameter (largest distance between two) of all the set's ground-truth camera centres.
+  Unsolved cameras (``"solved": false`` in posernet's poses.json, images in no COLMAP model)
+  and a camera alone in its component are neither right nor wrong: not placed;
 * on the largest component: the median absolute rotation error (deg; estimated
   camera-to-world rotations after the best global rotation, the chordal mean of
   ``R_gt R_est^T``), the median camera-position error (centres after an Umeyama similarity,
@@ -27,9 +35,14 @@ it the COLMAP rows are skipped with a note.
     python benchmarks/bench_real.py --set lab=photos/:585,585,320,240 --rendered \\
         --method posernet --method "posernet-eig=sync=eig_se3" \\
         --method "posernet-refine=refine=true" --method colmap-incremental
+    python benchmarks/bench_real.py --trust --threads 2     # the trust table (TRUST_SETS)
 
 Writes ``benchmarks/results/real.md`` and ``real.json`` (every number, the exact commands and
-overrides, versions, machine); ``--quick`` writes under ``benchmarks/results/quick/``.
+overrides, versions, machine; ``--trust``: ``trust.md`` and ``trust.json``; ``--out`` another
+path); ``--quick`` writes under ``benchmarks/results/quick/``. ``--trust`` runs the sparse and
+hard sets of ``TRUST_SETS`` (build them first: ``benchmarks/data/real/build_sets.py dino
+trust``), without the rendered scene; the per-camera verdicts and errors are in the .json
+(``trust`` of each row).
 """
 
 from __future__ import annotations
@@ -54,6 +67,11 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parent
 DATA = ROOT / "data" / "real"
+# the trust table's sets (``--trust``): sparse and hard sets built by
+# benchmarks/data/real/build_sets.py (``trust`` and ``dino``)
+TRUST_SETS = ("middlebury_dino_sparse_ring", "middlebury_dino_sparse_ring_far8",
+              "strecha_herzjesu_p25_every3", "strecha_fountain_p11_every3",
+              "strecha_entry_p10_every3", "strecha_herzjesu_p25_far8")
 COLMAP_METHODS = ("colmap-global", "colmap-incremental")
 DEFAULT_METHODS = ("posernet", *COLMAP_METHODS)
 PYCOLMAP_PIN = "pycolmap==4.2.1"
@@ -293,6 +311,150 @@ def _nanmedian(x: Any) -> float:
     a = np.asarray(x, dtype=np.float64)
     a = a[np.isfinite(a)]
     return float(np.median(a)) if a.size else float("nan")
+
+
+# ------------------------------------------------------------------------------------ trust
+
+TRUST_ROT_DEG = 5.0  # a placed camera is right within this rotation error ...
+TRUST_POS_FRAC = 0.05  # ... and this position error, as a fraction of the scene's extent
+
+
+def scene_extent(gt_c2w: dict[str, np.ndarray]) -> float:
+    """The scene's extent for the trust counts: the diameter (largest distance between two)
+    of the ground-truth camera centres of every image of the set."""
+    c = np.array([np.asarray(T, dtype=np.float64)[:3, 3] for T in gt_c2w.values()])
+    if len(c) < 2:
+        return 0.0
+    return float(np.max(np.linalg.norm(c[:, None] - c[None], axis=2)))
+
+
+def _proj_so3(M: np.ndarray) -> np.ndarray:
+    U, _, Vt = np.linalg.svd(M)
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt)) or 1.0])
+    return U @ D @ Vt
+
+
+def _fit_similarity(x: np.ndarray, y: np.ndarray, A: np.ndarray, B: np.ndarray, w: np.ndarray,
+                    tau_p: float, tau_r: float) -> tuple[float, np.ndarray, np.ndarray]:
+    """Weighted similarity ``y ~ s R x + t`` of estimated centres ``x (n, 3)`` onto
+    ground-truth ones ``y`` that also turns the estimated camera-to-world rotations ``A``
+    onto the ground-truth ``B``: minimises ``sum w (|y - s R x - t|^2 / tau_p^2 +
+    |B - R A|_F^2 / (2 tau_r^2))`` (the rotation term is ~ (angle / tau_r)^2), alternating
+    the exact R step (SVD) and s step from the rotation-only start. The orientations keep it
+    determined on two cameras and on collinear centres."""
+    W = float(w.sum())
+    mx, my = (w @ x) / W, (w @ y) / W
+    X, Y = x - mx, y - my
+    xx = float(w @ np.sum(X * X, axis=1))
+    rot = np.einsum("n,nij,nkj->ik", w, B, A) / (2 * tau_r**2)  # sum w B A^T, weighted
+    cross = np.einsum("n,ni,nj->ij", w, Y, X) / tau_p**2  # sum w Y X^T
+    R = _proj_so3(rot)
+    s = 0.0
+    for _ in range(30):
+        s = max(float(np.einsum("n,ni,ni->", w, Y, X @ R.T)) / xx, 0.0) if xx > 0 else 0.0
+        R_new = _proj_so3(s * cross + rot)
+        if np.allclose(R_new, R, atol=1e-12):
+            break
+        R = R_new
+    return s, R, my - s * R @ mx
+
+
+def _trust_errors(s: float, R: np.ndarray, t: np.ndarray, x: np.ndarray, y: np.ndarray,
+                  A: np.ndarray, B: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Position error and rotation error (deg) of every camera after ``y ~ s R x + t``."""
+    pos = np.linalg.norm(y - (s * x @ R.T + t), axis=1)
+    cos = (np.einsum("nij,nij->n", R @ A, B) - 1) / 2  # trace((R A)^T B)
+    return pos, np.degrees(np.arccos(np.clip(cos, -1, 1)))
+
+
+def _align_robust(x: np.ndarray, y: np.ndarray, A: np.ndarray, B: np.ndarray, rot_deg: float,
+                  pos_tol: float, rng: np.random.Generator
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The robust alignment of :func:`trust_counts` for one component: estimated centres
+    ``x (n, 3)`` and camera-to-world rotations ``A``, ground truth ``y``, ``B``. Returns which
+    cameras are right and every camera's position and rotation (deg) error."""
+    n = len(x)
+    tau_p, tau_r = max(pos_tol, 1e-12), np.radians(rot_deg)
+    samples = [list(p) for p in zip(*np.triu_indices(n, 1), strict=True)]
+    triples = [[i, j, k] for i in range(n) for j in range(i + 1, n) for k in range(j + 1, n)]
+    if len(triples) > 300:
+        triples = [triples[i] for i in rng.choice(len(triples), 300, replace=False)]
+    samples += triples
+
+    def score(fit: tuple[float, np.ndarray, np.ndarray]) -> tuple[tuple[int, float], np.ndarray]:
+        pos, rot = _trust_errors(*fit, x, y, A, B)
+        ok = (pos <= pos_tol) & (rot <= rot_deg)
+        cost = float(np.sum(((pos / tau_p) ** 2 + (np.radians(rot) / tau_r) ** 2)[ok]))
+        return (int(ok.sum()), -cost), ok
+
+    best, best_key, best_ok = None, (-1, 0.0), np.zeros(n, bool)
+    for smp in samples:
+        w = np.zeros(n)
+        w[smp] = 1.0
+        fit = _fit_similarity(x, y, A, B, w, tau_p, tau_r)
+        key, ok = score(fit)
+        if key > best_key:
+            best, best_key, best_ok = fit, key, ok
+    # Final alignment: the least-squares fit on the right cameras, refitted until the set of
+    # right cameras settles; they are judged under it, not under the sample's fit (which may
+    # tilt within the tolerance to take in one more camera: max-consensus alone would pass
+    # cameras up to about twice the tolerance off).
+    for _ in range(10):
+        if best_ok.sum() < 2:
+            break
+        best = _fit_similarity(x, y, A, B, best_ok.astype(np.float64), tau_p, tau_r)
+        _, ok = score(best)
+        if np.array_equal(ok, best_ok):
+            break
+        best_ok = ok
+    pos, rot = _trust_errors(*best, x, y, A, B)
+    return (pos <= pos_tol) & (rot <= rot_deg), pos, rot
+
+
+def trust_counts(keys: list[str], gt_c2w: dict[str, np.ndarray],
+                 est_w2c: dict[str, np.ndarray], component: dict[str, int],
+                 rot_deg: float = TRUST_ROT_DEG, pos_frac: float = TRUST_POS_FRAC,
+                 seed: int = 0) -> dict[str, Any]:
+    """Cameras placed right or wrong, each component (model) of the estimate on its own.
+
+    A placed camera (a key of ``est_w2c``, world-to-camera) is *right* when, after a robust
+    similarity alignment of its component onto the ground truth (``gt_c2w``, camera to
+    world), its rotation is within ``rot_deg`` degrees and its centre within ``pos_frac`` of
+    the scene's extent (:func:`scene_extent`: the diameter of all the set's ground-truth
+    camera centres) of the truth; else *wrong*. Cameras not in ``est_w2c`` (unsolved) and a
+    camera alone in its component (placed relative to nothing) are *not placed*.
+
+    Alignment (a few wrong cameras cannot drag it): hypotheses from every 2-camera sample and
+    up to 300 3-camera samples (all when fewer) of the component, each a similarity fitted to
+    the sample's centres and orientations (:func:`_fit_similarity`); the one with the most
+    right cameras wins (ties: the smaller summed squared errors over the thresholds of the
+    right ones); then the least-squares similarity on its right cameras, refitted until the
+    right ones settle, is the alignment every camera is judged under. Rotations are compared
+    after the same similarity.
+
+    Returns ``right``, ``wrong``, ``not_placed``, ``extent`` and per key in ``cameras``
+    ``{"status": "right" | "wrong" | "not placed", "rot_deg", "pos"}`` (errors ``None`` when
+    not placed).
+    """
+    extent = scene_extent({k: gt_c2w[k] for k in keys})
+    cams: dict[str, dict[str, Any]] = {
+        k: {"status": "not placed", "rot_deg": None, "pos": None} for k in keys}
+    placed = [k for k in keys if k in est_w2c]
+    rng = np.random.default_rng(seed)
+    for c in sorted({int(component[k]) for k in placed}):
+        sel = [k for k in placed if int(component[k]) == c]
+        if len(sel) < 2:
+            continue
+        c2w = np.linalg.inv(np.stack([np.asarray(est_w2c[k], dtype=np.float64) for k in sel]))
+        gt = np.stack([np.asarray(gt_c2w[k], dtype=np.float64) for k in sel])
+        ok, pos, rot = _align_robust(c2w[:, :3, 3], gt[:, :3, 3], c2w[:, :3, :3],
+                                     gt[:, :3, :3], rot_deg, pos_frac * extent, rng)
+        for i, k in enumerate(sel):
+            cams[k] = {"status": "right" if ok[i] else "wrong",
+                       "rot_deg": float(rot[i]), "pos": float(pos[i])}
+    status = [v["status"] for v in cams.values()]
+    return {"right": status.count("right"), "wrong": status.count("wrong"),
+            "not_placed": status.count("not placed"), "extent": extent, "cameras": cams}
 
 
 # ---------------------------------------------------------------------------- subprocesses
@@ -584,7 +746,11 @@ def run_method(s: ImageSet, m: Method, work: Path, threads: int, timeout: float,
         except (OSError, ValueError, KeyError, TypeError) as e:
             row["note"] = f"unreadable output ({type(e).__name__}: {e})"[:200]
     row.update(evaluate(s.keys, s.c2w, w2c, comp))
-    print(f"  {_cell(row['placed'], '{}')}/{len(s.keys)} placed, rot "
+    trust = trust_counts(s.keys, s.c2w, w2c, comp, seed=seed)
+    row.update(right=trust["right"], wrong=trust["wrong"], not_placed=trust["not_placed"],
+               extent=trust["extent"], trust=trust["cameras"])
+    print(f"  {_cell(row['placed'], '{}')}/{len(s.keys)} placed ({row['right']} right, "
+          f"{row['wrong']} wrong), rot "
           f"{_cell(row.get('rot_deg'))} deg, {row['wall_s']:.1f} s, {row['peak_mb']:.0f} MB "
           f"{row['note']}", flush=True)
     return row
@@ -599,9 +765,9 @@ def _cell(v: Any, fmt: str = "{:.2f}") -> str:
     return fmt.format(v)
 
 
-HEADER = ("set", "method", "placed / N", "largest comp.", "components", "abs. rot (deg)",
-          "abs. pos (GT units)", "rel. rot (deg)", "rel. tdir (deg)", "wall (s)", "CPU (s)",
-          "peak mem (MB)", "note")
+HEADER = ("set", "method", "placed / N", "right", "wrong", "largest comp.", "components",
+          "abs. rot (deg)", "abs. pos (GT units)", "rel. rot (deg)", "rel. tdir (deg)",
+          "wall (s)", "CPU (s)", "peak mem (MB)", "note")
 
 
 def table_rows(rows: list[dict[str, Any]]) -> list[list[str]]:
@@ -611,6 +777,7 @@ def table_rows(rows: list[dict[str, Any]]) -> list[list[str]]:
         out.append([
             r["set"], r["method"],
             "-" if skipped else f"{r['placed']} / {r['images']}",
+            "-" if skipped else str(r["right"]), "-" if skipped else str(r["wrong"]),
             "-" if skipped else str(r["largest"]),
             "-" if skipped else str(r["components"]),
             _cell(r.get("rot_deg")), _cell(r.get("pos"), "{:.3f}"),
@@ -652,13 +819,18 @@ def versions() -> dict[str, str | None]:
     return out
 
 
-def discover() -> tuple[list[tuple[str, Path, str | None]], list[str]]:
-    """Every folder under ``benchmarks/data/real/`` (``NAME = folder name``); folders not yet
-    usable are left out with a note."""
+def discover(names: tuple[str, ...] | None = None
+             ) -> tuple[list[tuple[str, Path, str | None]], list[str]]:
+    """Every folder under ``benchmarks/data/real/`` (``NAME = folder name``; only ``names``
+    when given); folders not yet usable are left out with a note."""
     sets, notes = [], []
     if DATA.is_dir():
         for d in sorted(p for p in DATA.iterdir() if p.is_dir() and p.name[0] not in "._"):
-            sets.append((d.name, d, None))
+            if names is None or d.name in names:
+                sets.append((d.name, d, None))
+    for n in names or ():
+        if not (DATA / n).is_dir():
+            notes.append(f"left out {DATA / n}: not built (benchmarks/data/real/build_sets.py)")
     if not sets:
         notes.append(f"no set folders under {DATA}")
     return sets, notes
@@ -690,6 +862,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--work", default=None,
                     help="folder for renders and run outputs (default: a temp folder)")
     ap.add_argument("--quick", action="store_true", help="tiny run: 8 images, 320x240 render")
+    ap.add_argument("--trust", action="store_true",
+                    help="the trust table: the sets of TRUST_SETS under benchmarks/data/real/, "
+                         "no rendered scene; writes benchmarks/results/trust.md by default")
     ap.add_argument("--out", default=None,
                     help="results table (default benchmarks/results/real.md; real.json beside)")
     ap.add_argument("--colmap-worker", default=None, help=argparse.SUPPRESS)
@@ -702,9 +877,13 @@ def main(argv: list[str] | None = None) -> int:
     labels = [m.label for m in methods]
     if len(set(labels)) != len(labels):
         raise BenchError(f"method labels repeat: {labels}; name variants posernet-LABEL")
+    if args.trust and args.set:
+        raise BenchError("--trust picks its own sets: give --trust or --set, not both")
     if args.set:
         specs, notes = [parse_set(t) for t in args.set], []
         rendered = args.rendered
+    elif args.trust:
+        (specs, notes), rendered = discover(TRUST_SETS), args.rendered
     else:
         (specs, notes), rendered = discover(), True
     names = [n for n, _, _ in specs]
@@ -752,6 +931,12 @@ def main(argv: list[str] | None = None) -> int:
         "errors over every image pair of that component; medians. Wall time, CPU time (user + "
         "system) and peak memory (ru_maxrss) of the method's subprocess, interpreter start and "
         "imports included",
+        f"- right / wrong: a placed camera is right when, after a robust similarity alignment "
+        f"of its component (model) onto the ground truth, its rotation is within "
+        f"{TRUST_ROT_DEG:g} deg and its centre within {100 * TRUST_POS_FRAC:g} % of the "
+        "scene's extent (the diameter of all the set's ground-truth camera centres), else "
+        "wrong; unsolved cameras and a camera alone in its component count as neither "
+        "(trust_counts)",
         *(f"- note: {n}" for n in notes),
         "",
         "| set | images | intrinsics (fx, fy, cx, cy) | source |",
@@ -763,7 +948,9 @@ def main(argv: list[str] | None = None) -> int:
         "",
         *table(HEADER, table_rows(rows)),
     ]
-    md = write_results("real", "posernet-reconstruct vs COLMAP on real image sets", body,
+    title = "posernet-reconstruct vs COLMAP on real image sets"
+    md = write_results("trust" if args.trust else "real",
+                       title + (": cameras placed right / wrong" if args.trust else ""), body,
                        args.quick, "cpu", args.out)
     report = {
         "command": command(), "date": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
