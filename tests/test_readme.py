@@ -74,6 +74,17 @@ def test_reconstruct_example_runs(tmp_path):
     assert ns["rec"].graph.num_nodes == 6 and ns["rec"].graph.num_edges > 0
 
 
+def test_refine_example_runs(capsys):
+    """Loading a checkpoint by name and refining view graphs in plain Python."""
+    ns: dict = {}
+    exec(compile(_block_after("### Refining view graphs from Python"), "README.md", "exec"), ns)
+    graph = ns["graphs"][0]
+    assert ns["refined"].shape == (graph.num_edges, 7)
+    assert ns["cameras"].shape == (graph.num_nodes, 4, 4)
+    printed = capsys.readouterr().out.splitlines()
+    assert [ln.split()[0] for ln in printed] == ["initial", "refined"]
+
+
 def test_results_sections_quote_the_committed_digests():
     """Each results block of docs/results.md (``<!-- results:<scale>:begin -->``) is the
     runner's own digest of the committed run at that scale, verbatim."""
