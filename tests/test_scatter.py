@@ -7,7 +7,14 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from posernet.scatter import scatter_count, scatter_max, scatter_mean, scatter_sum
+from posernet.scatter import (
+    scatter_all,
+    scatter_any,
+    scatter_count,
+    scatter_max,
+    scatter_mean,
+    scatter_sum,
+)
 
 
 def dense_reference(src: torch.Tensor, index: torch.Tensor, G: int, reduce: str) -> torch.Tensor:
@@ -95,3 +102,17 @@ def test_gradients() -> None:
     index = torch.tensor([0, 2, 2, 0, 3, 3, 3])
     for fn in (scatter_sum, scatter_mean, scatter_max):
         assert torch.autograd.gradcheck(lambda s, fn=fn: fn(s, index, dim_size=5), (src,))
+
+
+def test_flags_reduce_without_a_bool_scatter() -> None:
+    # scatter_all / scatter_any and scatter_max of flags: per-group all / any, empty groups
+    # True / False; computed in integer dtypes (CUDA has no bool scatter_reduce kernel)
+    flags = torch.tensor([True, False, True, True, False])
+    index = torch.tensor([0, 0, 1, 1, 2])
+    assert scatter_all(flags, index, 4).tolist() == [False, True, False, True]
+    assert scatter_any(flags, index, 4).tolist() == [True, True, False, False]
+    out = scatter_max(flags, index, dim_size=4)
+    assert out.dtype == torch.bool and out.tolist() == [True, True, False, False]
+    assert scatter_all(flags.long(), index, 3).tolist() == [False, True, False]
+    with pytest.raises(ValueError, match="equal length"):
+        scatter_any(flags, index[:4], 3)

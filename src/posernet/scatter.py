@@ -10,6 +10,10 @@
 Rows are taken along ``dim`` (0 by default); ``index`` is 1-D with one entry per row. Groups that
 receive no row give 0 (never NaN), so isolated nodes and edges without matched pairs are safe.
 All functions are differentiable, run on any device and in any floating dtype.
+
+Flags (``bool``) are reduced with :func:`scatter_all` / :func:`scatter_any`: CUDA has no
+scatter reduction kernel for ``bool`` tensors (``scatter_reduce`` of a bool tensor raises
+there), so these count in ``long`` and compare.
 """
 
 from __future__ import annotations
@@ -17,7 +21,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-__all__ = ["scatter_count", "scatter_max", "scatter_mean", "scatter_sum", "scatter_sum_unchecked"]
+__all__ = ["scatter_all", "scatter_any", "scatter_count", "scatter_max", "scatter_mean",
+           "scatter_sum", "scatter_sum_unchecked"]
 
 
 def _check(src: Tensor, index: Tensor, dim: int, dim_size: int | None) -> tuple[int, int]:
@@ -116,9 +121,37 @@ def scatter_max(src: Tensor, index: Tensor, dim: int = 0, dim_size: int | None =
     Shapes as :func:`scatter_sum`.
     """
     dim, dim_size = _check(src, index, dim, dim_size)
+    flags = src.dtype == torch.bool
+    if flags:  # no CUDA kernel reduces bool: reduce in uint8
+        src = src.to(torch.uint8)
     shape = list(src.shape)
     shape[dim] = dim_size
     out = src.new_zeros(shape)
     # include_self=False: the zeros only show through in groups that receive no row.
-    return out.scatter_reduce(dim, _broadcast(index, src, dim), src, reduce="amax",
-                              include_self=False)
+    out = out.scatter_reduce(dim, _broadcast(index, src, dim), src, reduce="amax",
+                             include_self=False)
+    return out.bool() if flags else out
+
+
+def _count_where(flags: Tensor, index: Tensor, dim_size: int) -> Tensor:
+    """``[G]`` number of True ``flags [R]`` per group (``index [R]``), long."""
+    if flags.shape != index.shape or index.ndim != 1:
+        raise ValueError(f"scatter: flags and index must be 1-D of equal length, got "
+                         f"{tuple(flags.shape)} and {tuple(index.shape)}")
+    out = torch.zeros(dim_size, dtype=torch.long, device=index.device)
+    return out.index_add_(0, index.long(), flags.to(torch.long))
+
+
+def scatter_all(flags: Tensor, index: Tensor, dim_size: int) -> Tensor:
+    """``[G]`` bool: every flag of the group is True (True for an empty group).
+
+    ``flags [R]`` (bool, or anything nonzero-is-true), ``index [R]`` group of each row. Counted
+    in ``long``: CUDA has no ``amin`` scatter kernel for bool tensors.
+    """
+    return _count_where(~flags.bool(), index, dim_size) == 0
+
+
+def scatter_any(flags: Tensor, index: Tensor, dim_size: int) -> Tensor:
+    """``[G]`` bool: some flag of the group is True (False for an empty group); as
+    :func:`scatter_all`."""
+    return _count_where(flags.bool(), index, dim_size) > 0

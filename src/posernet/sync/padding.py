@@ -11,7 +11,7 @@ import torch
 from torch import Tensor
 
 from ..geometry import make_se3, quaternion_to_rotation_matrix
-from ..scatter import scatter_count
+from ..scatter import scatter_all, scatter_count
 from .components import Components
 
 __all__ = ["PaddedProblem", "assemble", "build_padded", "edge_rotations"]
@@ -124,6 +124,6 @@ def assemble(struct: dict[str, Any], comps: Components, prob: PaddedProblem | No
         solved[nodes] = True
         edge_weight[prob.edge[prob.edge_mask]] = w_edge[prob.edge_mask]
         graph = comps.graph[prob.comp_id]
-        it_g.scatter_reduce_(0, graph, iters, reduce="amax")
-        conv_g.scatter_reduce_(0, graph, conv, reduce="amin")
+        it_g.scatter_reduce_(0, graph, iters.to(it_g.dtype), reduce="amax")
+        conv_g = scatter_all(conv, graph, B)  # not scatter_reduce: no bool kernel on CUDA
     return poses, solved, edge_weight, it_g, conv_g

@@ -52,6 +52,7 @@ import torch
 from torch import Tensor
 
 from ..geometry import axis_angle_to_rotation_matrix, rotation_matrix_to_axis_angle
+from ..scatter import scatter_all, scatter_any
 from .backend import SyncBackend, SyncResult, apply_scale_policy, check_positive
 from .components import Components
 from .padding import PaddedProblem, assemble, build_padded, edge_rotations
@@ -501,10 +502,10 @@ class RotationTranslation(SyncBackend):
             out[ids] = x[sel]
             return out
 
-        rigid = torch.ones(B, dtype=torch.bool, device=dev)
-        rigid.scatter_reduce_(0, comps.graph[prob.comp_id], st.rigid, reduce="amin")
-        fallback = torch.zeros(B, dtype=torch.bool, device=dev)
-        fallback.scatter_reduce_(0, comps.graph[prob.comp_id], st.fallback, reduce="amax")
+        # per graph: all its components rigid / any fell back (no bool scatter_reduce on CUDA)
+        graph = comps.graph[prob.comp_id]
+        rigid = scatter_all(st.rigid, graph, B)
+        fallback = scatter_any(st.fallback, graph, B)
         return {
             "rotation_residual_deg": per_edge(st.rotation_residual, 0.0),
             "direction_residual_deg": per_edge(st.direction_residual, 0.0),
