@@ -162,7 +162,7 @@ def differentiable_sync(edge_index: Tensor, edge_pose: Tensor, num_nodes: int,
     solved = torch.zeros(num_nodes, dtype=torch.bool, device=edge_pose.device)
     if prob.G == 0:
         return poses, solved
-    wp = torch.where(prob.edge_mask, w[prob.edge.clamp_min(0)], torch.zeros((), dtype=dtype))
+    wp = torch.where(prob.edge_mask, w[prob.edge.clamp_min(0)], w.new_zeros(()))
     R_abs = _sync_rotations(prob, prob.R, wp)
     t_abs = _sync_translations(prob, R_abs, prob.t, wp, ridge)
     sel = prob.node_mask

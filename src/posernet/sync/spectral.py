@@ -208,8 +208,9 @@ def _orthonormalize(W: Tensor, Q: Tensor | None, row_mask: Tensor,
     W = proj(proj(W))
     bad = W.norm(dim=1) <= 1e-13 * nrm0
     if bool(bad.any()):
-        r = torch.randn(W.shape, generator=generator, dtype=W.dtype,
-                        device=W.device) * row_mask[..., None]
+        # drawn on the CPU generator: the same vectors on every device
+        r = torch.randn(W.shape, generator=generator, dtype=W.dtype).to(W.device) \
+            * row_mask[..., None]
         W = torch.where(bad[:, None, :], proj(proj(r)), W)
     W = torch.linalg.qr(W).Q
     if Q is not None:
@@ -373,13 +374,14 @@ def rotation_irls(prob: PaddedProblem, robust: bool, max_iters: int, tol: float,
     converged = torch.zeros(G, dtype=torch.bool, device=dev)
     eig_ok = torch.ones(G, dtype=torch.bool, device=dev)
     active = torch.ones(G, dtype=torch.bool, device=dev)
-    gen = torch.Generator(device=dev).manual_seed(seed)
+    # a CPU generator: the Krylov start is the same on every device, so CUDA and CPU agree
+    gen = torch.Generator().manual_seed(seed)
     warm = None
     pattern: CSRPattern | None = None
     pattern_idx: Tensor | None = None
     if krylov:
         rows = prob.node_mask.repeat_interleave(3, dim=1)[..., None].to(dt)
-        warm = torch.randn(G, 3 * n, 6, generator=gen, dtype=dt, device=dev) * rows
+        warm = torch.randn(G, 3 * n, 6, generator=gen, dtype=dt).to(dev) * rows
     for k in range(1, (max_iters if robust else 1) + 1):
         idx = active.nonzero().squeeze(1)
         sub = prob.select(idx) if idx.numel() < G else prob
