@@ -71,7 +71,8 @@ DATA = ROOT / "data" / "real"
 # benchmarks/data/real/build_sets.py (``trust`` and ``dino``)
 TRUST_SETS = ("middlebury_dino_sparse_ring", "middlebury_dino_sparse_ring_far8",
               "strecha_herzjesu_p25_every3", "strecha_fountain_p11_every3",
-              "strecha_entry_p10_every3", "strecha_herzjesu_p25_far8")
+              "strecha_entry_p10_every3", "strecha_herzjesu_p25_far8", "squirrel_turntable",
+              "squirrel_turntable_far8")
 COLMAP_METHODS = ("colmap-global", "colmap-incremental")
 DEFAULT_METHODS = ("posernet", *COLMAP_METHODS)
 PYCOLMAP_PIN = "pycolmap==4.2.1"

@@ -6,14 +6,16 @@ Not run by tests; kept so the conversions are reproducible. Raw inputs are expec
 ``.camera`` files as in openMVG/SfM_quality_evaluation), ``7s/`` (the 7-Scenes frames of
 andyzeng/tsdf-fusion-python ``data/``), ``cab/`` (TUM fr3_cabinet key frames of
 benchun123/cuboid_slam_with_bbox_constraints ``data/``; built only on request: it fails the
-checks for lack of texture).
+checks for lack of texture), ``squirrel/`` (``image_N.jpg`` + ``viff.xml`` of
+xocoatzin/Voxel-Carving ``assets/``: a glazed ceramic squirrel on a turntable).
 
 Derived sparse sets (the trust benchmark's hard cases; same raw inputs, same conversions):
 ``herzjesu_every3`` / ``fountain_every3`` / ``entry_every3`` keep every third view of the
 full Strecha set (views 0, 3, 6, ...: a chain of far-apart views); ``dino_far8`` and
 ``herzjesu_far8`` keep 8 views chosen far apart by greedy farthest-point sampling on the
-viewing direction (:func:`farthest_views`, starting from the first view). ``trust`` builds
-all five.
+viewing direction (:func:`farthest_views`, starting from the first view). The turntable
+squirrel: ``squirrel`` (all 36 views, 10 deg apart) and ``squirrel_far8``. ``trust`` builds
+all seven.
 
     python benchmarks/data/real/build_sets.py dino herzjesu fountain entry 7scenes
     python benchmarks/data/real/build_sets.py trust
@@ -196,6 +198,44 @@ def build_7scenes(raw: Path, first: int = 0, last: int = 500, n_keep: int = 20,
     write_intrinsics(out, np.array([[K[0], 0, K[2]], [0, K[1], K[3]], [0, 0, 1.0]]))
 
 
+def build_squirrel(raw: Path, name: str = "squirrel_turntable", far: int = 0,
+                   scale: int = 2) -> None:
+    """Turntable squirrel of xocoatzin/Voxel-Carving: ``viff.xml`` holds per view a 3x4
+    projection ``P = K [R | t]`` (world to image, OpenCV axes): decomposed, c2w = [R^T | C].
+    Images renamed ``squirrel_NNN`` (zero-padded: name order = ring order), downscaled by
+    ``scale``; ``far > 0``: that many views by :func:`farthest_views`."""
+    src = raw / "squirrel"
+    out = HERE / name
+    clean(out)
+    fs = cv2.FileStorage(str(src / "viff.xml"), cv2.FILE_STORAGE_READ)
+    views, K0 = [], None
+    centre = np.array([0.70, 0.95, -0.75])  # the object's box centre in the world
+    for i in range(36):
+        P = fs.getNode(f"viff{i:03d}_matrix").mat().astype(np.float64)
+        K, R, Ch = cv2.decomposeProjectionMatrix(P)[:3]
+        K = K / K[2, 2]
+        C = Ch[:3, 0] / Ch[3, 0]
+        assert np.linalg.det(R) > 0 and (R @ (centre - C))[2] > 0, "camera faces away"
+        assert K0 is None or np.allclose(K, K0, atol=1e-3), "per-view K differ"
+        K0 = K
+        c2w = np.eye(4)
+        c2w[:3, :3], c2w[:3, 3] = R.T, C
+        views.append(c2w)
+    fs.release()
+    keep = farthest_views(views, far) if far else range(len(views))
+    for i in keep:
+        img = cv2.imread(str(src / f"image_{i}.jpg"), cv2.IMREAD_COLOR)
+        H, W = img.shape[:2]
+        small = cv2.resize(img, (W // scale, H // scale), interpolation=cv2.INTER_AREA)
+        write_jpeg(out / f"squirrel_{i:03d}.jpg", small, 90)
+        write_pose(out / f"squirrel_{i:03d}.pose.txt", views[i])
+    Ks = K0.copy()
+    Ks[0, 1] = 0.0
+    Ks[:2, :2] /= scale
+    Ks[:2, 2] = (K0[:2, 2] + 0.5) / scale - 0.5
+    write_intrinsics(out, Ks)
+
+
 def build_cabinet(raw: Path, n_keep: int = 20) -> None:
     """TUM fr3_cabinet key frames (as shipped in benchun123/cuboid_slam_with_bbox_constraints):
     ``truth_cam_poses.txt`` rows ``t tx ty tz qx qy qz qw`` are TUM ground truth, c2w, metres."""
@@ -216,7 +256,8 @@ def build_cabinet(raw: Path, n_keep: int = 20) -> None:
     write_intrinsics(out, np.array([[535.4, 0, 320.1], [0, 539.2, 247.6], [0, 0, 1.0]]))
 
 
-TRUST = ("herzjesu_every3", "fountain_every3", "entry_every3", "dino_far8", "herzjesu_far8")
+TRUST = ("herzjesu_every3", "fountain_every3", "entry_every3", "dino_far8", "herzjesu_far8",
+         "squirrel", "squirrel_far8")
 
 
 if __name__ == "__main__":
@@ -247,5 +288,9 @@ if __name__ == "__main__":
             build_dino(a.raw, "middlebury_dino_sparse_ring_far8", far=8)
         elif s == "herzjesu_far8":
             build_strecha(a.raw, "hj", "strecha_herzjesu_p25_far8", far=8)
+        elif s == "squirrel":
+            build_squirrel(a.raw)
+        elif s == "squirrel_far8":
+            build_squirrel(a.raw, "squirrel_turntable_far8", far=8)
         else:
             raise SystemExit(f"unknown set {s}")
