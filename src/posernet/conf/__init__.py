@@ -25,7 +25,8 @@ if TYPE_CHECKING:
     else:
         from importlib.abc import Traversable
 
-__all__ = ["ENV_VAR", "compose", "config_dir", "config_root", "quote_value"]
+__all__ = ["ENV_VAR", "compose", "config_dir", "config_root", "path_safe", "quote_value",
+           "register_resolvers"]
 
 #: environment variable naming a config folder to use instead of the shipped one
 ENV_VAR = "POSERNET_CONFIG_DIR"
@@ -48,6 +49,21 @@ def config_dir() -> str:
     return str(root.resolve())
 
 
+def path_safe(value: object) -> str:
+    """``value`` as one folder name: each path separator (``/``, ``\\``) becomes ``_`` (the
+    configs' ``${posernet.path_safe:...}``, e.g. a sweep job's folder named by its overrides
+    such as ``optimized_metric=val/rot_err_deg``)."""
+    return str(value).replace("/", "_").replace("\\", "_")
+
+
+def register_resolvers() -> None:
+    """Register the resolvers the configs use (``posernet.path_safe``), once per process."""
+    from omegaconf import OmegaConf
+
+    if not OmegaConf.has_resolver("posernet.path_safe"):
+        OmegaConf.register_new_resolver("posernet.path_safe", path_safe)
+
+
 def compose(config_name: str, overrides: Sequence[str] = (),
             return_hydra_config: bool = False) -> Any:
     """A command's config (``"train"``, ``"eval"``, ...) composed with Hydra ``overrides``, as
@@ -60,6 +76,7 @@ def compose(config_name: str, overrides: Sequence[str] = (),
     from hydra import initialize_config_dir
     from hydra.core.global_hydra import GlobalHydra
 
+    register_resolvers()
     global_hydra = GlobalHydra.instance()
     outer = global_hydra.hydra if global_hydra.is_initialized() else None
     global_hydra.clear()
