@@ -116,14 +116,39 @@ def test_multirun_sweep(dataset: Path, tmp_path: Path) -> None:
     for job in jobs:
         assert (job / "checkpoints" / "last.ckpt").is_file()
         assert json.loads((job / "metrics.json").read_text())["best"] is not None
-    # one table across the jobs, best first, with the swept values
+    # one table across the jobs with the swept values, ranked by the validation rotation error
+    # at each job's best checkpoint (val/loss depends on alpha), the loss beside it
     assert "sweep summary:" in res.stdout
     lines = (sweep / "summary.md").read_text().splitlines()
-    assert lines[2] == ("| job | model.loss.alpha | model.net.depth | best | metric | epochs | "
-                        "checkpoint | note |")
-    best = [float(ln.split("|")[4]) for ln in lines[4:]]
-    assert len(best) == 4 and best == sorted(best)
+    assert lines[0].endswith(": 4 jobs, lowest val/rot_err_deg first")
+    assert lines[4] == ("| job | model.loss.alpha | model.net.depth | val/rot_err_deg | best | "
+                        "metric | epochs | checkpoint | note |")
+    rot = [float(ln.split("|")[4]) for ln in lines[6:]]
+    assert len(rot) == 4 and rot == sorted(rot)
+    assert {ln.split("|")[6].strip() for ln in lines[6:]} == {"val/loss"}
     assert (sweep / "summary.csv").read_text().startswith("job,model.loss.alpha,")
+    for job in jobs:  # the rotation error of the best checkpoint's epoch
+        m = json.loads((job / "metrics.json").read_text())
+        assert m["best_metrics"]["val/loss"] == m["best"]
+        assert "val/rot_err_deg" in m["best_metrics"]
+
+
+def test_multirun_sweep_optimising_a_metric_with_a_slash(dataset: Path, tmp_path: Path) -> None:
+    """optimized_metric=val/rot_err_deg: one folder per job all the same (the "/" of the value
+    is not a subfolder), every job in the summary, exit status 0."""
+    sweep = tmp_path / "sweep"
+    cmd = [sys.executable, "-m", "posernet.cli.train", "-m", "model.loss.alpha=0.1,0.5",
+           "optimized_metric=val/rot_err_deg", f"data.root={dataset}", "trainer.max_epochs=1",
+           f"hydra.sweep.dir={sweep}", *QUIET]
+    res = subprocess.run(cmd, capture_output=True, text=True, timeout=300, env=env())
+    assert res.returncode == 0, res.stderr[-3000:]
+    jobs = sorted(p.name for p in sweep.iterdir() if p.is_dir())
+    assert jobs == [f"{k}_data.batch_size=4,model.loss.alpha={a},"
+                    "optimized_metric=val_rot_err_deg,trainer.max_epochs=1"
+                    for k, a in enumerate(("0.1", "0.5"))]
+    text = (sweep / "summary.md").read_text()
+    assert text.splitlines()[0].endswith(": 2 jobs, lowest val/rot_err_deg first")
+    assert "failed" not in text and "error" not in res.stderr
 
 
 def test_eval_on_the_datamodule_test_split(trained: Path, dataset: Path, tmp_path: Path) -> None:

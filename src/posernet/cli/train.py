@@ -11,9 +11,10 @@ Config groups: ``data`` (dataset directory, KP/BB input, leave-one-scene-out), `
     posernet-train -m data.root=... model.net.depth=2,3,4,5 model.loss.alpha=0.1,0.5  # sweep
 
 Each run writes ``checkpoints/best.ckpt``, ``checkpoints/last.ckpt``, ``logs/metrics.csv`` and
-``metrics.json`` into its Hydra output folder (one subfolder per job in a sweep). The task
-function returns the best value of ``optimized_metric`` (default ``val/loss``) so sweepers can
-minimise it.
+``metrics.json`` (with ``best_metrics``, every validation metric of the best checkpoint's
+epoch) into its Hydra output folder (one subfolder per job in a sweep, summarised by
+:mod:`posernet.cli.sweep`). The task function returns the best value of ``optimized_metric``
+(default ``val/loss``) so sweepers can minimise it.
 
 Resuming (``ckpt_path=RUN/checkpoints/last.ckpt``) continues the run in its own folder ``RUN``
 (unless ``hydra.run.dir`` or ``out_dir`` is given); ``ckpt_path=last`` resumes the output
@@ -161,6 +162,33 @@ def _relocation_callback(ckpt_path: str) -> Any:
     return _ContinueRun()
 
 
+def _scalars(metrics: dict[str, Any]) -> dict[str, float]:
+    """The finite one-element tensors of a Lightning metrics mapping, as floats."""
+    import torch
+
+    return {k: float(v) for k, v in metrics.items()
+            if torch.is_tensor(v) and v.numel() == 1 and math.isfinite(float(v))}
+
+
+def _validation_history() -> Any:
+    """A callback keeping every validation epoch's metrics (``.epochs``: ``epoch`` and each
+    ``val/`` metric), so the run can record those of the epoch its best checkpoint is from."""
+    from lightning.pytorch.callbacks import Callback
+
+    class _History(Callback):
+        def __init__(self) -> None:
+            self.epochs: list[dict[str, float]] = []
+
+        def on_validation_end(self, trainer: Any, pl_module: Any) -> None:
+            if not trainer.sanity_checking:
+                metrics = _scalars(trainer.callback_metrics)
+                self.epochs.append({"epoch": int(trainer.current_epoch),
+                                    **{k: v for k, v in metrics.items()
+                                       if k.startswith("val/")}})
+
+    return _History()
+
+
 def _merge_csv_log(path: Path, history: Path, epoch: int, global_step: int) -> None:
     """Rewrite ``path`` as the rows of ``history`` written before the resumed checkpoint (epoch
     ``<= epoch``; rows without an epoch: ``step < global_step``) followed by ``path``'s rows."""
@@ -254,7 +282,6 @@ def train(cfg: DictConfig) -> float:
     import warnings
 
     import lightning as L
-    import torch
     from lightning.pytorch.callbacks import ModelCheckpoint
     from lightning.pytorch.loggers import CSVLogger
 
@@ -288,6 +315,8 @@ def train(cfg: DictConfig) -> float:
         init_path = init_weights(model, init_from)
     num_parameters = sum(p.numel() for p in model.parameters() if p.requires_grad)
     callbacks = _instantiate_dict(cfg.get("callbacks"))
+    history_cb = _validation_history()
+    callbacks.append(history_cb)
     if in_place:
         callbacks.append(_relocation_callback(str(ckpt_path)))
     logger = hydra.utils.instantiate(cfg.logger) if cfg.get("logger") else False
@@ -355,9 +384,12 @@ def train(cfg: DictConfig) -> float:
             "num_parameters": num_parameters,
             "seed": int(cfg.seed),
             "train_seconds": round(time.perf_counter() - t_start, 3),
-            "final_metrics": {k: float(v) for k, v in trainer.callback_metrics.items()
-                              if torch.is_tensor(v) and v.numel() == 1
-                              and math.isfinite(float(v))},
+            "final_metrics": _scalars(trainer.callback_metrics),
+            # every validation metric of the epoch the best checkpoint is from (e.g. the
+            # rotation error, comparable across loss weights); {} when that epoch ran before
+            # a resume
+            "best_metrics": next((m for m in reversed(history_cb.epochs)
+                                  if m.get(metric_name) == best), {}),
             "test": {k: v for k, v in test_metrics.items() if math.isfinite(v)},
         }
         atomic_write_json(out_dir / "metrics.json", summary)
