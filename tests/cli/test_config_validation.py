@@ -364,6 +364,31 @@ def test_help_is_written_from_the_commands_own_config(prog, name):
         assert "  trainer" in text and "gpu" in text
 
 
+@pytest.mark.parametrize(("prog", "name"), [
+    ("posernet-reconstruct", "reconstruct"), ("posernet-train", "train"),
+    ("posernet-eval", "eval"), ("posernet-refine", "refine"),
+    ("posernet-make-data", "make_data"), ("posernet-demo", "demo")])
+def test_help_lists_every_option_of_the_composed_config(prog, name):
+    """--help lists each option of the command's composed config (its config groups' too),
+    with the meaning written beside it in whichever file sets it."""
+    from posernet.cli.help import command_help
+
+    text = command_help(prog, CONFIG_DIR, name)
+    listed = {ln.split()[0] for ln in text.split("options (key, default, meaning):\n")[1]
+              .splitlines() if ln.startswith("  ")}
+    required = {ln.split()[0] for block in text.split("\n\n") if block.startswith("required:")
+                for ln in block.splitlines()[1:]}
+    cfg = cfg_of(name)
+    wanted = {k for k in _leaves(cfg) if not any(p.startswith("_") for p in k.split("."))}
+    assert wanted - listed - required == set()
+    if name == "train":
+        lines = {ln.split()[0]: ln for ln in text.splitlines() if ln.startswith("  ")}
+        for key in ("data.root", "trainer.max_epochs", "model.net.depth", "model.loss.alpha"):
+            assert key in listed, key
+        assert "message-passing rounds" in lines["model.net.depth"]
+        assert "or a list of them" in lines["data.root"]  # a continued comment
+
+
 def test_help_flag_prints_it_and_exits_0(capsys, monkeypatch):
     from posernet.cli.common import run_app
 

@@ -14,7 +14,8 @@ from __future__ import annotations
 import os
 import re
 import sys
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from importlib.resources import files
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -25,8 +26,8 @@ if TYPE_CHECKING:
     else:
         from importlib.abc import Traversable
 
-__all__ = ["ENV_VAR", "compose", "config_dir", "config_root", "path_safe", "quote_value",
-           "register_resolvers"]
+__all__ = ["ENV_VAR", "compose", "config_dir", "config_root", "initialized", "path_safe",
+           "quote_value", "register_resolvers"]
 
 #: environment variable naming a config folder to use instead of the shipped one
 ENV_VAR = "POSERNET_CONFIG_DIR"
@@ -73,6 +74,17 @@ def compose(config_name: str, overrides: Sequence[str] = (),
     Works inside a running Hydra app too (its global state is set aside and restored).
     """
     from hydra import compose as hydra_compose
+
+    with initialized(config_name):
+        return hydra_compose(config_name, overrides=list(overrides),
+                             return_hydra_config=return_hydra_config)
+
+
+@contextmanager
+def initialized(config_name: str, directory: str | os.PathLike[str] | None = None
+                ) -> Iterator[None]:
+    """Hydra initialised on the config tree (or ``directory``) for ``config_name``, inside a
+    running Hydra app too (its global state is set aside and restored on exit)."""
     from hydra import initialize_config_dir
     from hydra.core.global_hydra import GlobalHydra
 
@@ -81,10 +93,9 @@ def compose(config_name: str, overrides: Sequence[str] = (),
     outer = global_hydra.hydra if global_hydra.is_initialized() else None
     global_hydra.clear()
     try:
-        with initialize_config_dir(config_dir=config_dir(), version_base="1.3",
-                                   job_name=config_name):
-            return hydra_compose(config_name, overrides=list(overrides),
-                                 return_hydra_config=return_hydra_config)
+        with initialize_config_dir(config_dir=str(directory or config_dir()),
+                                   version_base="1.3", job_name=config_name):
+            yield
     finally:
         global_hydra.clear()
         if outer is not None:
