@@ -50,6 +50,8 @@ bench: $(STAMP)  ## quick run of every benchmark (tables in benchmarks/results/q
 	cd benchmarks && for b in bench_forward bench_sync bench_train_epoch bench_large; do \
 		../$(PY) $$b.py --quick $(BENCH_ARGS) || exit 1; done
 	cd benchmarks && ../$(PY) bench_frontend.py --frames 6 --scenes chess --no-write
+	# CPU beside GPU (the CPU columns only without CUDA; about 30 s here)
+	cd benchmarks && ../$(PY) bench_gpu.py --quick
 	# photos to poses (a rendered scene, plus the real sets that are built; COLMAP rows need
 	# the [bench] extra) and the bundle-adjustment solvers
 	cd benchmarks && ../$(PY) bench_real.py --quick && ../$(PY) bench_ba.py --quick
