@@ -19,6 +19,7 @@ import torch
 from torch import Tensor
 
 from ..geometry import det3, project_to_so3
+from ..scatter import scatter_count
 from .backend import SyncOptions, check_positive
 from .padding import PaddedProblem
 from .robust import mad_cauchy_weights
@@ -154,7 +155,7 @@ class CSRPattern:
         rows, cols = _raw_coords(prob)
         size = prob.G * 3 * prob.n
         perm = torch.argsort(rows * size + cols)
-        counts = torch.bincount(rows, minlength=size)
+        counts = scatter_count(rows, size)  # not bincount, as everywhere (posernet.scatter)
         crow = torch.cat((counts.new_zeros(1), torch.cumsum(counts, 0)))
         return cls(crow=crow, col=cols[perm], perm=perm, size=size)
 
