@@ -63,47 +63,59 @@ def _collapsed(w2c: np.ndarray, factor: float) -> np.ndarray:
     return out
 
 
-def test_auto_start_keeps_the_start_that_explains_more(long_lens) -> None:
+def test_positioning_start_undoes_a_collapse(long_lens) -> None:
+    """Averaged centres collapsed onto one spot and rotations 5 deg off: adjusting from them
+    fails, while the positioning start (centres and points from rays) and the incremental one
+    both recover the cameras; auto keeps the positioning start."""
     sc = long_lens
     w0 = _collapsed(perturb_poses(sc.w2c, 5.0, 0.0, seed=1), 1e-3)
     placed = np.ones(8, bool)
     res = {s: bundle_adjust_reconstruction(sc.uv, sc.pair_matches, sc.K, None, w0, placed,
                                            BundleOptions(start=s))
-           for s in ("averaged", "incremental", "auto")}
-    start = res["auto"].stats["start"]
-    assert start["kept"] == "incremental"
-    obs = start["observations"]
-    assert obs["incremental"] == res["auto"].obs_image.size > obs["averaged"]
+           for s in ("averaged", "positioning", "incremental", "auto")}
     assert not res["averaged"].refined.any()  # nothing to triangulate from: BA fails
-    assert res["auto"].refined.all()
-    np.testing.assert_allclose(res["auto"].w2c, res["incremental"].w2c)
     rot_avg = _errors(res["averaged"].w2c, sc.w2c)[0]
-    rot_auto, pos_auto = _errors(res["auto"].w2c, sc.w2c)
-    assert rot_avg > 3 and rot_auto < 0.1, (rot_auto, rot_avg)
-    assert pos_auto < 0.01 * 25, pos_auto
-    assert any(line.startswith("start: incremental") for line in res["auto"].lines())
+    assert rot_avg > 3, rot_avg
+    for s in ("positioning", "incremental", "auto"):
+        assert res[s].refined.all(), s
+        rot, pos = _errors(res[s].w2c, sc.w2c)
+        assert rot < 0.1 and pos < 0.01 * 25, (s, rot, pos)
+    assert res["auto"].stats["start"]["kept"] == "positioning"
+    assert res["positioning"].stats["start"] == {"kept": "positioning",
+                                                 "why": "start=positioning"}
+    assert "positioning" in res["auto"].stats["seconds"]
+    np.testing.assert_allclose(res["auto"].w2c, res["positioning"].w2c)
 
 
-def test_a_good_averaged_start_is_kept() -> None:
+def test_auto_start_keeps_the_start_that_explains_more() -> None:
+    """Noisy keypoints leave a few observations over max_reproj_px, so explained_min=1 tries
+    the incremental start too; the one explaining more wins, a tie keeps the first."""
+    sc = make_scene(num_cameras=6, num_points=300, noise_px=2.0, seed=3)
+    res = bundle_adjust_reconstruction(sc.uv, sc.pair_matches, sc.K, None, sc.w2c,
+                                       np.ones(6, bool), BundleOptions(explained_min=1.0))
+    start = res.stats["start"]
+    obs = start["observations"]
+    assert set(obs) == {"positioning", "incremental", "registered", "seed_pair"}
+    want = "positioning" if obs["positioning"] >= obs["incremental"] else "incremental"
+    assert start["kept"] == want and obs[want] == res.obs_image.size
+    assert any(line.startswith(f"start: {want}") for line in res.lines())
+
+
+def test_a_good_first_start_is_kept() -> None:
     sc = make_scene(num_cameras=6, num_points=300, noise_px=0.3, seed=3)
     placed = np.ones(6, bool)
     # explaining most observations with every camera refined: incremental not even tried
     res = bundle_adjust_reconstruction(sc.uv, sc.pair_matches, sc.K, None, sc.w2c, placed,
                                        BundleOptions())
-    assert res.stats["start"]["kept"] == "averaged"
+    assert res.stats["start"]["kept"] == "positioning"
     assert re.fullmatch(r"explains (9\d|100)% of the track observations, every camera refined",
                         res.stats["start"]["why"])
     assert "registration" not in res.stats["seconds"]
     assert _errors(res.w2c, sc.w2c)[0] < 0.05
-    # noisier keypoints: a few observations over max_reproj_px, so explained_min=1 tries the
-    # incremental start too; the one explaining more wins, a tie keeps the averaged one
-    sc = make_scene(num_cameras=6, num_points=300, noise_px=2.0, seed=3)
-    both = bundle_adjust_reconstruction(sc.uv, sc.pair_matches, sc.K, None, sc.w2c, placed,
-                                        BundleOptions(explained_min=1.0))
-    obs = both.stats["start"]["observations"]
-    want = "averaged" if obs["averaged"] >= obs["incremental"] else "incremental"
-    assert both.stats["start"]["kept"] == want
-    assert obs[want] == both.obs_image.size
+    # the averaged start, asked for, is kept as it is
+    avg = bundle_adjust_reconstruction(sc.uv, sc.pair_matches, sc.K, None, sc.w2c, placed,
+                                       BundleOptions(start="averaged"))
+    assert "start" not in avg.stats and _errors(avg.w2c, sc.w2c)[0] < 0.05
 
 
 def test_a_camera_that_cannot_be_registered_is_not_placed(long_lens) -> None:
@@ -120,12 +132,17 @@ def test_a_camera_that_cannot_be_registered_is_not_placed(long_lens) -> None:
     assert _errors(res.w2c[keep], sc.w2c[keep])[0] < 0.2
 
 
-def test_large_components_start_from_the_averaged_poses(long_lens) -> None:
+def test_large_components_are_not_registered_incrementally(long_lens) -> None:
     sc = long_lens
     res = bundle_adjust_reconstruction(sc.uv, sc.pair_matches, sc.K, None, sc.w2c,
                                        np.ones(8, bool),
                                        BundleOptions(incremental_max_cameras=7))
-    assert res.stats["start"] == {"kept": "averaged", "why": "component over 7 cameras"}
+    assert res.stats["start"] == {"kept": "positioning", "why": "component over 7 cameras"}
+    avg = bundle_adjust_reconstruction(sc.uv, sc.pair_matches, sc.K, None, sc.w2c,
+                                       np.ones(8, bool),
+                                       BundleOptions(start="incremental",
+                                                     incremental_max_cameras=7))
+    assert avg.stats["start"] == {"kept": "averaged", "why": "component over 7 cameras"}
 
 
 def test_start_options_are_checked() -> None:

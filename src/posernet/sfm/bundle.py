@@ -37,12 +37,13 @@ LOSSES: tuple[str, ...] = ("linear", "huber", "soft_l1", "cauchy", "arctan")
 FOCAL_MODES: tuple[str, ...] = ("none", "shared", "per_camera", "auto")
 GAUGES: tuple[str, ...] = ("max_degree", "first")
 #: where the adjustment of a component starts: ``averaged`` (the motion-averaging poses),
-#: ``incremental`` (cameras registered one at a time by PnP from a seed pair,
-#: :mod:`posernet.sfm.incremental`) or ``auto`` (both; the one whose adjustment keeps more
-#: observations within ``max_reproj_px`` wins, ties to the averaged start; the incremental one
-#: is tried only when the averaged adjustment leaves a camera unrefined or explains less than
-#: ``explained_min`` of the track observations)
-STARTS: tuple[str, ...] = ("auto", "averaged", "incremental")
+#: ``positioning`` (the averaged rotations with centres and points solved together from their
+#: rays, :mod:`posernet.sfm.positioning`), ``incremental`` (cameras registered one at a time
+#: by PnP from a seed pair, :mod:`posernet.sfm.incremental`) or ``auto`` (the positioning
+#: start; the incremental one is also tried when that adjustment leaves a camera unrefined or
+#: explains less than ``explained_min`` of the track observations, and the one that keeps
+#: more observations within ``max_reproj_px`` wins)
+STARTS: tuple[str, ...] = ("auto", "averaged", "positioning", "incremental")
 
 
 @dataclass

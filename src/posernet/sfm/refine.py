@@ -20,6 +20,7 @@ import torch
 from ..geometry import umeyama_alignment
 from .bundle import BundleOptions, BundleResult, bundle_adjust
 from .incremental import register_incrementally
+from .positioning import global_positioning
 from .resection import resect_cameras
 from .tracks import Tracks, build_tracks
 from .triangulation import reprojection_errors, triangulate_tracks, undistort_keypoints
@@ -72,10 +73,11 @@ class SfmResult:
         if "start" in s:
             st = s["start"]
             obs = st.get("observations") or {}
+            starts = [k for k in obs if k not in ("registered", "seed_pair")]
             out.append(f"start: {st['kept']}" + (
-                f" (observations kept: from averaged poses {obs.get('averaged')}, from "
-                f"incremental registration {obs.get('incremental')} with "
-                f"{obs.get('registered')} cameras registered)" if obs else
+                " (observations kept: " + ", ".join(f"from the {k} start {obs[k]}"
+                                                    for k in starts)
+                + f"; {obs.get('registered')} cameras registered incrementally)" if obs else
                 f" ({st.get('why', '')})"))
         if "triangulation" in s:
             out.append("initial triangulation: " + ", ".join(
@@ -337,6 +339,36 @@ def _support(r: SfmResult) -> int:
     return int(r.refined[r.obs_image].sum())
 
 
+def _observations(uv: Sequence[np.ndarray], pair_matches: Mapping[tuple[int, int], np.ndarray],
+                  K: np.ndarray, dist: Sequence[np.ndarray | None] | None, members: np.ndarray
+                  ) -> tuple[Tracks, np.ndarray]:
+    """Tracks among ``members`` and their undistorted pixels ``(O, 2)``."""
+    und = undistort_keypoints(uv, K, dist)
+    sub = {k: m for k, m in pair_matches.items() if members[int(k[0])] and members[int(k[1])]}
+    tracks = build_tracks(sub, [len(u) for u in und])
+    offs = np.concatenate(([0], np.cumsum([len(u) for u in und]))).astype(np.int64)
+    flat = np.concatenate([u.reshape(-1, 2) for u in und]) if len(und) else np.zeros((0, 2))
+    return tracks, flat[offs[tracks.image] + tracks.keypoint]
+
+
+def _restart(uv: Sequence[np.ndarray], pair_matches: Mapping[tuple[int, int], np.ndarray],
+             K: np.ndarray, dist: Sequence[np.ndarray | None] | None, w2c: np.ndarray,
+             start: np.ndarray, started: np.ndarray, members: np.ndarray, opt: BundleOptions,
+             seed: int, seconds: float, what: str) -> SfmResult:
+    """Bundle adjustment from the poses ``start`` of the ``started`` cameras; the other
+    ``members`` are left unplaced (weak, position undetermined, averaged pose kept)."""
+    res = bundle_adjust_reconstruction(uv, pair_matches, K, dist, start, started, opt,
+                                       seed=seed)
+    left = members & ~started
+    N = members.size
+    res.placed = res.placed | left
+    res.weak = res.weak | left
+    res.undetermined = (res.undetermined if res.undetermined.size else np.zeros(N, bool)) | left
+    res.w2c[left] = w2c[left]
+    res.stats["seconds"][what] = seconds
+    return res
+
+
 def _best_start(uv: Sequence[np.ndarray], pair_matches: Mapping[tuple[int, int], np.ndarray],
                 K: np.ndarray, dist: Sequence[np.ndarray | None] | None, w2c: np.ndarray,
                 placed: np.ndarray, opt: BundleOptions, anchored: np.ndarray | None,
@@ -348,52 +380,50 @@ def _best_start(uv: Sequence[np.ndarray], pair_matches: Mapping[tuple[int, int],
     K = np.asarray(K, np.float64)
     w2c = np.asarray(w2c, np.float64)
     members = np.asarray(placed, bool).reshape(-1) & np.isfinite(w2c).all((1, 2))
+    _check_inputs(uv, K, dist, w2c, members)
     small = int(members.sum()) <= opt.incremental_max_cameras
-    avg = None
-    if opt.start == "auto" or not small:
-        avg = bundle_adjust_reconstruction(uv, pair_matches, K, dist, w2c, placed, averaged_opt,
-                                           anchored=anchored, seed=seed)
-        if not small:
-            avg.stats["start"] = {"kept": "averaged", "why": "component over "
-                                  f"{opt.incremental_max_cameras} cameras"}
-            return avg
-        explained = _support(avg) / max(int(avg.tracks.track.size), 1)
-        if bool(avg.refined[members].all()) and explained >= opt.explained_min:
-            avg.stats["start"] = {"kept": "averaged", "why": f"explains {explained:.0%} of the "
-                                  "track observations, every camera refined"}
-            return avg
+    base, name = None, "averaged"
+    if opt.start in ("auto", "positioning"):
+        t0 = time.perf_counter()
+        tracks, xy = _observations(uv, pair_matches, K, dist, members)
+        gp = global_positioning(xy, tracks.track, tracks.image, tracks.num_tracks, K, w2c,
+                                members)
+        if int(gp.positioned.sum()) >= 2:
+            base = _restart(uv, pair_matches, K, dist, w2c, gp.w2c, gp.positioned, members,
+                            averaged_opt, seed, time.perf_counter() - t0, "positioning")
+            name = "positioning"
+            if not base.refined.any():  # no adjustment accepted: the averaged poses stay
+                base, name = None, "averaged"
+    if base is None and (opt.start != "incremental" or not small):
+        base = bundle_adjust_reconstruction(uv, pair_matches, K, dist, w2c, placed,
+                                            averaged_opt, anchored=anchored, seed=seed)
+    if base is not None:
+        if opt.start == "positioning" or not small:
+            base.stats["start"] = {"kept": name, "why": "start=positioning" if small else
+                                   f"component over {opt.incremental_max_cameras} cameras"}
+            return base
+        explained = _support(base) / max(int(base.tracks.track.size), 1)
+        if bool(base.refined[members].all()) and explained >= opt.explained_min:
+            base.stats["start"] = {"kept": name, "why": f"explains {explained:.0%} of the "
+                                   "track observations, every camera refined"}
+            return base
     t0 = time.perf_counter()
-    N = _check_inputs(uv, K, dist, w2c, members)
-    und = undistort_keypoints(uv, K, dist)
-    sub = {k: m for k, m in pair_matches.items() if members[int(k[0])] and members[int(k[1])]}
-    tracks = build_tracks(sub, [len(u) for u in und])
-    offs = np.concatenate(([0], np.cumsum([len(u) for u in und]))).astype(np.int64)
-    flat = np.concatenate([u.reshape(-1, 2) for u in und]) if N else np.zeros((0, 2))
-    reg = register_incrementally(flat[offs[tracks.image] + tracks.keypoint], tracks.track,
-                                 tracks.image, tracks.num_tracks, K, w2c, members,
-                                 dataclasses.replace(averaged_opt, refine_focal="none"),
+    tracks, xy = _observations(uv, pair_matches, K, dist, members)
+    reg = register_incrementally(xy, tracks.track, tracks.image, tracks.num_tracks, K, w2c,
+                                 members, dataclasses.replace(averaged_opt, refine_focal="none"),
                                  min_inliers=max(6, opt.min_points_per_camera), seed=seed)
-    seconds = time.perf_counter() - t0
     inc = None
     if int(reg.registered.sum()) >= 2:
-        inc = bundle_adjust_reconstruction(uv, pair_matches, K, dist, reg.w2c, reg.registered,
-                                           averaged_opt, seed=seed)
-        # members the registration could not place: no position for them
-        left = members & ~reg.registered
-        inc.placed = inc.placed | left
-        inc.weak = inc.weak | left
-        inc.undetermined = (inc.undetermined if inc.undetermined.size else
-                            np.zeros(N, bool)) | left
-        inc.w2c[left] = w2c[left]
-        inc.stats["seconds"]["registration"] = seconds
-    kept = {"averaged": None if avg is None else _support(avg),
+        inc = _restart(uv, pair_matches, K, dist, w2c, reg.w2c, reg.registered, members,
+                       averaged_opt, seed, time.perf_counter() - t0, "registration")
+    kept = {name: None if base is None else _support(base),
             "incremental": None if inc is None else _support(inc),
             "registered": int(reg.registered.sum()), "seed_pair": reg.seed}
-    if inc is None or (avg is not None and _support(avg) >= _support(inc)):
-        if avg is None:  # start=incremental, and the registration placed nothing
-            avg = bundle_adjust_reconstruction(uv, pair_matches, K, dist, w2c, placed,
-                                               averaged_opt, anchored=anchored, seed=seed)
-        avg.stats["start"] = {"kept": "averaged", "observations": kept}
-        return avg
+    if inc is None or (base is not None and _support(base) >= _support(inc)):
+        if base is None:  # start=incremental, and the registration placed nothing
+            base = bundle_adjust_reconstruction(uv, pair_matches, K, dist, w2c, placed,
+                                                averaged_opt, anchored=anchored, seed=seed)
+        base.stats["start"] = {"kept": name, "observations": kept}
+        return base
     inc.stats["start"] = {"kept": "incremental", "observations": kept}
     return inc

@@ -9,7 +9,7 @@ import numpy as np
 
 from .triangulation import project
 
-__all__ = ["SyntheticScene", "look_at_w2c", "make_scene", "perturb_poses"]
+__all__ = ["SyntheticScene", "look_at_w2c", "make_scene", "make_sparse_scene", "perturb_poses"]
 
 
 @dataclass
@@ -94,6 +94,63 @@ def make_scene(num_cameras: int = 8, num_points: int = 400, noise_px: float = 0.
                           pair_matches=matches, obs_image=np.concatenate(oi),
                           obs_point=np.concatenate(op), obs_kp=np.concatenate(ok),
                           xy=np.concatenate(oxy), image_size=(W, H))
+
+
+def make_sparse_scene(kind: str = "ring", num_cameras: int = 16, num_points: int = 3000,
+                      noise_px: float = 0.5, seed: int = 0, focal: float = 800.0,
+                      min_matches: int = 15) -> SyntheticScene:
+    """A sparse view graph: ``kind="ring"``, cameras on a ring around an object whose surface
+    points face outwards and are seen only within 40 deg of their normal (each camera
+    overlaps its two neighbours on each side); ``"chain"``, cameras side by side along a
+    wall, each seeing a stretch of it (overlap with the next two). Pairs share a match list
+    when they see at least ``min_matches`` points."""
+    if kind not in ("ring", "chain"):
+        raise ValueError(f"kind={kind!r}; choose 'ring' or 'chain'")
+    rng = np.random.default_rng(seed)
+    W, H = 640, 480
+    K = np.array([[focal, 0, W / 2], [0, focal, H / 2], [0, 0, 1.0]])
+    n = num_cameras
+    up = np.array([0.0, -1.0, 0.0])
+    if kind == "ring":
+        normal = rng.normal(size=(num_points, 3)) * np.array([1.0, 0.3, 1.0])
+        normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+        pts, cone = normal.copy(), 40.0
+        w2c = np.stack([look_at_w2c(4.0 * np.array([np.sin(a), 0.0, -np.cos(a)]), np.zeros(3),
+                                    up) for a in 2 * np.pi * np.arange(n) / n])
+    else:
+        pts = np.stack([rng.uniform(-1, 1.2 * n, num_points), rng.uniform(-1, 1, num_points),
+                        rng.uniform(-0.5, 0.5, num_points)], 1)
+        normal, cone = np.tile([0.0, 0.0, -1.0], (num_points, 1)), 80.0
+        w2c = np.stack([look_at_w2c(np.array([1.2 * i, 0.0, -4.0]),
+                                    np.array([1.2 * i, 0.0, 0.0]), up) for i in range(n)])
+    Ks = np.repeat(K[None], n, 0)
+    uv, kp_point, oi, op, ok = [], [], [], [], []
+    for i in range(n):
+        pix, z = project(pts, Ks[:1].repeat(num_points, 0), w2c[i:i + 1].repeat(num_points, 0))
+        c = -w2c[i, :3, :3].T @ w2c[i, :3, 3]
+        view = c - pts
+        view /= np.linalg.norm(view, axis=1, keepdims=True)
+        seen = (z > 0.1) & (pix[:, 0] >= 0) & (pix[:, 0] < W) & (pix[:, 1] >= 0) & \
+            (pix[:, 1] < H) & ((view * normal).sum(1) > np.cos(np.radians(cone)))
+        ids = rng.permutation(np.flatnonzero(seen))
+        uv.append(pix[ids] + rng.normal(0, noise_px, (ids.size, 2)))
+        kp_point.append(ids)
+        oi.append(np.full(ids.size, i))
+        op.append(ids)
+        ok.append(np.arange(ids.size))
+    matches: dict[tuple[int, int], np.ndarray] = {}
+    for a in range(n):
+        inv_a = np.full(num_points, -1)
+        inv_a[kp_point[a]] = np.arange(kp_point[a].size)
+        for b in range(a + 1, n):
+            ka = inv_a[kp_point[b]]
+            both = ka >= 0
+            if both.sum() >= min_matches:
+                matches[(a, b)] = np.stack((ka[both], np.flatnonzero(both)), 1)
+    return SyntheticScene(K=Ks, w2c=w2c, points=pts, uv=uv, kp_point=kp_point,
+                          pair_matches=matches, obs_image=np.concatenate(oi),
+                          obs_point=np.concatenate(op), obs_kp=np.concatenate(ok),
+                          xy=np.concatenate(uv), image_size=(W, H))
 
 
 def perturb_poses(w2c: np.ndarray, rot_deg: float, trans_frac: float, seed: int = 0,
