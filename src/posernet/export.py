@@ -104,6 +104,10 @@ def write_colmap_text(
     out.mkdir(parents=True, exist_ok=True)
     images = np.asarray(images, np.int64).reshape(-1)
     keep = np.isin(obs_image, images)
+    # a point left with one view because its others were not exported is not triangulated
+    before = np.bincount(obs_point, minlength=points.shape[0])
+    after = np.bincount(obs_point[keep], minlength=points.shape[0])
+    keep &= (after >= np.minimum(before, 2))[obs_point]
     oi, ok, op = obs_image[keep], obs_keypoint[keep], obs_point[keep]
     err = np.zeros(oi.size) if errors is None else np.asarray(errors, np.float64)[keep]
     used = np.unique(op)

@@ -45,10 +45,11 @@ from .graph import ViewGraph
 from .io import atomic_write_json
 from .refine import RefineResult, refine_graphs
 from .sfm import BundleOptions, SfmResult, anchored_cameras, bundle_adjust_reconstruction
+from .sfm.selfcheck import CheckOptions, PairEvidence, SelfCheck, check_reconstruction
 
 __all__ = ["Reconstruction", "edge_weights", "focal_mode", "gauge_fixed",
-           "largest_point_cloud", "poses_json", "reconstruct", "write_colmap_models",
-           "write_poses_json"]
+           "largest_point_cloud", "pair_evidence", "poses_json", "reconstruct", "self_check",
+           "write_colmap_models", "write_poses_json"]
 
 
 @dataclass
@@ -64,6 +65,9 @@ class Reconstruction:
     #: per stage (images, pair_selection, pairs, graph, averaging, bundle_adjustment): wall
     #: seconds, items, and the process's peak memory (MB) at its end
     stages: dict[str, dict[str, float]] = field(default_factory=dict)
+    #: the final stage held against its evidence (:func:`self_check`); cameras that failed
+    #: are unsolved in ``result.solved[stage]``. None when the check was not run.
+    check: SelfCheck | None = None
 
     @property
     def stage(self) -> str:
@@ -139,6 +143,87 @@ def _bundle_stage(frontend: ImageFrontend, graph: ViewGraph, weights: Tensor,
     return runs
 
 
+def pair_evidence(frontend: ImageFrontend, graph: ViewGraph) -> PairEvidence:
+    """The verified two-view geometry of ``graph``'s edges (their initial relative poses,
+    rotation-only flags and inlier counts) as the self-check's evidence."""
+    from .geometry import pose_vec_to_matrix
+    from .sfm import undistort_keypoints
+
+    T = pose_vec_to_matrix(graph.edge_pose.double()).numpy()
+    edges = graph.edge_index.T.numpy().astype(np.int64)
+    prs = [frontend.pair(i, j) for i, j in edges.tolist()]
+    recs = frontend.records
+    K = np.stack([r.K for r in recs]).astype(np.float64)
+    und = undistort_keypoints([frontend.image(i).features.uv for i in range(len(recs))], K,
+                              [r.dist for r in recs])
+    norm = [(u - K[i, :2, 2]) / np.diag(K[i])[:2] for i, u in enumerate(und)]
+    xa, xb, mp = [], [], []
+    for e, ((i, j), p) in enumerate(zip(edges.tolist(), prs, strict=True)):
+        if p.inliers is None or not len(p.inliers):
+            continue
+        ki, kj = (p.inliers[:, 0], p.inliers[:, 1]) if p.a == i else (p.inliers[:, 1],
+                                                                      p.inliers[:, 0])
+        xa.append(norm[i][ki])
+        xb.append(norm[j][kj])
+        mp.append(np.full(len(ki), e))
+    focal = 0.5 * (K[edges[:, 1], 0, 0] + K[edges[:, 1], 1, 1])
+
+    def cat(x: list[np.ndarray], k: int) -> np.ndarray:
+        return np.concatenate(x) if x else np.zeros((0, k))
+
+    return PairEvidence(pairs=edges, R=T[:, :3, :3], t=T[:, :3, 3],
+                        rotation_only=np.array([p.rotation_only for p in prs], bool),
+                        weight=np.array([0 if p.inliers is None else len(p.inliers)
+                                         for p in prs], np.float64),
+                        match_pair=cat(mp, 0).reshape(-1).astype(np.int64),
+                        x_a=cat(xa, 2), x_b=cat(xb, 2), focal=focal)
+
+
+def self_check(rec: Reconstruction, options: CheckOptions | None = None) -> SelfCheck:
+    """Hold the final stage of ``rec`` against its verified pairs and (after bundle
+    adjustment) its 3D points, one connected component at a time
+    (:func:`posernet.sfm.selfcheck.check_reconstruction`). The cameras that fail become
+    unsolved in ``rec.result.solved[rec.stage]``; the outcome is stored in ``rec.check``."""
+    res, stage = rec.result, rec.stage
+    poses = res.absolute[stage][0].double().numpy()
+    solved = res.solved[stage][0].bool()
+    comp = res.component[stage][0]
+    N = poses.shape[0]
+    evidence = pair_evidence(rec.frontend, rec.graph)
+    passed = np.zeros(N, bool)
+    reason = [""] * N
+    rot = np.full(evidence.pairs.shape[0], np.nan)
+    dirs, inl = rot.copy(), rot.copy()
+    share, tri = np.full(N, np.nan), np.full(N, np.nan)
+    pts = np.zeros(N, np.int64)
+    runs = rec.sfm.get(stage, [])
+    for c in torch.unique(comp[solved]).tolist():
+        members = (solved & (comp == c)).numpy()
+        run = next((r for r in runs if r.placed[members].any()), None)
+        obs = None
+        if run is not None and run.obs_image.size:
+            keep = members[run.obs_image]
+            obs = (run.points, run.obs_image[keep], run.obs_point[keep])
+        out = check_reconstruction(poses, members, evidence, *(obs or (None, None, None)),
+                                   options=options)
+        passed |= out.passed
+        for i in np.flatnonzero(members):
+            reason[i] = out.reason[i]
+            share[i], tri[i], pts[i] = out.agreeing_share[i], out.triangulation_deg[i], \
+                out.points[i]
+        inside = members[evidence.pairs].all(1)
+        rot[inside], dirs[inside] = out.rotation_error_deg[inside], \
+            out.direction_error_deg[inside]
+        inl[inside] = out.inlier_share[inside]
+    check = SelfCheck(placed=solved.numpy().copy(), passed=passed, reason=reason,
+                      rotation_error_deg=rot, direction_error_deg=dirs, agreeing_share=share,
+                      points=pts, triangulation_deg=tri, inlier_share=inl,
+                      options=options or CheckOptions())
+    res.solved[stage][0] = torch.from_numpy(passed).to(res.solved[stage][0].dtype)
+    rec.check = check
+    return check
+
+
 def reconstruct(
     frontend: ImageFrontend,
     model: torch.nn.Module | None,
@@ -151,6 +236,7 @@ def reconstruct(
     bundle_adjust: bool = True,
     bundle: BundleOptions | None = None,
     pairs: PairOptions | None = None,
+    check: CheckOptions | bool | None = True,
 ) -> Reconstruction:
     """Evaluate the image pairs that ``pairs`` selects (default: every pair; see
     :func:`posernet.frontend.pairs.select_pairs`), assemble the graph, refine its ``estimate``
@@ -161,7 +247,9 @@ def reconstruct(
     (:func:`focal_mode`).
     ``guard``: keep the input pose where the model's confidence says refinement would not help
     (:func:`posernet.refine.refine_graphs`; needs a confidence head). With a confidence head
-    the averaging starts from the model's per-edge confidence."""
+    the averaging starts from the model's per-edge confidence.
+    ``check``: hold the final stage against its evidence (:func:`self_check`; options, or
+    ``True`` for the defaults, ``False`` to skip): cameras that fail are reported unsolved."""
     n = len(frontend.records)
     clock = _StageClock()
     frontend.prepare(progress=progress)
@@ -194,6 +282,9 @@ def reconstruct(
             rec.sfm[f"{s}+ba"] = _bundle_stage(frontend, graph, weights, result, s,
                                                bundle or BundleOptions(refine_focal="auto"))
         clock.done("bundle_adjustment", n)
+    if check is not False and result.absolute:
+        self_check(rec, check if isinstance(check, CheckOptions) else None)
+        clock.done("self_check", n)
     return rec
 
 
@@ -307,7 +398,8 @@ def _start_record(start: dict[str, Any] | None, keys: list[str]) -> dict[str, An
     if obs.get("seed_pair") is not None:
         obs["seed_pair"] = [keys[i] for i in obs["seed_pair"]]
     if obs:
-        out["observations_kept"] = {k: obs.get(k) for k in ("averaged", "incremental")}
+        out["observations_kept"] = {k: v for k, v in obs.items()
+                                    if k not in ("registered", "seed_pair")}
         out["registered"] = obs.get("registered")
         out["seed_pair"] = obs.get("seed_pair")
     return out
@@ -343,6 +435,8 @@ def poses_json(rec: Reconstruction, info: dict[str, Any] | None = None) -> dict[
         if any(bool(run.undetermined[i]) for run in rec.sfm.get(stage, [])):
             cam["note"] = ("position not determined: a single edge's direction and too few "
                            "3D points shared with the other cameras")
+        elif rec.check is not None and rec.check.reason[i]:
+            cam["note"] = "failed the self-check: " + rec.check.reason[i]
         cams[r.key] = cam
     keys = [r.key for r in rec.frontend.records]
     edges = []
@@ -363,7 +457,9 @@ def poses_json(rec: Reconstruction, info: dict[str, Any] | None = None) -> dict[
             "backend": res.backend, "frontend": rec.frontend.summary.to_dict(),
             "pair_selection": None if rec.pairs is None else rec.pairs.as_dict(),
             "stages": rec.stages,
-            "bundle_adjustment": bundle, "cameras": cams, "edges": edges,
+            "bundle_adjustment": bundle,
+            "self_check": None if rec.check is None else rec.check.to_dict(keys),
+            "cameras": cams, "edges": edges,
             "rejected_pairs": rec.frontend.rejected_pairs()}
 
 
@@ -373,11 +469,12 @@ def _component_models(rec: Reconstruction) -> Iterator[tuple[Any, np.ndarray, np
     component's world moves with its first camera)."""
     res = rec.result
     poses = res.absolute[rec.stage][0].double()
-    for r in sorted(rec.sfm.get(rec.stage, []), key=lambda r: -int(r.refined.sum())):
-        cams = np.flatnonzero(r.refined)
+    solved = res.solved[rec.stage][0].bool().numpy()
+    for r in sorted(rec.sfm.get(rec.stage, []), key=lambda r: -int((r.refined & solved).sum())):
+        cams = np.flatnonzero(r.refined & solved)
         if cams.size < 2 or r.points.shape[0] == 0:
             continue
-        M = poses[np.flatnonzero(r.placed)[0]].numpy()
+        M = poses[np.flatnonzero(r.placed & solved)[0]].numpy()  # the gauge camera
         yield r, cams, r.points @ M[:3, :3].T + M[:3, 3]
 
 

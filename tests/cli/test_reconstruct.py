@@ -400,3 +400,75 @@ def test_front_end_refiner_guard_quiet_on_an_ordinary_camera_warns_on_a_long_len
     assert long_lens.returncode == 0, long_lens.stderr
     (warning,) = [ln for ln in long_lens.stderr.splitlines() if "WARNING" in ln]
     assert "node_focal median 2340 outside the training range" in warning
+
+
+@pytest.mark.slow
+def test_a_camera_failing_the_self_check_is_unsolved_in_every_output(scene, tmp_path,
+                                                                      monkeypatch):
+    """The self-check's verdict reaches every output: the failed camera is unsolved with its
+    reason in poses.json and absent from sparse/, transforms.json, the TUM file and
+    cameras.html; the others stay placed."""
+    from hydra import compose, initialize_config_module
+
+    import posernet.reconstruct as reconstruct_module
+    from posernet.cli.reconstruct import run
+    from posernet.sfm import selfcheck
+
+    real = selfcheck.check_reconstruction
+
+    def planted(*args, **kwargs):  # camera 2 fails, whatever the evidence says
+        out = real(*args, **kwargs)
+        if out.passed[2]:
+            out.passed[2] = False
+            out.reason[2] = "planted failure"
+        return out
+
+    monkeypatch.setattr(reconstruct_module, "check_reconstruction", planted)
+    out = tmp_path / "o"
+    with initialize_config_module("posernet.conf", version_base=None):
+        cfg = compose("reconstruct", overrides=[f"images={scene / 'seq-01'}",
+                                                f"intrinsics='{_intr(scene)}'",
+                                                f"out_dir={out}", "progress=false",
+                                                "pictures=1"])
+    run(cfg)
+    poses = json.loads((out / "poses.json").read_text())
+    names = list(poses["cameras"])
+    bad = names[2]
+    assert poses["cameras"][bad]["solved"] is False
+    assert poses["cameras"][bad]["note"] == "failed the self-check: planted failure"
+    assert poses["self_check"]["failed"] == {bad: "planted failure"}
+    assert poses["self_check"]["verified"] is True
+    placed = [n for n, c in poses["cameras"].items() if c["solved"]]
+    assert len(placed) == len(names) - 1
+    images_txt = (out / "sparse" / "0" / "images.txt").read_text()
+    assert bad not in images_txt and all(n in images_txt for n in placed)
+    frames = json.loads((out / "transforms.json").read_text())["frames"]
+    assert not any(bad in f["file_path"] for f in frames) and len(frames) == len(placed)
+    tum = (out / "trajectory_tum.txt").read_text()
+    assert bad not in tum
+    assert len([line for line in tum.splitlines() if not line.startswith("#")]) == len(placed)
+    html = (out / "cameras.html").read_text()
+    assert bad not in html and all(n in html for n in placed)
+    assert json.loads((out / "summary.json").read_text())["cameras_placed"] == len(placed)
+
+
+@pytest.mark.slow
+def test_a_run_that_cannot_verify_itself_says_so_and_exits_4(scene, tmp_path):
+    out = tmp_path / "o"
+    r = _run(f"images={scene / 'seq-01'}", f"intrinsics={_intr(scene)}", f"out_dir={out}",
+             "pictures=0", "check.min_points=1000000")
+    assert r.returncode == 4, r.stderr
+    last = r.stderr.strip().splitlines()[-1]
+    assert last.startswith("posernet-reconstruct: self-check: could not verify") and \
+        "(exit status 4)" in last
+    poses = json.loads((out / "poses.json").read_text())
+    assert not any(c["solved"] for c in poses["cameras"].values())
+    assert all("sees" in c["note"] for c in poses["cameras"].values())
+    assert poses["self_check"]["verified"] is False
+    assert not (out / "sparse" / "0").exists() and not (out / "transforms.json").exists()
+    # the check off: the same run places its cameras
+    r = _run(f"images={scene / 'seq-01'}", f"intrinsics={_intr(scene)}",
+             f"out_dir={tmp_path / 'off'}", "pictures=0", "self_check=false")
+    assert r.returncode == 0, r.stderr
+    poses = json.loads((tmp_path / "off" / "poses.json").read_text())
+    assert poses["self_check"] is None and all(c["solved"] for c in poses["cameras"].values())

@@ -40,6 +40,9 @@ from .validation import ConfigValueError
 
 #: exit status of a run that worked but placed no camera (poses.json says why)
 EXIT_NOTHING_PLACED = 3
+#: exit status of a run whose self-check left fewer than two cameras (outputs written, every
+#: camera unsolved with its reason in poses.json)
+EXIT_UNVERIFIED = 4
 
 __all__ = ["main", "run"]
 
@@ -231,7 +234,8 @@ def run(cfg: DictConfig) -> dict[str, Any]:
         rec = reconstruct(frontend, model, backend, device=device, name=Path(cfg.images).name,
                           estimate=str(cfg.estimate), progress=bool(cfg.progress), guard=guard,
                           bundle_adjust=bool(cfg.ba), bundle=bundle,
-                          pairs=instantiate(cfg.pairs))
+                          pairs=instantiate(cfg.pairs),
+                          check=instantiate(cfg.check) if cfg.self_check else False)
     except NothingPlaced as err:
         if replace:
             _clear_outputs(out)
@@ -261,6 +265,8 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     for stage, runs in rec.sfm.items():
         for r in runs:
             print(f"      {stage}: " + "\n      ".join(line for line in r.lines()[-4:] if line))
+    if rec.check is not None:
+        print("      " + rec.check.line([r.key for r in records]))
     print("      seconds: " + ", ".join(
         f"{k.replace('_', ' ')} {v['seconds']:.2f}"
         + (f" ({1000 * v['seconds'] / v['items']:.1f} ms x {v['items']})"
@@ -269,7 +275,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
         + f"; peak memory {max(v['peak_mb'] for v in rec.stages.values()):.0f} MB")
     files["summary"] = atomic_write_json(out / "summary.json", {
         **info, "frontend": frontend.summary.to_dict(), "pair_selection": record["pair_selection"],
-        "stages": rec.stages, "cameras_placed": solved,
+        "stages": rec.stages, "cameras_placed": solved, "self_check": record["self_check"],
         "edges": rec.graph.num_edges, "rotation_only_edges": frontend.summary.rotation_only,
         "rejected_pairs": frontend.summary.rejected and dict(frontend.summary.rejected),
         "bundle_adjustment": record["bundle_adjustment"],
@@ -295,6 +301,10 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     more = ", nerfstudio transforms.json, TUM trajectory_tum.txt" if "tum" in files else ""
     print(f"wrote {files['poses']}{colmap}{more} and pictures in {out} "
           f"({time.perf_counter() - t0:.0f} s)")
+    if rec.check is not None and not rec.check.verified:
+        print(f"posernet-reconstruct: {rec.check.line()} (exit status {EXIT_UNVERIFIED})",
+              file=sys.stderr)
+        raise SystemExit(EXIT_UNVERIFIED)
     return files
 
 

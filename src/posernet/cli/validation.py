@@ -435,8 +435,23 @@ def _bundle(cfg: Any) -> Schema:
                   min_angle_deg=number(0),
                   rounds=integer(1),
                   min_points_per_camera=integer(0),
-                  start=choice("auto", "averaged", "incremental"),
+                  start=choice("auto", "averaged", "positioning", "incremental"),
                   incremental_max_cameras=integer(2), explained_min=number(0, 1)),
+            "_target_": text()}
+
+
+def _check(cfg: Any) -> Schema:
+    """``check``: every option of :class:`posernet.sfm.selfcheck.CheckOptions`, with its
+    ranges."""
+    from ..sfm.selfcheck import CheckOptions
+
+    return {**typed(CheckOptions, max_epipolar_px=positive(), min_inlier_share=number(0, 1),
+                    max_rotation_deg=number(0, 180, lo_open=True),
+                    max_direction_deg=number(0, 180, lo_open=True),
+                    min_agreeing_share=number(0, 1), min_points=integer(0),
+                    min_single_pair_inliers=integer(0),
+                    min_triangulation_deg=number(0, 90, hi_open=True),
+                    coincide_ratio=number(0, 1, hi_open=True)),
             "_target_": text()}
 
 
@@ -559,12 +574,13 @@ COMMANDS: dict[str, Command] = {
               "gt_poses": path(null=True), "out_dir": path(), "refine": boolean(), "ba": boolean(),
               "guard": boolean(), "check_inputs": boolean(), "cache": boolean(),
               "boxes": auto_or_bool(), "max_image_size": integer(32, null=True),
-              "strict": boolean(), "overwrite": boolean(),
+              "strict": boolean(), "overwrite": boolean(), "self_check": boolean(),
               "ckpt_path": path(null=True), "estimate": ESTIMATE, "kp_top_pairs": integer(0),
               "edge_rule": choice("verified", "boxes"),
               "seed": SEED, "workers": integer(0), "pictures": integer(0), "device": DEVICE,
               "num_threads": THREADS, "progress": boolean(), "digits": DIGITS},
-        groups={**FRONTEND, "verify": _verify, "bundle": _bundle, "sync": SYNC, "pairs": _pairs},
+        groups={**FRONTEND, "verify": _verify, "bundle": _bundle, "sync": SYNC, "pairs": _pairs,
+                "check": _check},
         outputs=_outputs(("out_dir", "dir")),
         devices=("device", "matcher.device"), checks=(_check_sync,)),
     "make_data": Command(

@@ -1,0 +1,394 @@
+"""Hold a finished reconstruction against the evidence it came from, camera by camera.
+
+Motion averaging and bundle adjustment can return a confident, low-reprojection-error answer
+that is wrong: on a sparse ring or chain, translation averaging may stack many camera centres
+on one spot, and rotations that explain the matches by turning alone reproject as well as the
+truth. A user without ground truth cannot see that, so every camera reported as placed must
+pass these checks first (:func:`check_reconstruction`):
+
+* **pairs**: each verified image pair against the relative pose of the final cameras. Where
+  the pair's inlier matches are known, the pair agrees when the final pose explains at least
+  ``min_inlier_share`` of them (Sampson distance to the epipolar lines within
+  ``max_epipolar_px``; for a rotation-only pair, transfer by the relative rotation alone).
+  That is the evidence itself: with a narrow field of view a two-view rotation can be
+  degrees off and still fit the matches, and a bundle-adjusted pose that fits them as well is
+  not wrong for it. Where no matches are known (box-centre edges), the two-view rotation and
+  translation direction must lie within ``max_rotation_deg`` / ``max_direction_deg``. A
+  camera passes when its agreeing pairs carry at least ``min_agreeing_share`` of its pairs'
+  weight (their inlier counts) and, when a single pair agrees, that pair has at least
+  ``min_single_pair_inliers`` inliers: two views with a few dozen matches can fit a pose tens
+  of degrees off (two-view ambiguity), so one weak pair is no proof. Cameras are dropped one
+  at a time, the worst first, and the others re-scored without them, so that a good camera is
+  not failed for its pairs with a bad one.
+* **coinciding centres**: a camera whose centre lies on another camera's although their pair
+  has a baseline (not rotation-only) has been collapsed onto it.
+* **structure** (with bundle adjustment): enough 3D points seen by the camera, and rays to
+  them that meet the other views' rays at a useful angle; points seen only under tiny angles
+  are explained by rotation alone and do not fix the camera's position.
+
+A camera that fails is reported unsolved with its reason. The run has verified itself when
+at least two cameras pass.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+__all__ = ["CheckOptions", "PairEvidence", "SelfCheck", "check_reconstruction"]
+
+
+@dataclass
+class CheckOptions:
+    """Thresholds of :func:`check_reconstruction`.
+
+    ``max_epipolar_px`` / ``min_inlier_share``: a verified pair with known matches agrees with
+    the final poses when this share of its inliers lies within this distance of their
+    epipolar lines; ``max_rotation_deg`` / ``max_direction_deg``: a pair without matches
+    agrees when its two-view rotation and (pairs with a baseline) translation direction are
+    within these; ``min_agreeing_share``: the inlier-weighted share of a camera's pairs that must
+    agree; ``min_points``: 3D points a camera must see (with bundle adjustment);
+    ``min_triangulation_deg``: the median angle between a camera's rays and the other views'
+    rays to the same points must reach it; ``coincide_ratio``: two cameras whose pair has a
+    baseline count as collapsed when their centres are closer than this times the median
+    distance between verified pairs' centres.
+    """
+
+    max_epipolar_px: float = 4.0
+    min_inlier_share: float = 0.5
+    max_rotation_deg: float = 5.0
+    max_direction_deg: float = 15.0
+    min_agreeing_share: float = 0.5
+    min_single_pair_inliers: int = 50
+    min_points: int = 15
+    min_triangulation_deg: float = 1.0
+    coincide_ratio: float = 0.02
+
+    def __post_init__(self) -> None:
+        for name in ("max_rotation_deg", "max_direction_deg"):
+            v = float(getattr(self, name))
+            if not 0.0 < v <= 180.0:
+                raise ValueError(f"{name} must be in (0, 180], got {v}")
+        if not float(self.max_epipolar_px) > 0.0:
+            raise ValueError(f"max_epipolar_px must be > 0, got {self.max_epipolar_px}")
+        if not 0.0 <= float(self.min_inlier_share) <= 1.0:
+            raise ValueError(f"min_inlier_share must be in [0, 1], got {self.min_inlier_share}")
+        if not 0.0 <= float(self.min_agreeing_share) <= 1.0:
+            raise ValueError(f"min_agreeing_share must be in [0, 1], got "
+                             f"{self.min_agreeing_share}")
+        if self.min_points < 0 or self.min_single_pair_inliers < 0:
+            raise ValueError("min_points and min_single_pair_inliers must be >= 0")
+        if not 0.0 <= float(self.min_triangulation_deg) < 90.0:
+            raise ValueError(f"min_triangulation_deg must be in [0, 90), got "
+                             f"{self.min_triangulation_deg}")
+        if not 0.0 <= float(self.coincide_ratio) < 1.0:
+            raise ValueError(f"coincide_ratio must be in [0, 1), got {self.coincide_ratio}")
+
+
+@dataclass
+class PairEvidence:
+    """Verified two-view geometry of ``E`` image pairs: ``pairs (E, 2)`` image indices
+    ``(a, b)``, ``R (E, 3, 3)`` and unit ``t (E, 3)`` mapping camera a to camera b
+    (``x_b = R x_a + t``), ``rotation_only (E,)`` (no usable direction), ``weight (E,)``
+    (inlier count). Optional inlier matches: ``match_pair (M,)`` the pair of each, ``x_a,
+    x_b (M, 2)`` their normalised (undistorted, ``K^-1``) image coordinates, ``focal (E,)``
+    pixels per normalised unit (to measure distances in pixels)."""
+
+    pairs: np.ndarray
+    R: np.ndarray
+    t: np.ndarray
+    rotation_only: np.ndarray
+    weight: np.ndarray
+    match_pair: np.ndarray | None = None
+    x_a: np.ndarray | None = None
+    x_b: np.ndarray | None = None
+    focal: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        self.pairs = np.asarray(self.pairs, np.int64).reshape(-1, 2)
+        E = self.pairs.shape[0]
+        self.R = np.asarray(self.R, np.float64).reshape(E, 3, 3)
+        self.t = np.asarray(self.t, np.float64).reshape(E, 3)
+        self.rotation_only = np.asarray(self.rotation_only, bool).reshape(E)
+        self.weight = np.asarray(self.weight, np.float64).reshape(E)
+        if self.match_pair is not None:
+            self.match_pair = np.asarray(self.match_pair, np.int64).reshape(-1)
+            M = self.match_pair.size
+            self.x_a = np.asarray(self.x_a, np.float64).reshape(M, 2)
+            self.x_b = np.asarray(self.x_b, np.float64).reshape(M, 2)
+            self.focal = np.asarray(self.focal, np.float64).reshape(E)
+
+
+@dataclass
+class SelfCheck:
+    """Outcome of :func:`check_reconstruction` for ``N`` cameras.
+
+    ``passed (N,)``: placed and verified; ``reason[i]``: why placed camera ``i`` failed
+    (``""`` when it passed or was not placed); per pair ``rotation_error_deg`` /
+    ``direction_error_deg (E,)`` (NaN where a camera is not placed or, for the direction,
+    the pair is rotation-only), ``inlier_share (E,)`` (NaN without matches); per camera
+    ``agreeing_share``, ``points``, ``triangulation_deg`` (NaN where not measured).
+    """
+
+    placed: np.ndarray
+    passed: np.ndarray
+    reason: list[str]
+    rotation_error_deg: np.ndarray
+    direction_error_deg: np.ndarray
+    agreeing_share: np.ndarray
+    points: np.ndarray
+    triangulation_deg: np.ndarray
+    inlier_share: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    options: CheckOptions = field(default_factory=CheckOptions)
+
+    @property
+    def failed(self) -> np.ndarray:
+        """``(N,)`` placed cameras that failed a check."""
+        return self.placed & ~self.passed
+
+    @property
+    def verified(self) -> bool:
+        """Whether the run verified itself: at least two cameras passed."""
+        return int(self.passed.sum()) >= 2
+
+    def line(self, names: Sequence[str] | None = None) -> str:
+        """One line for a person: how many placed cameras passed, and the first failures."""
+        n_placed, n_fail = int(self.placed.sum()), int(self.failed.sum())
+        if not self.verified:
+            return (f"self-check: could not verify the reconstruction: {int(self.passed.sum())}"
+                    f" of {n_placed} placed cameras agree with their verified image pairs and "
+                    "3D points; none is reported as placed")
+        if not n_fail:
+            return f"self-check: all {n_placed} placed cameras agree with their evidence"
+        idx = np.flatnonzero(self.failed)
+        label = [names[i] if names is not None else str(i) for i in idx[:3]]
+        more = f" and {n_fail - 3} more" if n_fail > 3 else ""
+        first = "; ".join(f"{n}: {self.reason[i]}" for n, i in zip(label, idx[:3], strict=False))
+        return (f"self-check: {n_fail} of {n_placed} placed cameras failed and are reported "
+                f"unsolved ({first}{more})")
+
+    def to_dict(self, names: Sequence[str]) -> dict:
+        """JSON-ready per-camera record (failed cameras with their reasons)."""
+        return {"verified": self.verified, "placed_before": int(self.placed.sum()),
+                "passed": int(self.passed.sum()),
+                "failed": {names[i]: self.reason[i] for i in np.flatnonzero(self.failed)},
+                "options": {k: getattr(self.options, k) for k in
+                            self.options.__dataclass_fields__}}
+
+
+def _angle_deg(cos: np.ndarray) -> np.ndarray:
+    return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+
+
+def pair_errors(w2c: np.ndarray, evidence: PairEvidence) -> tuple[np.ndarray, np.ndarray]:
+    """Rotation and translation-direction error (deg, ``(E,)`` each) of each verified pair
+    against the relative pose of ``w2c (N, 4, 4)``; direction NaN for rotation-only pairs and
+    for cameras at one centre."""
+    a, b = evidence.pairs[:, 0], evidence.pairs[:, 1]
+    Ra, Rb = w2c[a, :3, :3], w2c[b, :3, :3]
+    ta, tb = w2c[a, :3, 3], w2c[b, :3, 3]
+    R_ab = Rb @ Ra.transpose(0, 2, 1)
+    t_ab = tb - np.einsum("eij,ej->ei", R_ab, ta)
+    D = R_ab @ evidence.R.transpose(0, 2, 1)
+    rot = _angle_deg((np.trace(D, axis1=1, axis2=2) - 1.0) / 2.0)
+    n1 = np.linalg.norm(t_ab, axis=1)
+    n2 = np.linalg.norm(evidence.t, axis=1)
+    ok = (n1 > 1e-12) & (n2 > 1e-12)
+    cos = np.einsum("ei,ei->e", t_ab, evidence.t) / np.where(ok, n1 * n2, 1.0)
+    direction = np.where(ok, _angle_deg(cos), np.nan)
+    direction[evidence.rotation_only] = np.nan
+    return rot, direction
+
+
+def inlier_shares(w2c: np.ndarray, evidence: PairEvidence, max_px: float) -> np.ndarray:
+    """``(E,)`` share of each pair's inlier matches that the relative pose of ``w2c`` explains
+    within ``max_px``: Sampson distance to the epipolar lines, or for a rotation-only pair the
+    transfer error of the relative rotation alone; NaN for pairs without matches."""
+    E = evidence.pairs.shape[0]
+    out = np.full(E, np.nan)
+    if evidence.match_pair is None or evidence.match_pair.size == 0:
+        return out
+    a, b = evidence.pairs[:, 0], evidence.pairs[:, 1]
+    R_ab = w2c[b, :3, :3] @ w2c[a, :3, :3].transpose(0, 2, 1)
+    t_ab = w2c[b, :3, 3] - np.einsum("eij,ej->ei", R_ab, w2c[a, :3, 3])
+    n_t = np.linalg.norm(t_ab, axis=1)
+    # centres on one spot: no epipolar geometry, nothing explained (a rotation-only pair is
+    # judged by its rotation below)
+    size = np.maximum(np.linalg.norm(w2c[a, :3, 3], axis=1), np.linalg.norm(w2c[b, :3, 3], axis=1))
+    same = n_t <= 1e-9 * np.maximum(size, 1.0)
+    t_ab /= np.maximum(n_t, 1e-300)[:, None]
+    tx = np.zeros((E, 3, 3))
+    tx[:, 0, 1], tx[:, 0, 2], tx[:, 1, 2] = -t_ab[:, 2], t_ab[:, 1], -t_ab[:, 0]
+    tx -= tx.transpose(0, 2, 1)
+    m = evidence.match_pair
+    Em = (tx @ R_ab)[m]
+    xa = np.concatenate((evidence.x_a, np.ones((m.size, 1))), 1)
+    xb = np.concatenate((evidence.x_b, np.ones((m.size, 1))), 1)
+    Fx = np.einsum("mij,mj->mi", Em, xa)
+    Ftx = np.einsum("mji,mj->mi", Em, xb)
+    num = np.einsum("mi,mi->m", xb, Fx) ** 2
+    den = Fx[:, 0] ** 2 + Fx[:, 1] ** 2 + Ftx[:, 0] ** 2 + Ftx[:, 1] ** 2
+    err = np.sqrt(num / np.maximum(den, 1e-300)) * evidence.focal[m]
+    err[same[m]] = np.inf
+    rot = evidence.rotation_only[m]
+    if rot.any():  # x_b ~ R x_a: distance in the image of b
+        p = np.einsum("mij,mj->mi", R_ab[m[rot]], xa[rot])
+        ok = p[:, 2] > 1e-12
+        proj = p[:, :2] / np.where(ok, p[:, 2], 1.0)[:, None]
+        err[rot] = np.where(ok, np.linalg.norm(proj - evidence.x_b[rot], axis=1)
+                            * evidence.focal[m[rot]], np.inf)
+    good = np.bincount(m, (err <= max_px).astype(np.float64), E)
+    n = np.bincount(m, minlength=E)
+    has = n > 0
+    out[has] = good[has] / n[has]
+    return out
+
+
+def triangulation_angles(w2c: np.ndarray, points: np.ndarray, obs_image: np.ndarray,
+                         obs_point: np.ndarray, num_cameras: int
+                         ) -> tuple[np.ndarray, np.ndarray]:
+    """Per camera: points it sees ``(N,)`` and the median over its observations of the angle
+    (deg) between its ray and the mean of the other views' rays to the same point ``(N,)``
+    (NaN for a camera without observations)."""
+    N = num_cameras
+    counts = np.bincount(obs_image, minlength=N)
+    med = np.full(N, np.nan)
+    if obs_image.size == 0:
+        return counts, med
+    R, t = w2c[:, :3, :3], w2c[:, :3, 3]
+    centre = -np.einsum("nji,nj->ni", R, t)
+    ray = points[obs_point] - centre[obs_image]
+    ray /= np.maximum(np.linalg.norm(ray, axis=1, keepdims=True), 1e-300)
+    total = np.zeros((points.shape[0], 3))
+    np.add.at(total, obs_point, ray)
+    others = total[obs_point] - ray
+    n_o = np.linalg.norm(others, axis=1)
+    cos = np.einsum("oi,oi->o", ray, others) / np.maximum(n_o, 1e-300)
+    ang = np.where(n_o > 1e-12, _angle_deg(cos), np.nan)
+    order = np.argsort(obs_image, kind="stable")
+    img_sorted = obs_image[order]
+    bounds = np.searchsorted(img_sorted, np.arange(N + 1))
+    a_sorted = ang[order]
+    for i in np.flatnonzero(counts):
+        vals = a_sorted[bounds[i]:bounds[i + 1]]
+        vals = vals[np.isfinite(vals)]
+        if vals.size:
+            med[i] = float(np.median(vals))
+    return counts, med
+
+
+def check_reconstruction(w2c: np.ndarray, placed: np.ndarray, evidence: PairEvidence,
+                         points: np.ndarray | None = None,
+                         obs_image: np.ndarray | None = None,
+                         obs_point: np.ndarray | None = None,
+                         options: CheckOptions | None = None) -> SelfCheck:
+    """Check every placed camera of ``w2c (N, 4, 4)`` (``placed (N,)``) against the verified
+    pairs ``evidence`` and, when given, the bundle-adjusted ``points (P, 3)`` with their
+    observations ``obs_image, obs_point (O,)`` (see the module docstring).
+
+    Cameras are failed by the structure check first, then by the pair check (thin support,
+    then one at a time by the lowest agreeing share, re-scoring the rest after each), then by
+    the coinciding-centre check among those left.
+    """
+    opt = options or CheckOptions()
+    w2c = np.asarray(w2c, np.float64)
+    N = w2c.shape[0]
+    placed = np.asarray(placed, bool).reshape(N) & np.isfinite(w2c).all((1, 2))
+    reason = [""] * N
+    ok = placed.copy()
+    E = evidence.pairs.shape[0]
+    rot_err, dir_err = (pair_errors(w2c, evidence) if E else (np.zeros(0), np.zeros(0)))
+    a, b = (evidence.pairs[:, 0], evidence.pairs[:, 1]) if E else (np.zeros(0, int),) * 2
+    both = placed[a] & placed[b] if E else np.zeros(0, bool)
+    rot_err = np.where(both, rot_err, np.nan)
+    dir_err = np.where(both, dir_err, np.nan)
+
+    # Structure: points seen and their triangulation angles.
+    n_pts = np.zeros(N, np.int64)
+    tri = np.full(N, np.nan)
+    if points is not None and obs_image is not None and obs_point is not None:
+        obs_image = np.asarray(obs_image, np.int64)
+        obs_point = np.asarray(obs_point, np.int64)
+        n_pts, tri = triangulation_angles(w2c, np.asarray(points, np.float64), obs_image,
+                                          obs_point, N)
+        for i in np.flatnonzero(ok):
+            if n_pts[i] < opt.min_points:
+                ok[i] = False
+                reason[i] = f"sees {int(n_pts[i])} 3D points (< {opt.min_points})"
+            elif np.isfinite(tri[i]) and tri[i] < opt.min_triangulation_deg:
+                ok[i] = False
+                reason[i] = (f"its 3D points are explained by rotation alone (median "
+                             f"triangulation angle {tri[i]:.2f} deg < "
+                             f"{opt.min_triangulation_deg:g})")
+
+    # Pairs: drop the worst camera at a time, re-scoring the others without it.
+    agree = np.zeros(E, bool)
+    inl = np.full(E, np.nan)
+    if E:
+        agree = (rot_err <= opt.max_rotation_deg) & (
+            evidence.rotation_only | (dir_err <= opt.max_direction_deg))
+        inl = np.where(both, inlier_shares(w2c, evidence, opt.max_epipolar_px), np.nan)
+        has = np.isfinite(inl)
+        agree[has] = inl[has] >= opt.min_inlier_share
+    w = np.maximum(evidence.weight, 1.0) if E else np.zeros(0)
+    # Thin support, judged once on the whole reconstruction (not re-judged as neighbours
+    # fail, which would peel a chain from its ends): one agreeing pair, and a weak one.
+    live = ok[a] & ok[b] if E else np.zeros(0, bool)
+    good = live & agree
+    n_good = np.bincount(a[good], minlength=N) + np.bincount(b[good], minlength=N)
+    strongest = np.zeros(N)
+    np.maximum.at(strongest, a[good], w[good])
+    np.maximum.at(strongest, b[good], w[good])
+    for i in np.flatnonzero(ok & (n_good == 1) & (strongest < opt.min_single_pair_inliers)):
+        ok[i] = False
+        reason[i] = (f"rests on one verified image pair with {int(strongest[i])} inliers "
+                     f"(< {opt.min_single_pair_inliers}): too few to rule out a two-view "
+                     "ambiguity")
+    share = np.full(N, np.nan)
+    while True:
+        live = ok[a] & ok[b] if E else np.zeros(0, bool)
+        tot = np.bincount(a[live], w[live], N) + np.bincount(b[live], w[live], N)
+        good = live & agree
+        yes = np.bincount(a[good], w[good], N) + np.bincount(b[good], w[good], N)
+        share = np.where(tot > 0, yes / np.maximum(tot, 1e-300), 0.0)
+        bad = ok & (share < opt.min_agreeing_share)
+        if not bad.any():
+            break
+        worst = int(np.flatnonzero(bad)[np.argmin(share[bad])])
+        ok[worst] = False
+        mine = (a == worst) | (b == worst)
+        n_pairs = int((mine & both).sum())
+        if tot[worst] == 0:
+            reason[worst] = ("no verified image pair links it to another camera that passed"
+                             if n_pairs else "no verified image pair")
+        else:
+            n_agree = int((mine & both & agree).sum())
+            reason[worst] = (f"disagrees with its verified image pairs: {n_agree} of "
+                             f"{n_pairs} agree (weighted share {share[worst]:.2f} < "
+                             f"{opt.min_agreeing_share:g})")
+    # Coinciding centres on pairs that have a baseline, among the cameras still passing (a
+    # camera whose collapsed partners failed above keeps its place).
+    centre = -np.einsum("nji,nj->ni", w2c[:, :3, :3], w2c[:, :3, 3])
+    base = both & ~evidence.rotation_only if E else np.zeros(0, bool)
+    if base.any():
+        dist = np.linalg.norm(centre[a] - centre[b], axis=1)
+        scale = float(np.median(dist[base]))
+        close = base & (dist < opt.coincide_ratio * scale)
+        close &= ok[a] & ok[b]
+        for e in np.flatnonzero(close):
+            for i, j in ((a[e], b[e]), (b[e], a[e])):
+                if ok[i]:
+                    ok[i] = False
+                    reason[i] = (f"its centre coincides with camera {int(j)}'s although "
+                                 "their verified pair has a baseline (collapsed)")
+
+    share = np.where(placed, share, np.nan)
+    if int(ok.sum()) < 2:
+        for i in np.flatnonzero(ok):
+            ok[i] = False
+            reason[i] = "no other camera passed the checks"
+    return SelfCheck(placed=placed, passed=ok, reason=reason, rotation_error_deg=rot_err,
+                     direction_error_deg=dir_err, agreeing_share=share, points=n_pts,
+                     triangulation_deg=tri, inlier_share=inl, options=opt)

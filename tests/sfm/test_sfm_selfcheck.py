@@ -1,0 +1,167 @@
+"""The self-check: every placed camera held against its verified pairs and its 3D points."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from posernet.sfm.selfcheck import CheckOptions, PairEvidence, check_reconstruction
+from posernet.sfm.synthetic import make_sparse_scene, perturb_poses
+
+
+@pytest.fixture(scope="module")
+def ring():
+    return make_sparse_scene("ring", num_cameras=12, num_points=2400, noise_px=0.3)
+
+
+def evidence(sc, drop_matches: bool = False) -> PairEvidence:
+    """Verified pairs from the ground truth: relative poses, inlier matches (normalised)."""
+    pairs = np.array(sorted(sc.pair_matches), np.int64)
+    a, b = pairs[:, 0], pairs[:, 1]
+    R = sc.w2c[b, :3, :3] @ sc.w2c[a, :3, :3].transpose(0, 2, 1)
+    t = sc.w2c[b, :3, 3] - np.einsum("eij,ej->ei", R, sc.w2c[a, :3, 3])
+    t /= np.linalg.norm(t, axis=1, keepdims=True)
+    K = sc.K[0]
+    norm = [(u - K[:2, 2]) / np.diag(K)[:2] for u in sc.uv]
+    m = [sc.pair_matches[(int(i), int(j))] for i, j in pairs]
+    extra = {} if drop_matches else dict(
+        match_pair=np.concatenate([np.full(len(x), e) for e, x in enumerate(m)]),
+        x_a=np.concatenate([norm[i][x[:, 0]] for (i, _), x in zip(pairs, m, strict=True)]),
+        x_b=np.concatenate([norm[j][x[:, 1]] for (_, j), x in zip(pairs, m, strict=True)]),
+        focal=np.full(len(pairs), K[0, 0]))
+    return PairEvidence(pairs=pairs, R=R, t=t, rotation_only=np.zeros(len(pairs), bool),
+                        weight=np.array([len(x) for x in m], np.float64), **extra)
+
+
+def structure(sc):
+    """The scene's points with their observations (as a bundle adjustment would keep them)."""
+    return sc.points, sc.obs_image, sc.obs_point
+
+
+def test_a_right_reconstruction_passes(ring) -> None:
+    out = check_reconstruction(ring.w2c, np.ones(12, bool), evidence(ring), *structure(ring))
+    assert out.passed.all() and out.verified and not any(out.reason)
+    assert np.nanmax(out.rotation_error_deg) < 1e-6 and np.nanmin(out.inlier_share) > 0.95
+    assert (out.points > 100).all() and (out.triangulation_deg > 5).all()
+    assert out.line() == "self-check: all 12 placed cameras agree with their evidence"
+
+
+def test_a_planted_collapse_fails(ring) -> None:
+    """Three neighbours moved onto camera 3's centre (rotations kept): translation averaging's
+    collapse. They, and only they, fail."""
+    w = ring.w2c.copy()
+    c3 = -w[3, :3, :3].T @ w[3, :3, 3]
+    for i in (4, 5, 6):
+        w[i, :3, 3] = -w[i, :3, :3] @ c3
+    out = check_reconstruction(w, np.ones(12, bool), evidence(ring))
+    assert out.failed.tolist() == [i in (4, 5, 6) for i in range(12)]
+    assert all(out.reason[i] for i in (4, 5, 6))
+    assert "3 of 12 placed cameras failed" in out.line()
+
+
+def test_coinciding_centres_are_named(ring) -> None:
+    w = ring.w2c.copy()
+    c3 = -w[3, :3, :3].T @ w[3, :3, 3]
+    w[4, :3, 3] = -w[4, :3, :3] @ c3
+    out = check_reconstruction(w, np.ones(12, bool), evidence(ring),
+                               options=CheckOptions(min_agreeing_share=0.0))
+    # the pair check off: which of the two is wrong is not known, so neither is placed
+    assert out.failed.tolist() == [i in (3, 4) for i in range(12)]
+    assert "coincides with camera 4" in out.reason[3]
+    assert "coincides with camera 3" in out.reason[4]
+
+
+def test_a_planted_wrong_camera_fails_alone(ring) -> None:
+    """One camera turned 10 deg: its pairs no longer fit their matches; its neighbours, whose
+    other pairs still agree, pass."""
+    w = perturb_poses(ring.w2c, 10.0, 0.0, seed=3, keep=tuple(i for i in range(12) if i != 7))
+    out = check_reconstruction(w, np.ones(12, bool), evidence(ring))
+    assert out.failed.tolist() == [i == 7 for i in range(12)]
+    assert "disagrees with its verified image pairs" in out.reason[7]
+
+
+def test_a_planted_wrong_edge_does_not_fail_its_cameras(ring) -> None:
+    """One verified pair's matches are wrong (a repeated structure): the two cameras keep
+    their other, agreeing pairs."""
+    ev = evidence(ring)
+    e = int(np.argmin(ev.weight))  # a pair of second neighbours
+    sel = ev.match_pair == e
+    ev.x_b[sel] = np.random.default_rng(0).uniform(-0.3, 0.3, (int(sel.sum()), 2))
+    out = check_reconstruction(ring.w2c, np.ones(12, bool), ev)
+    assert out.passed.all()
+    assert out.inlier_share[e] < 0.2
+
+
+def test_pairs_without_matches_use_rotation_and_direction(ring) -> None:
+    ev = evidence(ring, drop_matches=True)
+    w = perturb_poses(ring.w2c, 10.0, 0.0, seed=3, keep=tuple(i for i in range(12) if i != 7))
+    out = check_reconstruction(w, np.ones(12, bool), ev)
+    assert out.failed.tolist() == [i == 7 for i in range(12)]
+    assert np.isnan(out.inlier_share).all()
+
+
+def test_thin_support_and_rotation_alone(ring) -> None:
+    """A camera resting on one weak pair fails (two-view ambiguity); cameras whose points are
+    seen only under tiny angles are explained by rotation alone."""
+    ev = evidence(ring)
+    out = check_reconstruction(ring.w2c, np.ones(12, bool), ev,
+                               options=CheckOptions(min_single_pair_inliers=10**6))
+    # on a ring every camera has two or more agreeing pairs: none rests on one
+    assert out.passed.all()
+    keep = (ev.pairs == 0).any(1) & (ev.pairs[:, 1] != 1) & (ev.pairs[:, 0] != 0)
+    keep |= ~(ev.pairs == 0).any(1)
+    keep[np.flatnonzero((ev.pairs == 0).any(1))[0]] = True  # camera 0 keeps one pair
+    thin = PairEvidence(ev.pairs[keep], ev.R[keep], ev.t[keep], ev.rotation_only[keep],
+                        ev.weight[keep])
+    out = check_reconstruction(ring.w2c, np.ones(12, bool), thin,
+                               options=CheckOptions(min_single_pair_inliers=10**6))
+    assert out.failed[0] and "rests on one verified image pair" in out.reason[0]
+    # points pushed far away: every ray meets the others at a tiny angle
+    far = ring.points * 1e4
+    out = check_reconstruction(ring.w2c, np.ones(12, bool), ev, far, ring.obs_image,
+                               ring.obs_point)
+    assert not out.verified and not out.passed.any()
+    assert "rotation alone" in out.reason[0]
+    assert "could not verify" in out.line()
+
+
+def test_unplaced_cameras_are_left_alone(ring) -> None:
+    placed = np.ones(12, bool)
+    placed[[2, 9]] = False
+    w = ring.w2c.copy()
+    w[2] = np.nan
+    out = check_reconstruction(w, placed, evidence(ring))
+    assert not out.placed[[2, 9]].any() and not out.passed[[2, 9]].any()
+    assert out.reason[2] == out.reason[9] == ""
+    assert out.passed[placed].all()
+
+
+@settings(max_examples=15, deadline=None)
+@given(st.floats(0.2, 5.0), st.floats(-3, 3), st.integers(0, 2**31 - 1))
+def test_passes_are_unchanged_by_a_similarity(scale: float, shift: float, seed: int) -> None:
+    """The check reads only relative geometry: moving the world by a similarity changes no
+    verdict."""
+    from scipy.spatial.transform import Rotation
+
+    sc = make_sparse_scene("ring", num_cameras=8, num_points=1200, seed=1)
+    w = perturb_poses(sc.w2c, 8.0, 0.0, seed=4, keep=tuple(range(1, 8)))
+    Q = Rotation.random(random_state=seed).as_matrix()
+    # the world moved by X' = scale Q X + shift: R' = R Q^T, t' = scale t - R' shift
+    moved = w.copy()
+    moved[:, :3, :3] = w[:, :3, :3] @ Q.T
+    moved[:, :3, 3] = scale * w[:, :3, 3] - np.einsum("nij,j->ni", moved[:, :3, :3],
+                                                      np.full(3, shift))
+    ev = evidence(sc)
+    a = check_reconstruction(w, np.ones(8, bool), ev)
+    b = check_reconstruction(moved, np.ones(8, bool), ev)
+    assert a.passed.tolist() == b.passed.tolist()
+    np.testing.assert_allclose(a.inlier_share, b.inlier_share)
+
+
+def test_options_are_checked() -> None:
+    with pytest.raises(ValueError, match="min_agreeing_share"):
+        CheckOptions(min_agreeing_share=2)
+    with pytest.raises(ValueError, match="max_epipolar_px"):
+        CheckOptions(max_epipolar_px=0)
