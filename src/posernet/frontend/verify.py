@@ -27,6 +27,11 @@ pair's correspondences and then decides, in this order (a rejection names its ru
   triangulation angle of its inliers is below ``min_tri_angle`` (too small a baseline to see
   depth).
 
+Once every pair is verified, the edges are also checked against each other
+(:mod:`posernet.frontend.consistency`): inliers crowded on a small part of either image
+(``min_spread``, :func:`inlier_spread`) and rotations that contradict the triangles of the
+view graph (``max_loop_deg``, ``max_loop_share``) reject an edge.
+
 Keypoints on uniform regions are removed before matching ever sees them
 (:func:`keypoint_contrast`): on an object photographed on black, learned matchers otherwise pair
 up background noise between views from opposite sides.
@@ -42,7 +47,8 @@ import numpy as np
 
 from .relpose import METHODS, normalised_points
 
-__all__ = ["TwoView", "VerifyRules", "epipolar_consistent", "keypoint_contrast", "verify_two_view"]
+__all__ = ["TwoView", "VerifyRules", "epipolar_consistent", "inlier_spread", "keypoint_contrast",
+           "verify_two_view"]
 
 
 @dataclass(frozen=True)
@@ -58,16 +64,21 @@ class VerifyRules:
     max_static_ratio: float = 0.5  # ... and a pair with more static matches is rejected
     min_contrast: float = 3.0  # grey levels: keypoints on flatter patches are dropped
     contrast_radius: int = 4  # patch half-size (pixels) of the contrast measure
+    # checks of the verified pairs against each other (posernet.frontend.consistency)
+    min_spread: float = 0.015  # share of each image the inliers' hull must cover (0: off)
+    max_loop_deg: float = 6.0  # degrees: rotation error around a consistent triangle (0: off)
+    max_loop_share: float = 0.5  # an edge breaking more of its triangles (weighted) goes
 
     def __post_init__(self) -> None:
         if int(self.min_inliers) < 5:
             raise ValueError(f"min_inliers must be >= 5 (the 5-point minimum), got "
                              f"{self.min_inliers}")
-        for name in ("min_inlier_ratio", "min_front", "max_rotation_ratio", "max_static_ratio"):
+        for name in ("min_inlier_ratio", "min_front", "max_rotation_ratio", "max_static_ratio",
+                     "min_spread", "max_loop_share"):
             v = float(getattr(self, name))
             if not 0.0 <= v <= 1.0:
                 raise ValueError(f"{name} must be in [0, 1], got {v}")
-        for name in ("min_tri_angle", "static_px", "min_contrast"):
+        for name in ("min_tri_angle", "static_px", "min_contrast", "max_loop_deg"):
             v = float(getattr(self, name))
             if not (np.isfinite(v) and v >= 0):
                 raise ValueError(f"{name} must be a finite number >= 0, got {v}")
@@ -119,6 +130,24 @@ def keypoint_contrast(grey: np.ndarray, uv: np.ndarray, radius: int = 4) -> np.n
     x = np.clip(np.rint(uv[:, 0]).astype(np.int64), 0, w - 1)
     y = np.clip(np.rint(uv[:, 1]).astype(np.int64), 0, h - 1)
     return std[y, x].astype(np.float64)
+
+
+def inlier_spread(uv: np.ndarray, size: tuple[int, int], keep: float = 0.9) -> float:
+    """Share of the image (``size`` (W, H)) that the convex hull of the inliers ``uv (M, 2)``
+    (pixels) covers, on the ``keep`` share of them nearest their median so that a few stray
+    matches do not stretch it.
+
+    A pose fitted on matches crowded on a small patch is ill-conditioned (over a narrow field
+    of view rotation and translation trade off), however many there are.
+    """
+    uv = np.asarray(uv, np.float64).reshape(-1, 2)
+    area = float(size[0]) * float(size[1])
+    if uv.shape[0] < 3 or area <= 0:
+        return 0.0
+    d = np.linalg.norm(uv - np.median(uv, axis=0), axis=1)
+    n = max(3, int(np.ceil(keep * uv.shape[0])))
+    near = uv[np.argsort(d, kind="stable")[:n]].astype(np.float32)
+    return float(cv2.contourArea(cv2.convexHull(near))) / area
 
 
 def _bearings(x: np.ndarray) -> np.ndarray:
