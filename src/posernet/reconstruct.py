@@ -257,6 +257,9 @@ def reconstruct(
     selection = select_pairs([frontend.image(i).features for i in range(n)], pairs)
     clock.done("pair_selection", len(selection.pairs))
     frontend.evaluate_pairs(selection.pairs, progress=progress)
+    from .frontend.consistency import screen_edges
+
+    screen_edges(frontend, selection.pairs)  # crowded inliers, rotations breaking triangles
     clock.done("pairs", len(selection.pairs))
     graph, stats = frontend.graph(range(n), meta={"name": name, "size": "all"},
                                   pairs=selection.pairs)

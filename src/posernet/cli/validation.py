@@ -406,7 +406,10 @@ def _verify(cfg: Any) -> Schema:
                   static_px=number(0),
                   max_static_ratio=number(0, 1),
                   min_contrast=number(0),
-                  contrast_radius=integer(1)), "_target_": text()}
+                  contrast_radius=integer(1),
+                  min_spread=number(0, 1),
+                  max_loop_deg=number(0, 180),
+                  max_loop_share=number(0, 1)), "_target_": text()}
 
 
 def _bundle(cfg: Any) -> Schema:
