@@ -2,12 +2,17 @@
 
 A node is one keypoint of one image, ``(image, keypoint)``. Every verified match links two
 nodes; the connected components of that graph are the tracks (the union-find of classic SfM,
-computed here in one call to :func:`scipy.sparse.csgraph.connected_components`). A track that
-holds two different keypoints of the same image is in conflict: some match in the chain is
-wrong. The keypoint linked by strictly the most matches in that image stays, the others leave
-the track (``conflicting_views`` counts them; a tie removes them all), the track is split
-where that cut it, and a track still in conflict is dropped as a whole (``inconsistent``). A
-track seen by one image only cannot be triangulated and is dropped too.
+computed here in one call to :func:`scipy.sparse.csgraph.connected_components`). A component
+that holds two different keypoints of the same image is in conflict: some match in its chain is
+wrong, or slid to a neighbouring keypoint. Dense detectors (XFeat: thousands of keypoints a few
+pixels apart along the few edges of a weakly textured scene) chain such slides into components
+of hundreds of keypoints, so conflicts are resolved by rebuilding each conflicting component
+with a union-find that refuses any merge putting two keypoints of one image into one track,
+taking first the matches that close the most triangles (a third keypoint matched to both ends)
+and then those between the most often matched keypoints. A component thus splits into
+consistent tracks instead of losing all its keypoints; keypoints left alone count as
+``conflicting_views``. Without resolution a component in conflict is dropped as a whole
+(``inconsistent``). A track seen by one image only cannot be triangulated and is dropped too.
 """
 
 from __future__ import annotations
@@ -102,6 +107,63 @@ def _groups(comp: np.ndarray, image: np.ndarray, n_img: int) -> tuple[np.ndarray
     return key_inv, key_count[key_inv]
 
 
+def _merge_order(n: int, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Order in which to try the edges ``a[e] - b[e]`` of ``n`` nodes: most triangles closed
+    (common neighbours of the two ends) first, then the larger smaller-degree of the two ends,
+    then input order."""
+    adj = coo_matrix((np.ones(2 * a.size), (np.r_[a, b], np.r_[b, a])), shape=(n, n)).tocsr()
+    adj.data[:] = 1.0  # repeated matches count once
+    support = np.asarray(adj[a].multiply(adj[b]).sum(1)).ravel()
+    degree = np.asarray(adj.sum(1)).ravel()
+    return np.lexsort((np.arange(a.size), -np.minimum(degree[a], degree[b]), -support))
+
+
+def _consistent_components(n: int, a: np.ndarray, b: np.ndarray,
+                           image: np.ndarray) -> np.ndarray:
+    """Component label per node of a union-find over the edges (in :func:`_merge_order`) that
+    never merges two components holding keypoints of the same image."""
+    parent = list(range(n))
+    images = [1 << int(i) for i in image]  # image set of each root, as a bit mask
+    size = [1] * n
+
+    def find(x: int) -> int:
+        while parent[x] != x:
+            parent[x] = parent[parent[x]]
+            x = parent[x]
+        return x
+
+    for e in _merge_order(n, a, b).tolist():
+        ra, rb = find(int(a[e])), find(int(b[e]))
+        if ra == rb or images[ra] & images[rb]:
+            continue
+        if size[ra] < size[rb]:
+            ra, rb = rb, ra
+        parent[rb] = ra
+        size[ra] += size[rb]
+        images[ra] |= images[rb]
+    return np.fromiter((find(x) for x in range(n)), np.int64, n)
+
+
+def _resolve(comp: np.ndarray, n_comp: int, a: np.ndarray, b: np.ndarray, image: np.ndarray,
+             n_img: int) -> tuple[int, np.ndarray]:
+    """Rebuild the components that hold two keypoints of one image with
+    :func:`_consistent_components`; the others keep their labels."""
+    _, count = _groups(comp, image, n_img)
+    bad = np.zeros(n_comp, bool)
+    bad[comp[count > 1]] = True
+    node = bad[comp]
+    edge = node[a]  # both ends share a component
+    sub = np.flatnonzero(node)
+    local = np.full(comp.size, -1, np.int64)
+    local[sub] = np.arange(sub.size)
+    lab = _consistent_components(sub.size, local[a[edge]], local[b[edge]], image[sub])
+    out = comp.astype(np.int64).copy()
+    _, lab = np.unique(lab, return_inverse=True)
+    out[sub] = n_comp + lab
+    _, out = np.unique(out, return_inverse=True)
+    return int(out.max()) + 1, out
+
+
 def build_tracks(pair_matches: Mapping[tuple[int, int], np.ndarray],
                  num_keypoints: Sequence[int] | np.ndarray,
                  resolve_conflicts: bool = True) -> Tracks:
@@ -109,11 +171,10 @@ def build_tracks(pair_matches: Mapping[tuple[int, int], np.ndarray],
 
     ``pair_matches[(a, b)]``: ``(M, 2)`` int array, row = (keypoint in image a, keypoint in
     image b); ``num_keypoints (N,)``: keypoints per image (the node count). With
-    ``resolve_conflicts`` a track holding several keypoints of one image keeps the one linked
-    by strictly the most matches and loses the others (a tie loses them all), the track splits
-    where that cut it, and only what is still inconsistent is dropped (module docstring).
-    Raises ValueError on malformed input (bad key, index out of range, self pair). Vectorised:
-    sparse connected components, no loop over matches.
+    ``resolve_conflicts`` a component holding several keypoints of one image is rebuilt into
+    consistent tracks (module docstring); without, it is dropped. Raises ValueError on
+    malformed input (bad key, index out of range, self pair). Vectorised (sparse connected
+    components) except the rebuild of conflicting components, a union-find over their matches.
     """
     nk = np.asarray(num_keypoints, dtype=np.int64).reshape(-1)
     if (nk < 0).any():
@@ -132,19 +193,12 @@ def build_tracks(pair_matches: Mapping[tuple[int, int], np.ndarray],
     image = np.searchsorted(offset, nodes, side="right") - 1
     keypoint = nodes - offset[image]
     n_comp, comp = _components(n_nodes, a, b)
-    group, count = _groups(comp, image, n_img)
+    _, count = _groups(comp, image, n_img)
     alive = np.ones(n_nodes, bool)
     if resolve_conflicts and (count > 1).any():
-        # In a conflicting (track, image) group the true keypoint is usually the one matched
-        # in many pairs; a wrong match links its keypoint once.
-        degree = np.bincount(a, minlength=n_nodes) + np.bincount(b, minlength=n_nodes)
-        best = np.zeros(group.max() + 1, np.int64)
-        np.maximum.at(best, group, degree)
-        n_best = np.bincount(group, weights=(degree == best[group]), minlength=best.size)
-        alive = (count == 1) | ((degree == best[group]) & (n_best[group] == 1))
-        live_edge = alive[a] & alive[b]
-        n_comp, comp = _components(n_nodes, a[live_edge], b[live_edge])
-        group, count = _groups(comp, image, n_img)
+        n_comp, comp = _resolve(comp, n_comp, a, b, image, n_img)
+        _, count = _groups(comp, image, n_img)
+        alive = np.bincount(comp, minlength=n_comp)[comp] > 1  # a keypoint every merge refused
     conflicting = int((~alive).sum())
     bad = np.zeros(n_comp, bool)
     bad[comp[alive & (count > 1)]] = True
