@@ -3,6 +3,7 @@ result the front end keeps, and that bundle adjustment can use the fallback's ke
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import cv2
@@ -87,19 +88,26 @@ def test_only_weakly_textured_images_get_xfeat() -> None:
 
 class _Stub:
     """A fallback matcher on SIFT alone: the first match is cut to ``keep`` matches (too few
-    to verify), the fallback gives them all; every image has a fallback."""
+    to verify; ``scramble``: partners in reverse order, so they are wrong), the
+    fallback gives them all; every image has a fallback."""
 
     name, kind = "stub", "rootsift"
 
-    def __init__(self, keep: int, min_matches: int = 0) -> None:
+    def __init__(self, keep: int, min_matches: int = 0, scramble: bool = False,
+                 agree: float = 0.0) -> None:
         self.sift, self.keep, self.min_matches = SiftMatcher(), keep, min_matches
+        self.scramble, self.fallback_agree = scramble, agree
 
     def extract(self, image: np.ndarray) -> Features:
         return self.sift.extract(image)
 
     def match(self, a: Features, b: Features) -> Matches:
         m = self.sift.match(a, b)
-        return m.subset(np.arange(min(self.keep, len(m))))
+        m = m.subset(np.arange(min(self.keep, len(m))))
+        if self.scramble and len(m) > 1:
+            j = np.arange(len(m))[::-1]
+            m = Matches(m.uv_a, m.uv_b[j], m.score, m.idx_a, m.idx_b[j])
+        return m
 
     def has_fallback(self, f: Features) -> bool:
         return True
@@ -144,6 +152,32 @@ def test_front_end_keeps_the_better_result_and_caches_it(scene, tmp_path) -> Non
     assert again.summary.reused["pairs"] == len(PAIRS)
     assert again.summary.fallback == fe.summary.fallback
     assert dict(again.summary.pairs) == dict(fe.summary.pairs)
+
+
+def test_fallback_needs_the_support_of_sift_matches(scene) -> None:
+    """The fallback's edge is kept only when its pose explains the share ``fallback_agree`` of
+    SIFT's matches: eight wrong SIFT matches support nothing."""
+    free = _frontend(scene, _Stub(keep=8, scramble=True))
+    free.evaluate_pairs(PAIRS, progress=False)
+    assert free.summary.fallback["kept"] > 0
+    gated = _frontend(scene, _Stub(keep=8, scramble=True, agree=0.5))
+    gated.evaluate_pairs(PAIRS, progress=False)
+    assert gated.summary.fallback["tried"] == len(PAIRS) and gated.summary.fallback["kept"] == 0
+    assert gated.summary.pairs["edge"] == 0
+    tried = [gated.pair(a, b) for a, b in PAIRS]
+    assert all(p.info.get("fallback_agreement", 0.0) < 0.5 for p in tried)
+    # right matches agree with the right pose, not with one turned by 20 degrees
+    ref = _frontend(scene, SiftMatcher())
+    ref.evaluate_pairs(PAIRS, progress=False)
+    a, b = max((k for k in PAIRS if ref.pair(*k).is_edge and not ref.pair(*k).rotation_only),
+               key=lambda k: len(ref.pair(*k).inliers))
+    p, m = ref.pair(a, b), ref.matches[(a, b)]
+    assert ref._agreement(m, p, a, b) > 0.7
+    turn = cv2.Rodrigues(np.array([0.0, np.radians(20.0), 0.0]))[0]
+    wrong = dataclasses.replace(p, kp=(turn @ p.kp[0], p.kp[1]))
+    assert ref._agreement(m, wrong, a, b) < 0.2
+    # a rotation-only edge is judged by the rotation's mapping of the points
+    assert ref._agreement(m, dataclasses.replace(wrong, rotation_only=True), a, b) < 0.2
 
 
 def test_xfeat_fallback_keypoints_make_tracks(scene) -> None:

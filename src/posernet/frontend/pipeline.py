@@ -379,7 +379,10 @@ class ImageFrontend:
             m2, res2 = self._match_verify(a, b, fm.match_fallback, second)
             first.seconds["fallback"] += sum(second.seconds.values())
             first.fallback["tried"] += 1
-            if _better(res2, res):
+            # the fallback's pose must explain SIFT's own matches: two matchers agreeing
+            agree = self._agreement(m, res2, a, b) if res2.is_edge else 0.0
+            res2.info["fallback_agreement"] = round(agree, 4)
+            if _better(res2, res) and agree >= getattr(fm, "fallback_agree", 0.0):
                 second.seconds, second.fallback = first.seconds, first.fallback
                 second.fallback["kept"] += 1
                 first, m, res = second, m2, res2
@@ -388,6 +391,28 @@ class ImageFrontend:
         if self.keep_matches:
             self.matches[(a, b)] = m
         return res
+
+    def _agreement(self, m: Matches, res: PairResult, a: int, b: int) -> float:
+        """Share of the matches ``m`` of pair ``a, b`` that the verified pose of ``res``
+        explains (epipolar distance, or the rotation's mapping for a rotation-only edge,
+        within the tracks' threshold)."""
+        pose = res.kp
+        if len(m) == 0 or pose is None:
+            return 0.0
+        ra, rb = self.records[a], self.records[b]
+        R, t = (np.asarray(x, np.float64) for x in pose)
+        thr = 2.0 * self.pose.kp_threshold
+        if not res.rotation_only:
+            ok = epipolar_consistent(m.uv_a, m.uv_b, R, t.ravel(), ra.K, rb.K, ra.dist,
+                                     rb.dist, threshold=thr)
+            return float(ok.mean())
+        x1 = cv2.undistortPoints(m.uv_a.reshape(-1, 1, 2), ra.K, ra.dist).reshape(-1, 2)
+        h = np.c_[x1, np.ones(len(x1))] @ R.T
+        with np.errstate(divide="ignore", invalid="ignore"):
+            pred = h[:, :2] / h[:, 2:3] * np.diag(rb.K)[:2] + rb.K[:2, 2]
+        und = cv2.undistortPoints(m.uv_b.reshape(-1, 1, 2), rb.K, rb.dist, P=rb.K)
+        err = np.linalg.norm(pred - und.reshape(-1, 2), axis=1)
+        return float(((h[:, 2] > 0) & (err < thr)).mean())
 
     def _spread(self, a: int, b: int, inliers: np.ndarray | None) -> float | None:
         """The smaller share of the two images the inliers' hull covers (None: no inliers)."""
