@@ -396,15 +396,10 @@ def sfm_record(r: SfmResult, keys: list[str]) -> dict[str, Any]:
 def _start_record(start: dict[str, Any] | None, keys: list[str]) -> dict[str, Any] | None:
     if not start:
         return None
-    out = {k: _num(v) for k, v in start.items() if k != "observations"}
-    obs = dict(start.get("observations") or {})
-    if obs.get("seed_pair") is not None:
-        obs["seed_pair"] = [keys[i] for i in obs["seed_pair"]]
-    if obs:
-        out["observations_kept"] = {k: v for k, v in obs.items()
-                                    if k not in ("registered", "seed_pair")}
-        out["registered"] = obs.get("registered")
-        out["seed_pair"] = obs.get("seed_pair")
+    out = {k: _num(v) for k, v in start.items() if k not in ("observations", "cameras")}
+    if start.get("observations"):
+        out["observations_kept"] = dict(start["observations"])
+        out["cameras_kept"] = dict(start.get("cameras") or {})
     return out
 
 

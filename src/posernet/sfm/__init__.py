@@ -12,8 +12,12 @@ Stages (each usable on its own):
   sparse Jacobian;
 * :mod:`~posernet.sfm.resection` -- :func:`anchored_cameras` (which averaged positions the
   edge directions pin) and :func:`resect_cameras` (the others re-placed by PnP on 3D points);
+* :mod:`~posernet.sfm.positioning` -- :func:`global_positioning`: camera centres and points
+  together from their viewing rays (rotations known), the start that cannot collapse;
 * :mod:`~posernet.sfm.refine` -- :func:`bundle_adjust_reconstruction`: the orchestrator
-  (tracks, triangulation, BA, filter, BA) used as the last stage of a reconstruction;
+  (start, tracks, triangulation, BA, filter, BA) used as the last stage of a reconstruction;
+* :mod:`~posernet.sfm.selfcheck` -- :func:`check_reconstruction`: every placed camera held
+  against its verified pairs and its 3D points;
 * :mod:`~posernet.sfm.synthetic` -- synthetic scenes for tests and benchmarks.
 
 Conventions: world-to-camera ``w2c (N, 4, 4)``, ``x_cam = R X + t``, pixels ``K x_cam / z``
@@ -24,8 +28,10 @@ are defined up to one global scale (the gauge fixes one camera per component, no
 from __future__ import annotations
 
 from .bundle import LOSSES, BundleOptions, BundleResult, bundle_adjust, gauge_cameras
+from .positioning import Positioning, PositioningOptions, global_positioning
 from .refine import SfmResult, bundle_adjust_reconstruction
 from .resection import Resection, anchored_cameras, resect_cameras
+from .selfcheck import CheckOptions, PairEvidence, SelfCheck, check_reconstruction
 from .tracks import Tracks, build_tracks
 from .triangulation import (
     REASONS,
@@ -41,7 +47,12 @@ __all__ = [
     "REASONS",
     "BundleOptions",
     "BundleResult",
+    "CheckOptions",
+    "PairEvidence",
+    "Positioning",
+    "PositioningOptions",
     "Resection",
+    "SelfCheck",
     "SfmResult",
     "Tracks",
     "Triangulation",
@@ -49,7 +60,9 @@ __all__ = [
     "build_tracks",
     "bundle_adjust",
     "bundle_adjust_reconstruction",
+    "check_reconstruction",
     "gauge_cameras",
+    "global_positioning",
     "project",
     "reprojection_errors",
     "resect_cameras",

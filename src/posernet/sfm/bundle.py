@@ -39,10 +39,12 @@ GAUGES: tuple[str, ...] = ("max_degree", "first")
 #: where the adjustment of a component starts: ``averaged`` (the motion-averaging poses),
 #: ``positioning`` (the averaged rotations with centres and points solved together from their
 #: rays, :mod:`posernet.sfm.positioning`), ``incremental`` (cameras registered one at a time
-#: by PnP from a seed pair, :mod:`posernet.sfm.incremental`) or ``auto`` (the positioning
-#: start; the incremental one is also tried when that adjustment leaves a camera unrefined or
-#: explains less than ``explained_min`` of the track observations, and the one that keeps
-#: more observations within ``max_reproj_px`` wins)
+#: by PnP from a seed pair, :mod:`posernet.sfm.incremental`) or ``auto`` (the averaged start;
+#: when its adjustment is in doubt -- a camera unrefined, less than ``explained_min`` of the
+#: track observations explained, a camera seeing its points only at tiny angles, two centres
+#: on one spot -- the positioning start too, and the incremental one when the better of them
+#: is still in doubt; kept: the most refined cameras seeing their points at a useful angle,
+#: then the most observations explained)
 STARTS: tuple[str, ...] = ("auto", "averaged", "positioning", "incremental")
 
 

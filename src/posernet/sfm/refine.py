@@ -73,12 +73,9 @@ class SfmResult:
         if "start" in s:
             st = s["start"]
             obs = st.get("observations") or {}
-            starts = [k for k in obs if k not in ("registered", "seed_pair")]
-            out.append(f"start: {st['kept']}" + (
-                " (observations kept: " + ", ".join(f"from the {k} start {obs[k]}"
-                                                    for k in starts)
-                + f"; {obs.get('registered')} cameras registered incrementally)" if obs else
-                f" ({st.get('why', '')})"))
+            out.append(f"start: {st['kept']} ({st.get('why', '')})" + (
+                "; observations kept: " + ", ".join(f"from the {k} start {v}"
+                                                    for k, v in obs.items()) if obs else ""))
         if "triangulation" in s:
             out.append("initial triangulation: " + ", ".join(
                 f"{k} {v}" for k, v in s["triangulation"].items()))
@@ -369,61 +366,128 @@ def _restart(uv: Sequence[np.ndarray], pair_matches: Mapping[tuple[int, int], np
     return res
 
 
+def _doubts(r: SfmResult, members: np.ndarray, opt: BundleOptions) -> list[str]:
+    """Why an adjustment of the ``members`` may have kept a wrong start (empty: no doubt):
+    cameras left unrefined, too few track observations explained, a camera whose points are
+    seen only under tiny angles (explained by rotation alone), or two centres on one spot
+    (a collapse that bundle adjustment keeps)."""
+    from .selfcheck import triangulation_angles
+
+    out = []
+    if not bool(r.refined[members].all()):
+        out.append(f"{int((members & ~r.refined).sum())} camera(s) unrefined")
+    explained = _support(r) / max(int(r.tracks.track.size), 1)
+    if explained < opt.explained_min:
+        out.append(f"explains {explained:.0%} of the track observations")
+    ref = np.flatnonzero(r.refined)
+    if ref.size >= 2 and r.obs_image.size:
+        _, tri = triangulation_angles(r.w2c, r.points, r.obs_image, r.obs_point,
+                                      r.w2c.shape[0])
+        low = int((tri[ref] < opt.min_angle_deg).sum())
+        if low:
+            out.append(f"{low} camera(s) see their points at under {opt.min_angle_deg:g} deg")
+        c = -np.einsum("nji,nj->ni", r.w2c[ref, :3, :3], r.w2c[ref, :3, 3])
+        d = np.linalg.norm(c[:, None] - c[None], axis=2)[np.triu_indices(ref.size, 1)]
+        if d.size and np.median(d) > 0 and (d < 0.02 * np.median(d)).any():
+            out.append("camera centres coincide")
+    return out
+
+
+def _score(r: SfmResult) -> tuple[int, int]:
+    """Rank of an adjustment among starts: refined cameras whose points are not explained by
+    rotation alone, then observations explained."""
+    from .selfcheck import triangulation_angles
+
+    good = 0
+    if r.obs_image.size:
+        _, tri = triangulation_angles(r.w2c, r.points, r.obs_image, r.obs_point,
+                                      r.w2c.shape[0])
+        good = int((r.refined & (tri >= 1.0)).sum())
+    return good, _support(r)
+
+
 def _best_start(uv: Sequence[np.ndarray], pair_matches: Mapping[tuple[int, int], np.ndarray],
                 K: np.ndarray, dist: Sequence[np.ndarray | None] | None, w2c: np.ndarray,
                 placed: np.ndarray, opt: BundleOptions, anchored: np.ndarray | None,
                 seed: int) -> SfmResult:
     """:func:`bundle_adjust_reconstruction` from the start ``opt.start`` names (see
-    :data:`~posernet.sfm.bundle.STARTS`); ``stats["start"]`` says which start was kept and
-    what each one kept."""
+    :data:`~posernet.sfm.bundle.STARTS`); ``stats["start"]`` says which start was kept, why,
+    and what each start tried kept (refined cameras seeing their points at a useful angle,
+    observations)."""
     averaged_opt = dataclasses.replace(opt, start="averaged")
     K = np.asarray(K, np.float64)
     w2c = np.asarray(w2c, np.float64)
     members = np.asarray(placed, bool).reshape(-1) & np.isfinite(w2c).all((1, 2))
     _check_inputs(uv, K, dist, w2c, members)
     small = int(members.sum()) <= opt.incremental_max_cameras
-    base, name = None, "averaged"
-    if opt.start in ("auto", "positioning"):
+
+    def averaged() -> SfmResult:
+        return bundle_adjust_reconstruction(uv, pair_matches, K, dist, w2c, placed,
+                                            averaged_opt, anchored=anchored, seed=seed)
+
+    def positioned() -> SfmResult | None:
         t0 = time.perf_counter()
         tracks, xy = _observations(uv, pair_matches, K, dist, members)
         gp = global_positioning(xy, tracks.track, tracks.image, tracks.num_tracks, K, w2c,
                                 members)
-        if int(gp.positioned.sum()) >= 2:
-            base = _restart(uv, pair_matches, K, dist, w2c, gp.w2c, gp.positioned, members,
-                            averaged_opt, seed, time.perf_counter() - t0, "positioning")
-            name = "positioning"
-            if not base.refined.any():  # no adjustment accepted: the averaged poses stay
-                base, name = None, "averaged"
-    if base is None and (opt.start != "incremental" or not small):
-        base = bundle_adjust_reconstruction(uv, pair_matches, K, dist, w2c, placed,
-                                            averaged_opt, anchored=anchored, seed=seed)
-    if base is not None:
-        if opt.start == "positioning" or not small:
-            base.stats["start"] = {"kept": name, "why": "start=positioning" if small else
-                                   f"component over {opt.incremental_max_cameras} cameras"}
-            return base
-        explained = _support(base) / max(int(base.tracks.track.size), 1)
-        if bool(base.refined[members].all()) and explained >= opt.explained_min:
-            base.stats["start"] = {"kept": name, "why": f"explains {explained:.0%} of the "
-                                   "track observations, every camera refined"}
-            return base
-    t0 = time.perf_counter()
-    tracks, xy = _observations(uv, pair_matches, K, dist, members)
-    reg = register_incrementally(xy, tracks.track, tracks.image, tracks.num_tracks, K, w2c,
-                                 members, dataclasses.replace(averaged_opt, refine_focal="none"),
-                                 min_inliers=max(6, opt.min_points_per_camera), seed=seed)
-    inc = None
-    if int(reg.registered.sum()) >= 2:
-        inc = _restart(uv, pair_matches, K, dist, w2c, reg.w2c, reg.registered, members,
-                       averaged_opt, seed, time.perf_counter() - t0, "registration")
-    kept = {name: None if base is None else _support(base),
-            "incremental": None if inc is None else _support(inc),
-            "registered": int(reg.registered.sum()), "seed_pair": reg.seed}
-    if inc is None or (base is not None and _support(base) >= _support(inc)):
-        if base is None:  # start=incremental, and the registration placed nothing
-            base = bundle_adjust_reconstruction(uv, pair_matches, K, dist, w2c, placed,
-                                                averaged_opt, anchored=anchored, seed=seed)
-        base.stats["start"] = {"kept": name, "observations": kept}
-        return base
-    inc.stats["start"] = {"kept": "incremental", "observations": kept}
-    return inc
+        if int(gp.positioned.sum()) < 2:
+            return None
+        res = _restart(uv, pair_matches, K, dist, w2c, gp.w2c, gp.positioned, members,
+                       averaged_opt, seed, time.perf_counter() - t0, "positioning")
+        return res if res.refined.any() else None  # no adjustment accepted
+
+    def incremental() -> SfmResult | None:
+        t0 = time.perf_counter()
+        tracks, xy = _observations(uv, pair_matches, K, dist, members)
+        reg = register_incrementally(xy, tracks.track, tracks.image, tracks.num_tracks, K,
+                                     w2c, members,
+                                     dataclasses.replace(averaged_opt, refine_focal="none"),
+                                     min_inliers=max(6, opt.min_points_per_camera), seed=seed)
+        if int(reg.registered.sum()) < 2:
+            return None
+        return _restart(uv, pair_matches, K, dist, w2c, reg.w2c, reg.registered, members,
+                        averaged_opt, seed, time.perf_counter() - t0, "registration")
+
+    if opt.start == "positioning":
+        res = positioned()
+        if res is None:
+            res = averaged()
+            res.stats["start"] = {"kept": "averaged", "why": "positioning placed no camera"}
+        else:
+            res.stats["start"] = {"kept": "positioning", "why": "start=positioning"}
+        return res
+    tried: dict[str, SfmResult] = {}
+    why = ""
+    if opt.start == "auto" or not small:
+        tried["averaged"] = averaged()
+        doubts = _doubts(tried["averaged"], members, opt)
+        if not doubts:
+            tried["averaged"].stats["start"] = {
+                "kept": "averaged", "why": "every camera refined, explaining "
+                f"{_support(tried['averaged']) / max(tried['averaged'].tracks.track.size, 1):.0%}"
+                " of the track observations, none collapsed"}
+            return tried["averaged"]
+        why = "averaged start: " + "; ".join(doubts)
+        if opt.start == "auto":
+            res = positioned()
+            if res is not None:
+                tried["positioning"] = res
+    if small:
+        best = max(tried.values(), key=_score) if tried else None
+        if best is None or _doubts(best, members, opt):
+            res = incremental()
+            if res is not None:
+                tried["incremental"] = res
+    if not tried:  # start=incremental, and the registration placed nothing
+        tried["averaged"] = averaged()
+    order = list(tried)
+    kept = max(order, key=lambda k: (_score(tried[k]), -order.index(k)))
+    out = tried[kept]
+    obs = {k: _support(r) for k, r in tried.items()}
+    out.stats["start"] = {"kept": kept, "why": why or f"start={opt.start}",
+                          "observations": obs,
+                          "cameras": {k: _score(r)[0] for k, r in tried.items()}}
+    if not small:
+        out.stats["start"]["why"] += (f"; component over {opt.incremental_max_cameras} cameras:"
+                                      " not registered incrementally")
+    return out
