@@ -367,22 +367,28 @@ class ImageFrontend:
     def _evaluate_into(self, a: int, b: int, summary: FrontendSummary) -> PairResult:
         """Match and verify pair ``a, b``; with a matcher that has a fallback
         (:class:`~posernet.frontend.features.FallbackMatcher`) a pair whose result it judges
-        weak is matched and verified again with the fallback, and the better result kept."""
+        weak is matched and verified again with the fallback, whose edge the matcher then
+        keeps or not."""
         A, B = self.image(a), self.image(b)
         first = FrontendSummary()
         m, res = self._match_verify(a, b, self.matcher.match, first)
         fm = self.matcher
+        spread = self._spread(a, b, res.inliers) if res.is_edge else None
         if (hasattr(fm, "match_fallback") and fm.has_fallback(A.features)
                 and fm.has_fallback(B.features)
-                and fm.wants_fallback(len(m), res.inliers, self._spread(a, b, res.inliers))):
+                and fm.wants_fallback(len(m), res.is_edge, spread)):
             second = FrontendSummary()
             m2, res2 = self._match_verify(a, b, fm.match_fallback, second)
             first.seconds["fallback"] += sum(second.seconds.values())
             first.fallback["tried"] += 1
-            # the fallback's pose must explain SIFT's own matches: two matchers agreeing
-            agree = self._agreement(m, res2, a, b) if res2.is_edge else 0.0
-            res2.info["fallback_agreement"] = round(agree, 4)
-            if _better(res2, res) and agree >= getattr(fm, "fallback_agree", 0.0):
+            keep = False
+            if res2.is_edge:
+                # its pose must explain SIFT's own matches: two matchers agreeing
+                agree = self._agreement(m, res2, a, b)
+                res2.info["fallback_agreement"] = round(agree, 4)
+                keep = fm.keeps_fallback(res.is_edge, spread,
+                                         self._spread(a, b, res2.inliers), agree)
+            if keep:
                 second.seconds, second.fallback = first.seconds, first.fallback
                 second.fallback["kept"] += 1
                 first, m, res = second, m2, res2
@@ -588,18 +594,6 @@ class ImageFrontend:
             meta,
             candidates,
         )
-
-
-def _better(new: PairResult, old: PairResult) -> bool:
-    """Whether the fallback's result ``new`` replaces ``old``: an edge where ``old`` is none,
-    or one that keeps more inliers for the tracks."""
-    if not new.is_edge:
-        return False
-    if not old.is_edge:
-        return True
-    n_new = 0 if new.inliers is None else len(new.inliers)
-    n_old = 0 if old.inliers is None else len(old.inliers)
-    return n_new > n_old
 
 
 # ---------------------------------------------------------------------- cache records
