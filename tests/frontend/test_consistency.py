@@ -251,3 +251,25 @@ def test_ordinary_rendered_pairs_all_pass(tmp_path):
     assert len(edges) >= 8 and out["triangles"] >= 4
     assert out["crowded"] == 0 and out["loop"] == 0
     assert all(fe.pair(*k).is_edge and fe.pair(*k).info["spread"] > 0.05 for k in edges)
+
+
+@pytest.mark.parametrize(("override", "ok"), [
+    ("verify.min_spread=0.05", True), ("verify.min_spread=1.5", False),
+    ("verify.max_loop_deg=0", True), ("verify.max_loop_deg=200", False),
+    ("verify.max_loop_share=0.7", True), ("verify.max_loop_share=-1", False),
+    ("verify.max_loop_deg=abc", False),
+])
+def test_config_check_knows_the_screening_options(override, ok, tmp_path):
+    from hydra import compose, initialize_config_dir
+
+    from posernet.cli import CONFIG_DIR
+    from posernet.cli.validation import ConfigValueError, check_config
+
+    with initialize_config_dir(config_dir=CONFIG_DIR, version_base="1.3"):
+        cfg = compose("reconstruct", overrides=["images=photos", "intrinsics='1,1,1,1'",
+                                                f"out_dir={tmp_path / 'out'}", override])
+    if ok:
+        check_config(cfg, "reconstruct")
+    else:
+        with pytest.raises(ConfigValueError, match=f"^{override.split('=')[0]}"):
+            check_config(cfg, "reconstruct")
