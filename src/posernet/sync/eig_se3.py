@@ -45,12 +45,15 @@ graph with a tiny spectral gap) the literal algorithm would mix a non-pose direc
 here the rotation eigenvectors are always used.
 
 **Batching.** Components (:mod:`posernet.sync.components`) are padded to ``[G, n]``
-(:mod:`posernet.sync.padding`). Small ones (``<= dense_max_nodes``) use batched dense ``eigh``
-on ``[G, 3n, 3n]`` and a batched Cholesky solve; large ones a batched restarted block-Krylov
-(Lanczos with full reorthogonalisation) for the top 3 eigenvectors, warm-started across IRLS
-iterations, and conjugate gradients for the translations, applying ``N`` through the edges
-(O(E) per product); the rotation part is shared with ``rotation_translation``
-(:mod:`posernet.sync.spectral`). IRLS iterates only the graphs that have not converged.
+(:mod:`posernet.sync.padding`). Small ones (``<= dense_max_nodes``) use dense ``[G, 3n, 3n]``
+matrices: the IRLS iterations take the span of the top-3 eigenvectors from a Chebyshev filter
+(:mod:`posernet.sync.filtered`; the span is all an iteration's weights depend on), the last
+solve of each component a batched ``eigh``, the translations a batched Cholesky solve; large
+ones a batched restarted block-Krylov (Lanczos with full reorthogonalisation) for the top 3
+eigenvectors, warm-started across IRLS iterations, and conjugate gradients for the
+translations, applying ``N`` through the edges (O(E) per product); the rotation part is shared
+with ``rotation_translation`` (:mod:`posernet.sync.spectral`). IRLS iterates only the graphs
+that have not converged.
 Everything runs in float64 internally (eigenvectors of nearly degenerate clusters need it) on
 the input's device; results are cast back to the input dtype.
 """

@@ -3,11 +3,14 @@
 The top-3 eigenvectors of ``N = D3^{-1/2} X_RR D3^{-1/2}`` (``X_RR`` the symmetric 3n x 3n
 matrix of weighted relative rotations, identity-weighted diagonal; ``D3`` its weighted degrees)
 span the absolute rotations; IRLS re-weights the edges with EIG-SE3's Cauchy weights and MAD
-threshold until the weights settle (:func:`rotation_irls`). Small components use batched dense
-``eigh``; large ones a batched restarted block-Krylov (Lanczos with full reorthogonalisation)
-applying ``N`` as a sparse block-diagonal matrix (O(E) per product), warm-started across IRLS
-iterations. Also the operators themselves (:func:`dense_N`, :func:`sparse_N`), batched conjugate
-gradients and the dense/Krylov split by component size (:func:`split_by_size`).
+threshold until the weights settle (:func:`rotation_irls`). Small components use dense
+matrices: the IRLS iterations run in :mod:`posernet.sync.filtered` (a Chebyshev-filtered
+subspace per iteration instead of an ``eigh``, the eigenvectors of the last solve by batched
+``eigh``: the same result); large ones a batched restarted block-Krylov (Lanczos with full
+reorthogonalisation) applying ``N`` as a sparse block-diagonal matrix (O(E) per product),
+warm-started across IRLS iterations. Also the operators themselves (:func:`dense_N`,
+:func:`sparse_N`), batched conjugate gradients and the dense/Krylov split by component size
+(:func:`split_by_size`).
 """
 
 from __future__ import annotations
@@ -348,6 +351,15 @@ class RotationSolution:
     pattern: CSRPattern | None = None  # sparse pattern of the whole problem, if one was built
 
 
+def _start_weights(prob: PaddedProblem, w0: Tensor | None) -> tuple[Tensor, Tensor]:
+    """Edge ``[G, m]`` and diagonal ``[G]`` weights of the first solve (unit, or ``w0``)."""
+    dt, dev = prob.R.dtype, prob.R.device
+    if w0 is None:
+        return prob.edge_mask.to(dt), torch.ones(prob.G, dtype=dt, device=dev)
+    w_edge = torch.where(prob.edge_mask, w0.to(dt), torch.zeros((), dtype=dt, device=dev))
+    return w_edge, w_edge.amax(dim=1)
+
+
 def rotation_irls(prob: PaddedProblem, robust: bool, max_iters: int, tol: float, theta: float,
                   krylov: bool, krylov_tol: float = 1e-12, krylov_max_cycles: int = 500,
                   seed: int = 0, w0: Tensor | None = None,
@@ -358,15 +370,18 @@ def rotation_irls(prob: PaddedProblem, robust: bool, max_iters: int, tol: float,
     ``robust=False`` this is a single solve. The first solve uses unit weights, or ``w0
     [G, m]`` (0 on pads; e.g. per-edge confidence, :mod:`posernet.sync.weighted`); with
     ``prior=True`` every later solve multiplies the Cauchy weights by ``w0`` too.
+
+    The robust dense solve runs :func:`posernet.sync.filtered.dense_irls` (the same
+    iterations with filtered subspaces instead of an ``eigh`` each, and the eigenvectors of
+    each component's last solve by :func:`top3_dense`: the same result).
     """
-    G, n, dev, dt = prob.G, prob.n, prob.R.device, prob.R.dtype
-    if w0 is None:
-        w_edge = prob.edge_mask.to(dt)
-        w_diag = torch.ones(G, dtype=dt, device=dev)
-    else:
-        w_edge = torch.where(prob.edge_mask, w0.to(dt), torch.zeros((), dtype=dt, device=dev))
-        w_diag = w_edge.amax(dim=1)
+    w_edge, w_diag = _start_weights(prob, w0)
     w_prior = w_edge.clone() if prior and w0 is not None else None
+    if robust and not krylov:
+        from .filtered import dense_irls
+
+        return dense_irls(prob, w_edge, w_diag, max_iters, tol, theta, seed, w_prior)
+    G, n, dev, dt = prob.G, prob.n, prob.R.device, prob.R.dtype
     R = torch.eye(3, dtype=dt, device=dev).expand(G, n, 3, 3).clone()
     V3 = torch.zeros(G, 3 * n, 3, dtype=dt, device=dev)
     Rh = torch.zeros_like(V3)
