@@ -84,6 +84,7 @@ an MLP with forward hooks, runs the literal path.
 
 from __future__ import annotations
 
+import warnings
 from typing import Any, NamedTuple
 
 import torch
@@ -625,17 +626,21 @@ class PoserConv(nn.Module):
                 outs.append(y.reshape(pe.shape[0], 2 * y.shape[1]))
             return outs
 
-        def reduce(sums: list[Tensor], e0: int, e1: int) -> tuple[Tensor, Tensor | None]:
+        def reduce(sums: list[Tensor], e0: int, e1: int,
+                   means: bool = False) -> tuple[Tensor, Tensor | None]:
             """Per-pair sums of edges ``e0:e1`` -> ``Psi_E``'s mean ``[e1 - e0, 2, 7 (+ d)]``
-            and the rows each view adds to its own node ``[2 (e1 - e0), out]``."""
-            m_edge = (sums[0] / denom[e0:e1]).view(e1 - e0, 2, sums[0].shape[1] // 2)
+            and the rows each view adds to its own node ``[2 (e1 - e0), out]``. ``means``:
+            ``sums`` are already the means over the edges' pairs where the round needs them
+            (``Psi_E``'s, and ``Psi_N``'s with ``nested_mean``)."""
+            m_edge = sums[0] if means else sums[0] / denom[e0:e1]
+            m_edge = m_edge.view(e1 - e0, 2, sums[0].shape[1] // 2)
             if defer:
                 lin = edge_layers[-1][0]
                 m_edge = nn.functional.linear(m_edge, lin.weight, lin.bias)
             if len(sums) == 1:
                 return m_edge, None
             node = sums[1].view(2 * (e1 - e0), sums[1].shape[1] // 2)
-            if self.nested_mean:  # mean over the view's pairs; views without pairs add 0
+            if self.nested_mean and not means:  # the view's mean; views without pairs add 0
                 node = node / denom[e0:e1].repeat_interleave(2, dim=0)
             return m_edge, node
 
@@ -651,7 +656,7 @@ class PoserConv(nn.Module):
         else:
             m_edge, node_total = self._blocked(
                 view_inputs, messages, reduce, pair_edge, box_src, box_dst, n_pairs,
-                own_flat, N, len(nets) > 1)
+                own_flat, N, len(nets) > 1, self.nested_mean)
 
         # ---- edge update: fuse the directions of the mean message.
         out = m_edge[..., :POSE_DIM]
@@ -682,7 +687,7 @@ class PoserConv(nn.Module):
     @staticmethod
     def _blocked(view_inputs: Any, messages: Any, reduce: Any, pair_edge: Tensor,
                  box_src: Tensor, box_dst: Tensor, n_pairs: Tensor, own_flat: Tensor, N: int,
-                 nodes: bool) -> tuple[Tensor, Tensor | None]:
+                 nodes: bool, nested_mean: bool) -> tuple[Tensor, Tensor | None]:
         """The messages of :meth:`_propagate_fused` block by block of edges (inference on the
         CPU): each block's pairs (about ``_BLOCK_PAIRS``) run through the networks and are
         reduced while their activations are in the cache, and no tensor of the size of all
@@ -690,7 +695,10 @@ class PoserConv(nn.Module):
         allocations cost page faults that take longer than the arithmetic on them.
 
         Pairs are visited edge by edge (a stable sort when ``pair_edge`` is not sorted), so
-        every sum adds the same terms in the same order as the unblocked path: deterministic.
+        each block's pairs are contiguous per edge: the means over an edge's pairs are one
+        product with the block's ``[edges, pairs]`` CSR matrix of ``1 / n_pairs`` (sparse
+        times dense runs each row's terms in order: deterministic; ``Psi_N``'s plain sums
+        with ``nested_mean=False``, a second matrix of ones).
         Returns ``Psi_E``'s mean message ``[E, 2, *]`` and the node sums ``[N, out]``.
         """
         E = n_pairs.shape[0]
@@ -705,13 +713,21 @@ class PoserConv(nn.Module):
                                                      cuts.new_full((1,), E))))
         edges = bounds.tolist()
         starts = ptr[bounds].tolist()
+        cols = torch.arange(M, device=ptr.device)
+        dtype = box_src.dtype
+        inv = (1.0 / n_pairs.clamp_min(1).to(dtype)).repeat_interleave(n_pairs, output_size=M)
+        ones = inv.new_ones(M) if nodes and not nested_mean else None
         m_edge: Tensor | None = None
         total: Tensor | None = None
         for e0, e1, q0, q1 in zip(edges[:-1], edges[1:], starts[:-1], starts[1:], strict=True):
             pe = pair_edge[q0:q1] - e0
             outs = messages(view_inputs(e0, e1), pe, box_src[q0:q1], box_dst[q0:q1])
-            sums = [y.new_zeros(e1 - e0, y.shape[1]).index_add_(0, pe, y) for y in outs]
-            m_blk, node_rows = reduce(sums, e0, e1)
+            crow, col = ptr[e0:e1 + 1] - q0, cols[:q1 - q0]
+            sums = [_csr(crow, col, inv[q0:q1], outs[0])]
+            if nodes:
+                sums.append(_csr(crow, col, inv[q0:q1] if nested_mean else ones[:q1 - q0],
+                                 outs[1]))
+            m_blk, node_rows = reduce(sums, e0, e1, means=True)
             if m_edge is None:
                 m_edge = m_blk.new_empty(E, *m_blk.shape[1:])
             m_edge[e0:e1] = m_blk
@@ -722,6 +738,16 @@ class PoserConv(nn.Module):
                 total.index_add_(0, own_flat[2 * e0:2 * e1], node_rows)
         assert m_edge is not None
         return m_edge, total
+
+
+def _csr(crow: Tensor, col: Tensor, values: Tensor, y: Tensor) -> Tensor:
+    """``S @ y`` for the CSR matrix ``S [len(crow) - 1, len(col)]`` (row pointers ``crow``,
+    columns ``col``, ``values``) and ``y [len(col), C]``."""
+    with warnings.catch_warnings():  # "sparse CSR support is in beta": only S @ dense is used
+        warnings.simplefilter("ignore", UserWarning)
+        S = torch.sparse_csr_tensor(crow, col, values, (crow.shape[0] - 1, col.shape[0]),
+                                    check_invariants=False)
+    return S @ y
 
 
 # Pairs per block of the blocked fast path (inference on the CPU): a block's activations

@@ -237,7 +237,8 @@ class PoserNet(nn.Module):
                 inputs["pair_box_dst"], state, update_nodes=not last,
                 update_edge_state=not last,
             )
-            outputs.append(self._finalise(pose))
+            if last or return_all:  # the other rounds' outputs are not returned
+                outputs.append(self._finalise(pose))
         raw = outputs[-1]
         gate = sigma = None
         if self.head is not None:
