@@ -9,12 +9,23 @@ difference between the paths, and the top operators of the fast path (what bound
     python benchmarks/bench_forward.py                 # 7000 graphs -> results/forward.md
     python benchmarks/bench_forward.py --quick         # 1400 graphs -> results/quick/forward.md
     python benchmarks/bench_forward.py --device cuda
+    git worktree add /tmp/before <commit>              # the code to compare with, then:
+    python benchmarks/bench_forward.py --baseline /tmp/before/src
+
+``--baseline SRC`` also times the fast path of an older checkout (its ``src`` folder) on the same
+batch and weights, in a subprocess of this run that imports ``posernet`` from there (row
+"before", with the largest output difference).
 """
 
 from __future__ import annotations
 
 import argparse
 import copy
+import os
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
 
 import torch
 from _common import best_of, fmt_s, paper_batch, table, write_results
@@ -28,8 +39,6 @@ SHIPPED = "src/posernet/checkpoints/posernet_synthetic_kp_v1.ckpt"
 
 
 def load_model() -> PoserNet:
-    from pathlib import Path
-
     path = Path(__file__).resolve().parents[1] / SHIPPED
     try:
         return PoserNet.from_checkpoint(path)
@@ -57,6 +66,39 @@ def profile_rows(fn, n: int = 8) -> list[list[str]]:
             for e in events[:n]]
 
 
+def run_baseline(args: argparse.Namespace, n: int, repeat: int) -> dict:
+    """The fast path of the checkout whose ``src`` is ``args.baseline``, on the same batch
+    (a subprocess of this script in ``--worker`` mode): ``{time, times, out}``."""
+    src = str(Path(args.baseline).resolve())
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(
+        [src] + [p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p]))
+    with tempfile.TemporaryDirectory() as tmp:
+        out = str(Path(tmp) / "baseline.pt")
+        subprocess.run([sys.executable, str(Path(__file__).resolve()), "--worker", out,
+                        "--graphs", str(n), "--repeat", str(repeat), "--threads",
+                        str(args.threads), "--device", args.device], env=env, check=True)
+        return torch.load(out)
+
+
+def worker(args: argparse.Namespace, n: int, repeat: int) -> None:
+    """``--baseline``'s subprocess: time the fast path of the ``posernet`` on the path."""
+    batch = paper_batch(n).to(args.device)
+    model = load_model().to(args.device)
+    with torch.no_grad():
+        out = model(batch)
+        t, times = best_of(lambda: model(batch), repeat, args.device)
+    torch.save({"time": t, "times": times, "out": out.cpu()}, args.worker)
+
+
+def baseline_label(src: str) -> str:
+    """``commit`` of the checkout holding ``src`` (or the folder's name)."""
+    try:
+        return subprocess.run(["git", "-C", src, "rev-parse", "--short", "HEAD"],
+                              capture_output=True, text=True, check=True).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return Path(src).resolve().parent.name
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--graphs", type=int, default=None, help="graphs in the batch (7000)")
@@ -66,11 +108,18 @@ def main() -> None:
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--compile", action="store_true", help="also time torch.compile(model)")
     ap.add_argument("--out", default=None)
+    ap.add_argument("--baseline", default=None, metavar="SRC",
+                    help="the src folder of an older checkout: time its fast path too")
+    ap.add_argument("--worker", default=None, help=argparse.SUPPRESS)  # internal: --baseline
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     n = args.graphs or (1400 if args.quick else 7000)
     repeat = args.repeat or (2 if args.quick else 3)
     dev = args.device
+    if args.worker:
+        worker(args, n, repeat)
+        return
+    base = run_baseline(args, n, repeat) if args.baseline else None
 
     batch = paper_batch(n).to(dev)
     model = load_model().to(dev)
@@ -88,6 +137,13 @@ def main() -> None:
                  f"{n / t_ref:.0f}", "1.0x"],
                 ["fast path (default)", fmt_s(t_fast), f"{n / t_fast:.0f}",
                  f"{t_ref / t_fast:.1f}x"]]
+        if base is not None:
+            name = baseline_label(args.baseline)
+            base_diff = float((fast_out.cpu() - base["out"]).abs().max())
+            print(f"fast path of {name}: {fmt_s(base['time'])} "
+                  f"{[round(t, 3) for t in base['times']]}", flush=True)
+            rows.insert(1, [f"fast path of commit {name} (`--baseline`)", fmt_s(base["time"]),
+                            f"{n / base['time']:.0f}", f"{t_ref / base['time']:.1f}x"])
         if args.compile:
             compiled = torch.compile(model)
             t_c, _ = best_of(lambda: compiled(batch), repeat, dev, warmup=2)
@@ -107,6 +163,10 @@ def main() -> None:
         "",
         f"Largest output difference between the paths: {diff:.1e} (float32 round-off).",
     ]
+    if base is not None:
+        body += ["", f"Fast path before ({baseline_label(args.baseline)}, a subprocess of this "
+                 f"run, same batch and weights) / now: {base['time'] / t_fast:.2f}x; largest "
+                 f"output difference {base_diff:.1e}."]
     if prof:
         body += ["", "Where the fast path's time goes (torch profiler, self CPU time):", "",
                  *table(["operator", "share", "calls"], prof)]
