@@ -64,6 +64,9 @@ def test_options_and_rule() -> None:
     assert m.wants_fallback(40, 20, 0.3)
     assert m.wants_fallback(60, 55, 0.01)
     assert not m.wants_fallback(60, 55, 0.3)
+    assert m.wants_fallback(40, 0, None, degree=1)
+    assert not m.wants_fallback(40, 0, None, degree=2)  # both images firmly tied already
+    assert m.is_weak(20, 0.3) and m.is_weak(60, 0.01) and not m.is_weak(60, 0.3)
     # kept with SIFT's support and more inliers than SIFT's edge, if any
     assert m.keeps_fallback(0, 20, 0.6)
     assert not m.keeps_fallback(0, 20, 0.3)
@@ -135,7 +138,11 @@ class _Stub:
     def has_fallback(self, f: Features) -> bool:
         return True
 
-    def wants_fallback(self, matches: int, inliers: int, spread: float | None) -> bool:
+    def is_weak(self, inliers: int, spread: float | None) -> bool:
+        return inliers < 50
+
+    def wants_fallback(self, matches: int, inliers: int, spread: float | None,
+                       degree: int = 0) -> bool:
         return matches >= self.min_matches and inliers < 50
 
     def keeps_fallback(self, inliers: int, new_inliers: int, agreement: float) -> bool:
@@ -210,6 +217,47 @@ def test_fallback_runs_only_in_a_mostly_weak_set(scene) -> None:
     assert lone.pair(0, 1).info.get("matcher") in (None, "fallback")
     assert lone.fallback_on() and len(lone._images) == N
     assert not _frontend(scene, SiftMatcher()).fallback_on()
+
+
+class _Degree(_Stub):
+    """The stub with SIFT's full matches first: a pair is rematched when weak (fewer than
+    ``need`` inliers) and an image of it has fewer than two firm edges."""
+
+    def __init__(self, need: int) -> None:
+        super().__init__(keep=10**6)
+        self.need, self.asked = need, []
+
+    def is_weak(self, inliers: int, spread: float | None) -> bool:
+        return inliers < self.need
+
+    def wants_fallback(self, matches: int, inliers: int, spread: float | None,
+                       degree: int = 0) -> bool:
+        self.asked.append(degree)
+        return degree < 2 and self.is_weak(inliers, spread)
+
+
+def test_images_firmly_tied_by_sift_are_left_alone(scene) -> None:
+    """Firm edges are counted over every pair first; a weak pair between two images with two
+    firm edges each is not matched again."""
+    ref = _frontend(scene, SiftMatcher())
+    ref.evaluate_pairs(PAIRS, progress=False)
+    n_in = sorted(len(p.inliers) for p in (ref.pair(a, b) for a, b in PAIRS) if p.is_edge)
+    need = n_in[len(n_in) // 2]  # half the edges are firm
+    fe = _frontend(scene, _Degree(need))
+    fe.evaluate_pairs(PAIRS, progress=False)
+    firm = np.zeros(N, int)
+    weak = []
+    for a, b in PAIRS:
+        p = ref.pair(a, b)
+        k = len(p.inliers) if p.is_edge else 0
+        if k >= need:
+            firm[[a, b]] += 1
+        else:
+            weak.append((a, b))
+    np.testing.assert_array_equal(fe._strong, firm)
+    expect = sum(min(firm[a], firm[b]) < 2 for a, b in weak)
+    assert fe.summary.fallback["tried"] == expect < len(weak)
+    assert fe.matcher.asked and not fe._first  # every pass-1 attempt was used
 
 
 def test_fallback_needs_the_support_of_sift_matches(scene) -> None:

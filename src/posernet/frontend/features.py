@@ -566,10 +566,13 @@ class FallbackMatcher:
     never match each other). :meth:`match` matches the SIFT keypoints; the image front end
     (:class:`~posernet.frontend.pipeline.ImageFrontend`) calls :meth:`match_fallback` on a pair
     of two such images when SIFT's result is weak (:meth:`wants_fallback`: few verified
-    inliers, or crowded ones) and keeps the fallback's edge when :meth:`keeps_fallback` says
-    so: its pose explains at least ``fallback_agree`` of SIFT's matches of the pair (a fallback
-    edge needs the support of both matchers) and it keeps more inliers than SIFT's edge, if
-    any. Textured images never pay for XFeat.
+    inliers, or crowded ones) and one of the two images has fewer than ``fallback_degree``
+    firm SIFT edges in the whole set, and keeps the fallback's edge when
+    :meth:`keeps_fallback` says so: its pose explains at least ``fallback_agree`` of SIFT's
+    matches of the pair (a fallback edge needs the support of both matchers) and it keeps more
+    inliers than SIFT's edge, if any. Textured images never pay for XFeat; where SIFT already
+    ties every image to its neighbours (a dense turntable ring) XFeat's less precise
+    wide-baseline edges are left out.
 
     Args:
         max_features, ratio, mutual, rootsift, contrast_threshold, min_features: the SIFT
@@ -584,7 +587,9 @@ class FallbackMatcher:
             (:func:`~posernet.frontend.verify.inlier_spread`) ...
         fallback_matches: ... provided SIFT found at least this many matches (some sign of
             overlap: XFeat gives self-consistent but wrong geometry on image pairs that share
-            nothing of a plain object; 0 rematches every weak pair).
+            nothing of a plain object; 0 rematches every weak pair) ...
+        fallback_degree: ... and one of the two images has fewer firm SIFT edges (not weak
+            by the two rules above) than this.
         fallback_agree: share of SIFT's matches of a pair the fallback's pose must explain.
         weak_share: the fallback runs only where at least this share of a set's images is
             weakly textured (the front end decides once per set): a textured set with a few
@@ -614,6 +619,7 @@ class FallbackMatcher:
         fallback_inliers: int = 50,
         fallback_spread: float = 0.05,
         fallback_matches: int = 15,
+        fallback_degree: int = 2,
         fallback_agree: float = 0.5,
         weak_share: float = 0.5,
     ) -> None:
@@ -621,8 +627,10 @@ class FallbackMatcher:
                                  min_features)
         self.kind = self._sift.kind
         for k, v in (("weak_features", weak_features), ("fallback_inliers", fallback_inliers),
-                     ("fallback_matches", fallback_matches)):
+                     ("fallback_matches", fallback_matches),
+                     ("fallback_degree", fallback_degree)):
             _positive_int(v, k, minimum=0)
+        self.fallback_degree = int(fallback_degree)
         self.weak_features = int(weak_features)
         self.fallback_inliers = int(fallback_inliers)
         self.fallback_matches = int(fallback_matches)
@@ -654,6 +662,7 @@ class FallbackMatcher:
                 f"fallback_inliers={self.fallback_inliers}, "
                 f"fallback_spread={self.fallback_spread}, "
                 f"fallback_matches={self.fallback_matches}, "
+                f"fallback_degree={self.fallback_degree}, "
                 f"fallback_agree={self.fallback_agree}, weak_share={self.weak_share})")
 
     def extract(self, image: np.ndarray) -> Features:
@@ -703,14 +712,19 @@ class FallbackMatcher:
         """Whether image features ``f`` carry XFeat keypoints."""
         return "fallback_desc" in f.extra and self._available
 
-    def wants_fallback(self, matches: int, inliers: int, spread: float | None) -> bool:
-        """Whether a pair with ``matches`` SIFT matches, of which verification kept
-        ``inliers`` (0: rejected) covering ``spread`` of the images, is matched again with
-        XFeat."""
-        if matches < self.fallback_matches:
-            return False
+    def is_weak(self, inliers: int, spread: float | None) -> bool:
+        """Whether a verified SIFT edge with ``inliers`` covering ``spread`` of the images
+        (None: unknown) is weak: too few inliers, or crowded ones."""
         return inliers < self.fallback_inliers or (spread is not None
                                                    and spread < self.fallback_spread)
+
+    def wants_fallback(self, matches: int, inliers: int, spread: float | None,
+                       degree: int = 0) -> bool:
+        """Whether a pair with ``matches`` SIFT matches, of which verification kept
+        ``inliers`` (0: rejected) covering ``spread`` of the images, between images the
+        less connected of which has ``degree`` firm SIFT edges, is matched again with XFeat."""
+        return (matches >= self.fallback_matches and degree < self.fallback_degree
+                and self.is_weak(inliers, spread))
 
     def keeps_fallback(self, inliers: int, new_inliers: int, agreement: float) -> bool:
         """Whether the fallback's edge, keeping ``new_inliers`` with a pose that explains the

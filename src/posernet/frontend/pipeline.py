@@ -218,6 +218,10 @@ class ImageFrontend:
         self._digest: dict[int, str] = {}
         self._fallback: bool | None = None  # the matcher's fallback runs (decided once)
         self._fallback_lock = threading.Lock()
+        # per image: edges the main matcher verified firmly (None: not counted yet), and the
+        # main matcher's attempts kept between the two passes of evaluate_pairs
+        self._strong: np.ndarray | None = None
+        self._first: dict[tuple[int, int], tuple[Matches, PairResult, FrontendSummary]] = {}
         self.cache = None if cache is None else FrontendCache(cache, self.fingerprint())
 
     def fingerprint(self) -> dict[str, Any]:
@@ -344,27 +348,39 @@ class ImageFrontend:
         self.summary.merge(delta)
         return hit
 
+    def _pair_key(self, a: int, b: int) -> str | None:
+        if self.cache is None:
+            return None
+        ra, rb = self.records[a], self.records[b]
+        return self.cache.pair_key(self._digest_of(a), self._digest_of(b), ra.K, rb.K, ra.dist,
+                                   rb.dist)
+
+    def _cached(self, a: int, b: int) -> tuple[PairResult, FrontendSummary] | None:
+        """Pair ``a, b``'s result and counts from the cache, or None."""
+        key = self._pair_key(a, b)
+        if key is None:
+            return None
+        out = FrontendSummary()
+        t0 = time.perf_counter()
+        hit = self.cache.load("pairs", key)
+        if hit is None or hit[1].get("fallback_on", False) != self.fallback_on():
+            return None  # none, or evaluated in a set the fallback judged otherwise
+        res, m = _pair_from_cache(*hit, a=a, b=b, summary=out)
+        if self.keep_matches and m is not None:
+            self.matches[(a, b)] = m
+        out.seconds["cached"] += time.perf_counter() - t0
+        out.reused["pairs"] += 1
+        return res, out
+
     def _evaluate(self, a: int, b: int) -> tuple[PairResult, FrontendSummary]:
         """One pair's result and its counts/seconds (kept apart so that pairs can be evaluated
         on worker threads and merged in order); from the cache when it has the pair."""
+        hit = self._cached(a, b)
+        if hit is not None:
+            return hit
         out = FrontendSummary()
-        key = None
-        if self.cache is not None:
-            ra, rb = self.records[a], self.records[b]
-            key = self.cache.pair_key(self._digest_of(a), self._digest_of(b), ra.K, rb.K,
-                                      ra.dist, rb.dist)
-            t0 = time.perf_counter()
-            hit = self.cache.load("pairs", key)
-            if hit is not None and hit[1].get("fallback_on", False) != self.fallback_on():
-                hit = None  # evaluated in a set the fallback judged otherwise
-            if hit is not None:
-                res, m = _pair_from_cache(*hit, a=a, b=b, summary=out)
-                if self.keep_matches and m is not None:
-                    self.matches[(a, b)] = m
-                out.seconds["cached"] += time.perf_counter() - t0
-                out.reused["pairs"] += 1
-                return res, out
         res = self._evaluate_into(a, b, out)
+        key = self._pair_key(a, b)
         if key is not None:
             self.cache.save("pairs", key, *_pair_to_cache(res, out, self.matches.get((a, b)),
                                                           self.fallback_on()))
@@ -375,15 +391,10 @@ class ImageFrontend:
         (:class:`~posernet.frontend.features.FallbackMatcher`) a pair whose result it judges
         weak is matched and verified again with the fallback, whose edge the matcher then
         keeps or not."""
-        A, B = self.image(a), self.image(b)
-        first = FrontendSummary()
-        m, res = self._match_verify(a, b, self.matcher.match, first)
+        memo = self._first.pop((a, b), None)
+        m, res, first = memo if memo is not None else self._first_attempt(a, b)
         fm = self.matcher
-        n_in = _edge_inliers(res)
-        if (self.fallback_on() and fm.has_fallback(A.features)
-                and fm.has_fallback(B.features)
-                and fm.wants_fallback(len(m), n_in, self._spread(a, b, res.inliers)
-                                      if n_in else None)):
+        if self._wants_fallback(a, b, len(m), res):
             second = FrontendSummary()
             m2, res2 = self._match_verify(a, b, fm.match_fallback, second)
             first.seconds["fallback"] += sum(second.seconds.values())
@@ -393,16 +404,50 @@ class ImageFrontend:
                 # its pose must explain SIFT's own matches: two matchers agreeing
                 agree = self._agreement(m, res2, a, b)
                 res2.info["fallback_agreement"] = round(agree, 4)
-                keep = fm.keeps_fallback(n_in, _edge_inliers(res2), agree)
+                keep = fm.keeps_fallback(res.info["main_inliers"], _edge_inliers(res2), agree)
             if keep:
                 second.seconds, second.fallback = first.seconds, first.fallback
                 second.fallback["kept"] += 1
+                res2.info.update(matcher="fallback", main_inliers=res.info["main_inliers"],
+                                 main_spread=res.info["main_spread"])
                 first, m, res = second, m2, res2
-                res.info["matcher"] = "fallback"
         summary.merge(first)
         if self.keep_matches:
             self.matches[(a, b)] = m
         return res
+
+    def _first_attempt(self, a: int, b: int
+                       ) -> tuple[Matches, PairResult, FrontendSummary]:
+        """The main matcher's matches of pair ``a, b``, their verified result and its counts;
+        with the fallback on, the result's ``info`` records the inliers and their spread
+        (``main_inliers``, ``main_spread``) that decide about the fallback."""
+        first = FrontendSummary()
+        m, res = self._match_verify(a, b, self.matcher.match, first)
+        if self.fallback_on():
+            n_in = _edge_inliers(res)
+            spread = self._spread(a, b, res.inliers) if n_in else None
+            res.info.update(main_inliers=n_in,
+                            main_spread=None if spread is None else round(spread, 4))
+        return m, res, first
+
+    def _is_strong(self, res: PairResult) -> bool:
+        """Whether the main matcher verified pair ``res`` firmly (enough inliers, spread)."""
+        n_in = res.info.get("main_inliers", 0)
+        return n_in > 0 and not self.matcher.is_weak(n_in, res.info.get("main_spread"))
+
+    def _wants_fallback(self, a: int, b: int, matches: int, res: PairResult) -> bool:
+        """Whether pair ``a, b`` (``matches`` main matches, verified into ``res``) is matched
+        again with the fallback: both images have fallback features, the matcher judges the
+        result weak, and an image of the pair has fewer firm edges than the matcher's
+        ``fallback_degree`` (counted over every pair by :meth:`evaluate_pairs`; a pair
+        evaluated alone counts none)."""
+        fm = self.matcher
+        if not (self.fallback_on() and fm.has_fallback(self.image(a).features)
+                and fm.has_fallback(self.image(b).features)):
+            return False
+        degree = 0 if self._strong is None else int(min(self._strong[a], self._strong[b]))
+        return fm.wants_fallback(matches, res.info["main_inliers"], res.info["main_spread"],
+                                 degree)
 
     def fallback_on(self) -> bool:
         """Whether the matcher's fallback runs: it has one, and at least its ``weak_share`` of
@@ -573,21 +618,51 @@ class ImageFrontend:
         matching and RANSAC release the GIL); cached ones are free. Results and counts do not
         depend on the number of workers (each pair has its own RANSAC seed)."""
         self.prepare({i for p in pairs for i in p}, progress=progress)
-        self.fallback_on()  # decided before the worker threads start
         keys = [(int(min(a, b)), int(max(a, b))) for a, b in pairs]
         todo = list(dict.fromkeys(k for k in keys if k not in self._pairs))
-        bar = tqdm(total=len(todo), desc="pairs", unit="pair", disable=not progress)
-        if self.workers > 1 and len(todo) > 1:
+        evaluate = self._evaluate
+        if self.fallback_on() and todo:
+            # pass 1: the main matcher on every pair (or its cached result), to count each
+            # image's firm edges; pass 2 then decides about the fallback pair by pair
+            done = dict(self._map(lambda k: (k, self._cached(*k) or self._first_attempt(*k)),
+                                  todo, progress, "pairs"))
+            strong = np.zeros(len(self.records), np.int64)
+            for k, r in done.items():
+                res = r[1] if len(r) == 3 else r[0]
+                if self._is_strong(res):
+                    strong[list(k)] += 1
+            for k, p in self._pairs.items():
+                if self._is_strong(p):
+                    strong[list(k)] += 1
+            self._strong = strong
+            for k, r in done.items():
+                if len(r) == 3:
+                    self._first[k] = r  # type: ignore[assignment]
+
+            def evaluate(a: int, b: int) -> tuple[PairResult, FrontendSummary]:
+                r = done[(a, b)]
+                return r if len(r) == 2 else self._evaluate(a, b)  # type: ignore[return-value]
+
+        for res in self._map(lambda k: evaluate(*k), todo, progress,
+                             "fallback" if evaluate is not self._evaluate else "pairs"):
+            self._store_pair(*res)
+        return [self.pair(a, b) for a, b in pairs]
+
+    def _map(self, fn: Any, items: Sequence[Any], progress: bool, desc: str) -> list[Any]:
+        """``fn`` over ``items`` in order, on ``workers`` threads, with a progress bar."""
+        bar = tqdm(total=len(items), desc=desc, unit="pair", disable=not progress)
+        out = []
+        if self.workers > 1 and len(items) > 1:
             with ThreadPoolExecutor(self.workers) as pool:
-                for res in pool.map(lambda k: self._evaluate(*k), todo):
-                    self._store_pair(*res)
+                for r in pool.map(fn, items):
+                    out.append(r)
                     bar.update(1)
         else:
-            for k in todo:
-                self._store_pair(*self._evaluate(*k))
+            for k in items:
+                out.append(fn(k))
                 bar.update(1)
         bar.close()
-        return [self.pair(a, b) for a, b in pairs]
+        return out
 
     # ------------------------------------------------------------------ graphs
 
