@@ -56,7 +56,7 @@ class CheckOptions:
     distance between verified pairs' centres.
     """
 
-    max_epipolar_px: float = 4.0
+    max_epipolar_px: float = 2.0
     min_inlier_share: float = 0.5
     max_rotation_deg: float = 5.0
     max_direction_deg: float = 15.0
