@@ -28,12 +28,12 @@ from posernet.sync.robust import mad_cauchy_weights
 from posernet.sync.spectral import (
     RotationSolution,
     _orthonormal_columns,
-    _start_weights,
     degrees,
     dense_N,
     rotation_irls,
     rotation_residuals,
     rotations_from_eigvecs,
+    start_weights,
     top3_dense,
 )
 
@@ -47,7 +47,7 @@ def eigh_irls(prob: PaddedProblem, max_iters: int = 50, tol: float = 1e-5, theta
     still-iterating component per iteration (the batch re-selected, trimmed, each time).
     ``sizes``: if a list, gets the padded size of each component's last solve ``[G]``."""
     G, n, dev, dt = prob.G, prob.n, prob.R.device, prob.R.dtype
-    w_edge, w_diag = _start_weights(prob, w0)
+    w_edge, w_diag = start_weights(prob, w0)
     w_prior = w_edge.clone() if prior and w0 is not None else None
     R = torch.eye(3, dtype=dt, device=dev).expand(G, n, 3, 3).clone()
     V3 = torch.zeros(G, 3 * n, 3, dtype=dt, device=dev)

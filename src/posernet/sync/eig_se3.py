@@ -69,6 +69,7 @@ from torch import Tensor
 
 from .backend import SyncBackend, SyncResult, apply_scale_policy, check_positive
 from .components import Components
+from .irls import rotation_irls
 from .padding import PaddedProblem, assemble, build_padded, edge_rotations
 from .spectral import (
     RotationSolution,
@@ -76,7 +77,6 @@ from .spectral import (
     conjugate_gradient,
     degrees,
     dense_N,
-    rotation_irls,
     sparse_apply,
     sparse_N,
     split_by_size,

@@ -55,9 +55,10 @@ from ..geometry import axis_angle_to_rotation_matrix, rotation_matrix_to_axis_an
 from ..scatter import scatter_all, scatter_any
 from .backend import SyncBackend, SyncResult, apply_scale_policy, check_positive
 from .components import Components
+from .irls import rotation_irls
 from .padding import PaddedProblem, assemble, build_padded, edge_rotations
 from .robust import mad_cauchy_weights, mad_huber_weights
-from .spectral import SpectralOptions, rotation_irls, split_by_size
+from .spectral import SpectralOptions, split_by_size
 from .translation import (
     direction_residual_deg,
     gather,

@@ -4,9 +4,9 @@ The top-3 eigenvectors of ``N = D3^{-1/2} X_RR D3^{-1/2}`` (``X_RR`` the symmetr
 matrix of weighted relative rotations, identity-weighted diagonal; ``D3`` its weighted degrees)
 span the absolute rotations; IRLS re-weights the edges with EIG-SE3's Cauchy weights and MAD
 threshold until the weights settle (:func:`rotation_irls`). Small components use dense
-matrices: the IRLS iterations run in :mod:`posernet.sync.filtered` (a Chebyshev-filtered
-subspace per iteration instead of an ``eigh``, the eigenvectors of the last solve by batched
-``eigh``: the same result); large ones a batched restarted block-Krylov (Lanczos with full
+matrices: the backends run the IRLS iterations in :mod:`posernet.sync.filtered` (a
+Chebyshev-filtered subspace per iteration instead of an ``eigh``, the eigenvectors of the last
+solve by batched ``eigh``: the same result); large ones a batched restarted block-Krylov (Lanczos with full
 reorthogonalisation) applying ``N`` as a sparse block-diagonal matrix (O(E) per product),
 warm-started across IRLS iterations. Also the operators themselves (:func:`dense_N`,
 :func:`sparse_N`), batched conjugate gradients and the dense/Krylov split by component size
@@ -351,7 +351,7 @@ class RotationSolution:
     pattern: CSRPattern | None = None  # sparse pattern of the whole problem, if one was built
 
 
-def _start_weights(prob: PaddedProblem, w0: Tensor | None) -> tuple[Tensor, Tensor]:
+def start_weights(prob: PaddedProblem, w0: Tensor | None) -> tuple[Tensor, Tensor]:
     """Edge ``[G, m]`` and diagonal ``[G]`` weights of the first solve (unit, or ``w0``)."""
     dt, dev = prob.R.dtype, prob.R.device
     if w0 is None:
@@ -371,16 +371,12 @@ def rotation_irls(prob: PaddedProblem, robust: bool, max_iters: int, tol: float,
     [G, m]`` (0 on pads; e.g. per-edge confidence, :mod:`posernet.sync.weighted`); with
     ``prior=True`` every later solve multiplies the Cauchy weights by ``w0`` too.
 
-    The robust dense solve runs :func:`posernet.sync.filtered.dense_irls` (the same
-    iterations with filtered subspaces instead of an ``eigh`` each, and the eigenvectors of
-    each component's last solve by :func:`top3_dense`: the same result).
+    This is the reference loop (an ``eigh`` or Krylov solve per iteration); the backends call
+    :func:`posernet.sync.irls.rotation_irls`, which runs the robust dense case by filtered
+    subspaces (:mod:`posernet.sync.filtered`) to the same result.
     """
-    w_edge, w_diag = _start_weights(prob, w0)
+    w_edge, w_diag = start_weights(prob, w0)
     w_prior = w_edge.clone() if prior and w0 is not None else None
-    if robust and not krylov:
-        from .filtered import dense_irls
-
-        return dense_irls(prob, w_edge, w_diag, max_iters, tol, theta, seed, w_prior)
     G, n, dev, dt = prob.G, prob.n, prob.R.device, prob.R.dtype
     R = torch.eye(3, dtype=dt, device=dev).expand(G, n, 3, 3).clone()
     V3 = torch.zeros(G, 3 * n, 3, dtype=dt, device=dev)

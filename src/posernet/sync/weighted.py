@@ -35,8 +35,9 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from .irls import rotation_irls
 from .padding import PaddedProblem
-from .spectral import RotationSolution, rotation_irls
+from .spectral import RotationSolution
 
 __all__ = ["WEIGHT_MODES", "padded_weights", "weighted_rotation_irls"]
 
