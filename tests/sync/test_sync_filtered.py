@@ -23,6 +23,7 @@ from posernet.geometry import axis_angle_to_rotation_matrix, project_to_so3
 from posernet.graph import GraphBatch
 from posernet.sync import get_backend
 from posernet.sync.components import connected_components
+from posernet.sync.irls import rotation_irls
 from posernet.sync.padding import PaddedProblem, build_padded, edge_rotations
 from posernet.sync.robust import mad_cauchy_weights
 from posernet.sync.spectral import (
@@ -30,7 +31,6 @@ from posernet.sync.spectral import (
     _orthonormal_columns,
     degrees,
     dense_N,
-    rotation_irls,
     rotation_residuals,
     rotations_from_eigvecs,
     start_weights,
