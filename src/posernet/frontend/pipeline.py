@@ -451,8 +451,9 @@ class ImageFrontend:
 
     def fallback_on(self) -> bool:
         """Whether the matcher's fallback runs: it has one, and at least its ``weak_share`` of
-        all images (each prepared once to tell) have fallback features, so that a textured
-        set with a few plain frames stays with the main matcher. Decided once."""
+        all images (each prepared once to tell) are weakly textured, so that a textured set
+        with a few plain frames stays with the main matcher (one warning line when the
+        fallback cannot run in a weak set). Decided once."""
         if self._fallback is None:
             fm = self.matcher
             if not hasattr(fm, "match_fallback"):
@@ -461,10 +462,14 @@ class ImageFrontend:
             with self._fallback_lock:
                 if self._fallback is None:
                     self.prepare(progress=False)
-                    n = sum(bool(fm.has_fallback(self.image(i).features))
-                            for i in range(len(self.records)))
+                    feats = [self.image(i).features for i in range(len(self.records))]
+                    weak = getattr(fm, "is_weak_image", fm.has_fallback)
+                    n = sum(bool(weak(f)) for f in feats)
                     share = float(getattr(fm, "weak_share", 0.0))
                     self._fallback = n > 0 and n >= share * len(self.records)
+                    if self._fallback and not any(fm.has_fallback(f) for f in feats):
+                        self._fallback = False  # weak, but no fallback to run
+                        getattr(fm, "notice_unavailable", lambda: None)()
         return self._fallback
 
     def _agreement(self, m: Matches, res: PairResult, a: int, b: int) -> float:
