@@ -7,8 +7,8 @@ threshold until the weights settle (:func:`rotation_irls`). Small components use
 matrices: the backends run the IRLS iterations in :mod:`posernet.sync.filtered` (a
 Chebyshev-filtered subspace per iteration instead of an ``eigh``, the eigenvectors of the last
 solve by batched ``eigh``: the same result); large ones a batched restarted block-Krylov
-(Lanczos with full reorthogonalisation) applying ``N`` as a sparse block-diagonal matrix (O(E) per product),
-warm-started across IRLS iterations. Also the operators themselves (:func:`dense_N`,
+(Lanczos with full reorthogonalisation) applying ``N`` as a sparse block-diagonal matrix
+(O(E) per product), warm-started across IRLS iterations. Also the operators themselves (:func:`dense_N`,
 :func:`sparse_N`), batched conjugate gradients and the dense/Krylov split by component size
 (:func:`split_by_size`).
 """
