@@ -8,9 +8,9 @@ matrices: the backends run the IRLS iterations in :mod:`posernet.sync.filtered` 
 Chebyshev-filtered subspace per iteration instead of an ``eigh``, the eigenvectors of the last
 solve by batched ``eigh``: the same result); large ones a batched restarted block-Krylov
 (Lanczos with full reorthogonalisation) applying ``N`` as a sparse block-diagonal matrix
-(O(E) per product), warm-started across IRLS iterations. Also the operators themselves (:func:`dense_N`,
-:func:`sparse_N`), batched conjugate gradients and the dense/Krylov split by component size
-(:func:`split_by_size`).
+(O(E) per product), warm-started across IRLS iterations. Also the operators themselves
+(:func:`dense_N`, :func:`sparse_N`), batched conjugate gradients and the dense/Krylov split by
+component size (:func:`split_by_size`).
 """
 
 from __future__ import annotations
