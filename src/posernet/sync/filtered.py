@@ -36,12 +36,17 @@ input as well); the gauge-free result (relative poses) is unaffected.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import torch
 from torch import Tensor
 
 from ..geometry import project_to_so3
 from .padding import PaddedProblem
 from .robust import mad_cauchy_weights
+
+if TYPE_CHECKING:  # spectral imports this module's dense_irls when it runs
+    from .spectral import RotationSolution
 
 __all__ = ["dense_irls", "edge_residuals", "orth_rows", "polar9", "top3_filtered"]
 
@@ -61,17 +66,18 @@ _TOL = 1e-15  # accepted invariance residual |N Q - Q Q^T N Q|_F, times sqrt(3n)
 # --------------------------------------------------------------------------- small closed forms
 
 
-def orth_rows(V: Tensor) -> Tensor:
+def orth_rows(V: Tensor, passes: int = 2) -> Tensor:
     """Orthonormal rows ``[G, 3, M]`` spanning the rows of ``V [G, 3, M]`` (each row a
     vector), in order (row ``k`` spans rows ``0..k`` of ``V``: Gram-Schmidt's basis).
 
-    Cholesky QR twice, the 3 x 3 Cholesky factor in closed form and applied by forward
-    substitution (a few ``[G]`` operations, one tiny batched product and a few row
-    operations per pass, instead of a loop of vector operations). Accurate to round-off for
-    condition numbers up to ~1e7; worse ones give NaN or a non-orthonormal result, which
+    Cholesky QR ``passes`` times, the 3 x 3 Cholesky factor in closed form and applied by
+    forward substitution (a few ``[G]`` operations, one tiny batched product and a few row
+    operations per pass, instead of a loop of vector operations). One pass leaves an
+    orthogonality error of about ``eps * cond(V)^2``, two passes round-off for condition
+    numbers up to ~1e7; worse ones give NaN or a non-orthonormal result, which
     :func:`top3_filtered`'s residual test rejects.
     """
-    for _ in range(2):
+    for _ in range(passes):
         g = (V @ V.mT).view(-1, 9)
         g00, g10, g11, g20, g21, g22 = g[:, 0], g[:, 3], g[:, 4], g[:, 6], g[:, 7], g[:, 8]
         l00 = g00.sqrt()
@@ -116,14 +122,14 @@ def polar9(a: Tensor, iters: int = _POLAR_ITERS) -> tuple[Tensor, Tensor]:
     """Nearest rotations of the 3 x 3 matrices ``a [9, K]`` (entry-major, row-major entries):
     ``(R [9, K], ok [K])``.
 
-    ``iters`` steps of the Newton iteration for the polar factor with determinant scaling,
-    ``X <- (g X + X^{-T} / g) / 2``, ``g = |det X|^{-1/3}`` (inverse from the cofactors), then
-    one unscaled step; it converges quadratically to the same limit as
-    :func:`posernet.geometry.project_to_so3` (no test per step: from the blocks of an
-    eigenvector basis, a few percent off a rotation, four steps reach round-off). ``ok`` is
-    false where ``det <= 0`` (no proper polar factor) or the result is not orthonormal to
-    ``1e-14`` (an orthonormal Newton iterate is the polar factor): project those with
-    :func:`~posernet.geometry.project_to_so3`.
+    ``iters`` steps of the Newton iteration for the polar factor, ``X <- (g X + X^{-T} / g) /
+    2`` (inverse from the cofactors; determinant scaling ``g = det(X)^{-1/3}`` in the first
+    two steps, ``g = 1`` after), then one more unscaled step; it converges quadratically to
+    the same limit as :func:`posernet.geometry.project_to_so3` (no test per step: from the
+    blocks of an eigenvector basis, a few percent off a rotation, four steps reach
+    round-off). ``ok`` is false where ``det <= 0`` (no proper polar factor) or the result is
+    not orthonormal to ``3e-14`` (an orthonormal Newton iterate is the polar factor): project
+    those with :func:`~posernet.geometry.project_to_so3`.
     """
     sq = a * a
     y = a / (_rowsum3(sq[0:3]) + _rowsum3(sq[3:6]) + _rowsum3(sq[6:9])).sqrt().clamp_min(1e-300)
@@ -134,19 +140,20 @@ def polar9(a: Tensor, iters: int = _POLAR_ITERS) -> tuple[Tensor, Tensor]:
         eye = torch.eye(3, dtype=y.dtype, device=y.device).reshape(9, 1)
         y, cof = torch.where(ok, y, eye), torch.where(ok, cof, eye)
         det = torch.where(ok, det, torch.ones_like(det))
-    for _ in range(iters):
-        g = det.pow(-1.0 / 3.0)
-        # (g y + cof / (g det)) / 2 = (y + cof / (g^2 det)) (g / 2)
-        y = cof.mul_((g * g * det).reciprocal_()).add_(y).mul_(0.5 * g)
+    for it in range(iters):
+        if it < 2:  # scaled steps: (g y + cof / (g det)) / 2 = (y + cof / (g^2 det)) (g / 2)
+            g = torch.exp(torch.log(det) * (-1.0 / 3.0))
+            y = cof.mul_((g * g * det).reciprocal_()).add_(y).mul_(0.5 * g)
+        else:  # near orthogonal: plain Newton steps, (y + cof / det) / 2
+            y = cof.div_(det).add_(y).mul_(0.5)
         cof = _cof(y)
         det = _det(y, cof)
     y = cof.div_(det).add_(y).mul_(0.5)
-    r0, r1, r2 = y[0:3], y[3:6], y[6:9]
-    err = (_rowsum3(r0 * r0) - 1).abs_()
-    for u, v, e in ((r1, r1, 1.0), (r2, r2, 1.0), (r0, r1, 0.0), (r0, r2, 0.0),
-                    (r1, r2, 0.0)):
-        err = torch.maximum(err, (_rowsum3(u * v) - e).abs_())
-    return y, ok & (err < 1e-14)
+    # An unscaled step maps the singular values s to (s + 1/s) / 2 >= 1 (the polar factor
+    # stays): |Y|_F^2 - 3 = sum(s'^2 - 1) bounds every s'^2 - 1, the distance to it.
+    sq = y * y
+    err = _rowsum3(sq[0:3]) + _rowsum3(sq[3:6]) + _rowsum3(sq[6:9]) - 3.0
+    return y, ok & (err < 3e-14)
 
 
 def edge_residuals(R9: Tensor, Re9: Tensor, src: Tensor, dst: Tensor) -> Tensor:
@@ -165,45 +172,53 @@ def edge_residuals(R9: Tensor, Re9: Tensor, src: Tensor, dst: Tensor) -> Tensor:
 # --------------------------------------------------------------------------- the subspace
 
 
-def _residual_ok(N: Tensor, Qt: Tensor, tol: float) -> Tensor:
-    """``|N Q - Q (Q^T N Q)|_F <= tol`` and ``tr(Q^T N Q) > 2 + _HI`` ``[G]`` for the
-    symmetric ``N [G, M, M]`` and orthonormal rows ``Qt [G, 3, M]``."""
-    NQ = Qt @ N  # rows: (N Q)^T, N symmetric
-    H = NQ @ Qt.mT
-    E = NQ - (H[..., None] * Qt[:, None]).sum(2)
+#: ``Z_0 = _C1 N + _C0 I`` is twice the affine map of ``N`` sending ``[_LO, _HI]`` to ``[-1, 1]``
+_C1, _C0 = 4.0 / (_HI - _LO), -2.0 * (_HI + _LO) / (_HI - _LO)
+
+
+def _residual_ok(Z0: Tensor, Qt: Tensor, tol: float) -> Tensor:
+    """The test of :func:`top3_filtered` ``[G]``, for orthonormal rows ``Qt [G, 3, M]`` and
+    ``Z0 = _C1 N + _C0 I [G, M, M]`` (the same invariant subspaces as ``N``): ``|N Q - Q (Q^T N
+    Q)|_F <= tol`` and ``tr(Q^T N Q) > 2 + _HI``, evaluated on ``Z0``."""
+    ZQ = Qt @ Z0  # rows: (Z0 Q)^T, Z0 symmetric
+    H = ZQ @ Qt.mT
+    E = ZQ - (H[..., None] * Qt[:, None]).sum(2)
     res = (E * E).sum((1, 2)).sqrt()
-    return (res <= tol) & (H.diagonal(dim1=-2, dim2=-1).sum(-1) > 2.0 + _HI)
+    trace = H.diagonal(dim1=-2, dim2=-1).sum(-1)
+    return (res <= tol * _C1) & (trace > _C1 * (2.0 + _HI) + 3.0 * _C0)
 
 
-def _filter(N: Tensor, Vt: Tensor, squarings: int, first: int, passes: int,
+def _filter(Z0: Tensor, Vt: Tensor, squarings: int, first: int, passes: int,
             bufs: tuple[Tensor, Tensor]) -> tuple[Tensor, Tensor]:
-    """:func:`top3_filtered` on one chunk; ``bufs``: two ``[>= G, M, M]`` work arrays."""
-    G, M, _ = N.shape
-    Z = torch.mul(N, 4.0 / (_HI - _LO), out=bufs[0][:G])
-    Z.diagonal(dim1=-2, dim2=-1).sub_(2.0 * (_HI + _LO) / (_HI - _LO))
+    """:func:`top3_filtered` on one chunk, given ``Z0 = _C1 N + _C0 I [G, M, M]``; ``bufs``:
+    two ``[>= G, M, M]`` work arrays."""
+    G, M, _ = Z0.shape
+    Z = Z0
     for k in range(squarings):
-        Zn = torch.bmm(Z, Z, out=bufs[(k + 1) % 2][:G])
+        Zn = torch.bmm(Z, Z, out=bufs[k % 2][:G])
         Zn.diagonal(dim1=-2, dim2=-1).sub_(2.0)
         Z = Zn
     Q = Vt
     for _ in range(first):
         Q = Q @ Z  # Z symmetric: (Z Q)^T = Q^T Z
-    Q = orth_rows(Q)
+    # from an orthonormal start in (or near) the subspace the rows are nearly orthogonal
+    # (condition ~1): one Cholesky QR pass; a non-orthonormal result fails the test anyway
+    Q = orth_rows(Q, passes=2 if first == 1 else 1)
     tol = _TOL * M ** 0.5
-    ok = _residual_ok(N, Q, tol)
+    ok = _residual_ok(Z0, Q, tol)
     for _ in range(passes - 1):
         nbad = G - int(ok.sum())
         if nbad == 0:
             break
         if 4 * nbad >= G:  # many: the whole chunk (no copies)
-            Q = torch.where(ok[:, None, None], Q, orth_rows((Q @ Z) @ Z))
-            ok = _residual_ok(N, Q, tol)
+            Q = torch.where(ok[:, None, None], Q, orth_rows((Q @ Z) @ Z, passes=1))
+            ok = _residual_ok(Z0, Q, tol)
         else:
             bad = (~ok).nonzero().squeeze(1)
             Zb = Z[bad]
-            Qb = orth_rows((Q[bad] @ Zb) @ Zb)
+            Qb = orth_rows((Q[bad] @ Zb) @ Zb, passes=1)
             Q[bad] = Qb
-            ok[bad] = _residual_ok(N[bad], Qb, tol)
+            ok[bad] = _residual_ok(Z0[bad], Qb, tol)
     return Q, ok
 
 
@@ -237,7 +252,9 @@ def top3_filtered(N: Tensor, Vt: Tensor, squarings: int = _SQUARINGS, first: int
             torch.empty(min(chunk, G), M, M, dtype=N.dtype, device=N.device))
     for lo in range(0, G, chunk):
         hi = min(G, lo + chunk)
-        Q[lo:hi], ok[lo:hi] = _filter(N[lo:hi], Vt[lo:hi], squarings, first, passes, bufs)
+        Z0 = N[lo:hi] * _C1
+        Z0.diagonal(dim1=-2, dim2=-1).add_(_C0)
+        Q[lo:hi], ok[lo:hi] = _filter(Z0, Vt[lo:hi], squarings, first, passes, bufs)
     return Q, ok
 
 
@@ -275,7 +292,12 @@ def _rotations(Qt: Tensor, s: Tensor, node_mask: Tensor) -> Tensor:
     the blocks' determinants, blocks projected onto SO(3)."""
     G, _, M = Qt.shape
     n = M // 3
-    Rt = orth_rows(Qt * (s * node_mask).repeat(1, 3)[:, None, :])
+    # the rows of Qt are orthonormal, so the scaled rows' condition number is at most the
+    # spread of s: one Cholesky QR pass is round-off (~eps * 16) up to a spread of 4
+    big = torch.where(node_mask, s, torch.zeros_like(s)).amax(1)
+    small = torch.where(node_mask, s, torch.full_like(s, float("inf"))).amin(1)
+    spread = float((big / small).max()) if G else 1.0
+    Rt = orth_rows(Qt * (s * node_mask).repeat(1, 3)[:, None, :], passes=1 if spread <= 4 else 2)
     # blocks B_j[a, c] = Rh[a n + j, c] = Rt[c, a n + j] -> entry-major [9, G n]
     a = Rt.view(G, 3, 3, n).permute(2, 1, 0, 3).reshape(9, G * n)
     det = _det(a, _cof(a)).view(G, n)
@@ -313,11 +335,13 @@ def _round(pat: Tensor, src: Tensor, dst: Tensor, edge_mask: Tensor, node_mask: 
     W = W.view(C, n, n)
     W.diagonal(dim1=-2, dim2=-1).copy_(  # overwrites the zeros padded edges put on (0, 0)
         torch.where(node_mask, wd[:, None] * s * s, torch.zeros_like(s)))
-    N = (W.view(C, 1, n, 1, n) * pat.view(C, 3, n, 3, n)).view(C, 3 * n, 3 * n)
-    Qt, ok = _filter(N, Vt, _SQUARINGS, first, _PASSES, bufs)
+    # the filter's Z0 = _C1 N + _C0 I straight from the weights (N itself is not needed)
+    Z0 = (W.mul_(_C1).view(C, 1, n, 1, n) * pat.view(C, 3, n, 3, n)).view(C, 3 * n, 3 * n)
+    Z0.diagonal(dim1=-2, dim2=-1).add_(_C0)
+    Qt, ok = _filter(Z0, Vt, _SQUARINGS, first, _PASSES, bufs)
     if not bool(ok.all()):
         bad = (~ok).nonzero().squeeze(1)
-        Nb = N[bad]
+        Nb = (Z0[bad] - _C0 * torch.eye(3 * n, dtype=Z0.dtype, device=Z0.device)) / _C1
         Nb.diagonal(dim1=-2, dim2=-1).add_(
             torch.where(node_mask[bad], 0.0, -2.0).to(Nb.dtype).repeat(1, 3))
         Qt[bad] = top3_dense(Nb).mT
@@ -337,7 +361,8 @@ def _round(pat: Tensor, src: Tensor, dst: Tensor, edge_mask: Tensor, node_mask: 
 
 
 def dense_irls(prob: PaddedProblem, w_edge: Tensor, w_diag: Tensor, max_iters: int,
-               tol: float, theta: float, seed: int, w_prior: Tensor | None):
+               tol: float, theta: float, seed: int,
+               w_prior: Tensor | None) -> RotationSolution:
     """The robust dense IRLS of :func:`~posernet.sync.spectral.rotation_irls` from the start
     weights ``w_edge [G, m]``, ``w_diag [G]`` (``w_prior [G, m]``: multiplies every later
     Cauchy weight, or ``None``). Returns the
