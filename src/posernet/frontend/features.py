@@ -561,11 +561,13 @@ class FallbackMatcher:
     """SIFT on every image; XFeat as well on weakly textured ones, matched where SIFT is weak.
 
     An image whose first SIFT pass (at ``contrast_threshold``) finds fewer than
-    ``weak_features`` keypoints also gets XFeat keypoints, appended after its SIFT keypoints in
-    one :class:`Features` (so keypoint tracks and bundle adjustment see both kinds; the two
-    never match each other). :meth:`match` matches the SIFT keypoints; the image front end
-    (:class:`~posernet.frontend.pipeline.ImageFrontend`) calls :meth:`match_fallback` on a pair
-    of two such images when SIFT's result is weak (:meth:`wants_fallback`: few verified
+    ``weak_features`` keypoints per 640 x 480 pixels is weakly textured. :meth:`match` matches
+    the SIFT keypoints; the image front end
+    (:class:`~posernet.frontend.pipeline.ImageFrontend`), in a set where at least
+    ``weak_share`` of the images are weakly textured, gives two such images XFeat keypoints
+    (:meth:`extract_fallback`, appended after the SIFT ones by :meth:`with_fallback`, so
+    tracks and bundle adjustment see both kinds; the two never match each other) and calls
+    :meth:`match_fallback` on them when SIFT's result is weak (:meth:`wants_fallback`: few verified
     inliers, or crowded ones) and one of the two images has fewer than ``fallback_degree``
     firm SIFT edges in the whole set, and keeps the fallback's edge when
     :meth:`keeps_fallback` says so: its pose explains at least ``fallback_agree`` of SIFT's
@@ -669,19 +671,32 @@ class FallbackMatcher:
                 f"fallback_agree={self.fallback_agree}, weak_share={self.weak_share})")
 
     def extract(self, image: np.ndarray) -> Features:
-        """SIFT features, followed by XFeat ones when the image is weakly textured
-        (``extra["weak"]``; ``extra["primary"]``: how many of the keypoints are SIFT's)."""
+        """SIFT features; ``extra["weak"]``: whether the image is weakly textured,
+        ``extra["primary"]``: how many keypoints are SIFT's (XFeat's may follow later, see
+        :meth:`with_fallback`)."""
         f = self._sift.extract(image)
         w, h = f.size
         per_vga = f.extra.get("first_pass", 0) * (640 * 480) / max(w * h, 1)
-        weak = per_vga < self.weak_features
-        extra = dict(f.extra, primary=len(f), weak=weak)
-        xf = self._xfeat_matcher() if weak else None
-        if xf is None:
-            return Features(f.uv, f.desc, f.size, extra)
-        g = xf.extract(image)
-        extra.update(fallback_desc=g.desc, fallback_scores=g.extra["scores"])
-        return Features(np.concatenate([f.uv, g.uv]), f.desc, f.size, extra)
+        return Features(f.uv, f.desc, f.size,
+                        dict(f.extra, primary=len(f), weak=per_vga < self.weak_features))
+
+    def extract_fallback(self, image: np.ndarray) -> Features | None:
+        """XFeat features of ``image`` (None: XFeat cannot be imported). The image front end
+        asks for them only when a pair of weakly textured images needs the fallback."""
+        xf = self._xfeat_matcher()
+        return None if xf is None else xf.extract(image)
+
+    @staticmethod
+    def with_fallback(f: Features, g: Features) -> Features:
+        """SIFT features ``f`` of an image with its XFeat features ``g`` appended (one
+        keypoint list, SIFT's first: tracks and bundle adjustment see both kinds)."""
+        extra = dict(f.extra, fallback_desc=g.desc, fallback_scores=g.extra["scores"])
+        n = int(f.extra.get("primary", len(f)))
+        return Features(np.concatenate([f.uv[:n], g.uv]), f.desc, f.size, extra)
+
+    def available(self) -> bool:
+        """Whether the fallback can run (XFeat imports; built on the first call)."""
+        return self._xfeat_matcher() is not None
 
     @staticmethod
     def _part(f: Features, fallback: bool) -> Features:
@@ -721,7 +736,7 @@ class FallbackMatcher:
 
     def has_fallback(self, f: Features) -> bool:
         """Whether image features ``f`` carry XFeat keypoints."""
-        return "fallback_desc" in f.extra and self._available
+        return "fallback_desc" in f.extra
 
     @staticmethod
     def is_weak_image(f: Features) -> bool:

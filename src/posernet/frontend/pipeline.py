@@ -218,6 +218,7 @@ class ImageFrontend:
         self._digest: dict[int, str] = {}
         self._fallback: bool | None = None  # the matcher's fallback runs (decided once)
         self._fallback_lock = threading.Lock()
+        self._augment_lock = threading.Lock()
         # per image: edges the main matcher verified firmly (None: not counted yet), and the
         # main matcher's attempts kept between the two passes of evaluate_pairs
         self._strong: np.ndarray | None = None
@@ -277,13 +278,23 @@ class ImageFrontend:
 
     def _features(self, img: np.ndarray) -> Features:
         """The matcher's features of ``img``, detected at the working resolution."""
+        feats = self._scaled(img, self.matcher.extract)
+        if feats is None:  # pragma: no cover - a main extractor always returns features
+            raise RuntimeError(f"{self.matcher!r} returned no features")
+        return feats
+
+    def _scaled(self, img: np.ndarray, extract: Any) -> Features | None:
+        """``extract(image)``'s features of ``img`` (None passes through), detected at the
+        working resolution and mapped back to ``img``'s pixels."""
         h, w = img.shape[:2]
         if self.max_image_size is None or max(h, w) <= self.max_image_size:
-            return self.matcher.extract(img)
+            return extract(img)
         f = self.max_image_size / max(h, w)
         small = cv2.resize(img, (max(1, round(w * f)), max(1, round(h * f))),
                            interpolation=cv2.INTER_AREA)
-        feats = self.matcher.extract(small)
+        feats = extract(small)
+        if feats is None:
+            return None
         sx, sy = w / small.shape[1], h / small.shape[0]
         # pixel centres at integers: x_full + 0.5 = (x_small + 0.5) * scale
         uv = (feats.uv + 0.5) * np.array([sx, sy]) - 0.5
@@ -314,7 +325,7 @@ class ImageFrontend:
         if "cached" in secs:
             self.summary.reused["images"] += 1
         self.summary.flat_keypoints += int((~data.textured).sum())
-        if getattr(self.matcher, "has_fallback", lambda f: False)(data.features):
+        if getattr(self.matcher, "is_weak_image", lambda f: False)(data.features):
             self.summary.fallback["images"] += 1
         if data.boxes.shape[0] == 0 and self.proposals is not None:
             self.summary.images_without_boxes += 1
@@ -366,6 +377,9 @@ class ImageFrontend:
         if hit is None or hit[1].get("fallback_on", False) != self.fallback_on():
             return None  # none, or evaluated in a set the fallback judged otherwise
         res, m = _pair_from_cache(*hit, a=a, b=b, summary=out)
+        if res.info.get("matcher") == "fallback" and not (self._ensure_fallback(a)
+                                                           and self._ensure_fallback(b)):
+            return None  # its keypoints cannot be made again here
         if self.keep_matches and m is not None:
             self.matches[(a, b)] = m
         out.seconds["cached"] += time.perf_counter() - t0
@@ -394,7 +408,10 @@ class ImageFrontend:
         memo = self._first.pop((a, b), None)
         m, res, first = memo if memo is not None else self._first_attempt(a, b)
         fm = self.matcher
-        if self._wants_fallback(a, b, len(m), res):
+        t0 = time.perf_counter()
+        if (self._wants_fallback(a, b, len(m), res) and self._ensure_fallback(a)
+                and self._ensure_fallback(b)):
+            first.seconds["fallback"] += time.perf_counter() - t0
             second = FrontendSummary()
             m2, res2 = self._match_verify(a, b, fm.match_fallback, second)
             first.seconds["fallback"] += sum(second.seconds.values())
@@ -437,17 +454,41 @@ class ImageFrontend:
 
     def _wants_fallback(self, a: int, b: int, matches: int, res: PairResult) -> bool:
         """Whether pair ``a, b`` (``matches`` main matches, verified into ``res``) is matched
-        again with the fallback: both images have fallback features, the matcher judges the
+        again with the fallback: both images are weakly textured, the matcher judges the
         result weak, and an image of the pair has fewer firm edges than the matcher's
         ``fallback_degree`` (counted over every pair by :meth:`evaluate_pairs`; a pair
         evaluated alone counts none)."""
         fm = self.matcher
-        if not (self.fallback_on() and fm.has_fallback(self.image(a).features)
-                and fm.has_fallback(self.image(b).features)):
+        if not (self.fallback_on() and fm.is_weak_image(self.image(a).features)
+                and fm.is_weak_image(self.image(b).features)):
             return False
         degree = 0 if self._strong is None else int(min(self._strong[a], self._strong[b]))
         return fm.wants_fallback(matches, res.info["main_inliers"], res.info["main_spread"],
                                  degree)
+
+    def _ensure_fallback(self, i: int) -> bool:
+        """Give image ``i`` the matcher's fallback features (appended to its own, once; the
+        image's cache entry is written again); False when they cannot be made."""
+        fm = self.matcher
+        with self._augment_lock:
+            data = self.image(i)
+            if fm.has_fallback(data.features):
+                return True
+            r = self.records[i]
+            img = read_image(r.path)
+            g = self._scaled(img, fm.extract_fallback)
+            if g is None:
+                return False
+            grey = img if img.ndim == 2 else cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+            contrast = keypoint_contrast(grey, g.uv, self.verify.contrast_radius)
+            feats = fm.with_fallback(data.features, g)
+            n = int(data.features.extra.get("primary", len(data.features)))
+            textured = np.concatenate([data.textured[:n], contrast >= self.verify.min_contrast])
+            new = _ImageData(data.boxes, data.scores, feats, textured)
+            self._images[i] = new
+            if self.cache is not None:
+                self.cache.save("images", self._digest_of(i), *_image_to_cache(new, r.size))
+            return True
 
     def fallback_on(self) -> bool:
         """Whether the matcher's fallback runs: it has one, and at least its ``weak_share`` of
@@ -462,12 +503,11 @@ class ImageFrontend:
             with self._fallback_lock:
                 if self._fallback is None:
                     self.prepare(progress=False)
-                    feats = [self.image(i).features for i in range(len(self.records))]
-                    weak = getattr(fm, "is_weak_image", fm.has_fallback)
-                    n = sum(bool(weak(f)) for f in feats)
+                    n = sum(bool(fm.is_weak_image(self.image(i).features))
+                            for i in range(len(self.records)))
                     share = float(getattr(fm, "weak_share", 0.0))
                     self._fallback = n > 0 and n >= share * len(self.records)
-                    if self._fallback and not any(fm.has_fallback(f) for f in feats):
+                    if self._fallback and not fm.available():
                         self._fallback = False  # weak, but no fallback to run
                         getattr(fm, "notice_unavailable", lambda: None)()
         return self._fallback
