@@ -72,11 +72,14 @@ computation above) to float round-off (tested, with gradients):
 * ``Psi_E``'s last layer has no activation, so it commutes with the mean over the pairs: it runs
   once per edge view on the averaged hidden units;
 * the two views of a pair are adjacent rows (``[M, 2, *]``), one gather serving both;
+* each network's first layer has one more unit, constant 1 (weights 0, bias 1), so the later
+  per-pair layers take their bias as a weight row: plain products, without first copying the
+  bias into every output row;
 * leaky ReLUs run in place (autograd allows it for a non-negative slope);
 * inference on the CPU (no autograd, not under ``torch.compile``) runs in blocks of edges with
   about ``_BLOCK_PAIRS`` pairs each: activations stay in the cache and no tensor of the size of
   all pairs is allocated (fresh large allocations cost page faults that outweigh the
-  arithmetic). Sums add the same terms in the same order as the unblocked path: deterministic.
+  arithmetic); a block's means over each edge's pairs are one sparse product (deterministic).
 
 A ``psi_edge`` / ``psi_node`` of your own (any module other than :class:`~posernet.nn.MLP`), or
 an MLP with forward hooks, runs the literal path.
@@ -576,9 +579,22 @@ class PoserConv(nn.Module):
         pose_in = torch.cat((quaternion_canonical(pose_view[..., :4]), pose_view[..., 4:]), -1)
         layers = [_linear_layers(net) for net in nets]
         widths = [lyr[0][0].weight.shape[0] for lyr in layers]
-        w1 = torch.cat([lyr[0][0].weight for lyr in layers])  # [H1, message_dim]
-        b1 = torch.cat([_bias(lyr[0][0]) for lyr in layers])
+        # Psi_E's last linear layer (no activation after it) commutes with the mean over the
+        # pairs: averaged hidden units, then one product per edge view instead of per pair.
+        edge_layers = layers[0]
+        defer = len(edge_layers) > 1 and edge_layers[-1][1] is None
+        edge_rest = edge_layers[1:-1] if defer else edge_layers[1:]
+        rests = [edge_rest] + [lyr[1:] for lyr in layers[1:]]
+        # Each network's first-layer block has one more unit, constant 1 (weights 0, bias 1;
+        # the leaky ReLU keeps it), so the layers after it take their bias as one more weight
+        # column: plain products, no bias copied into every output row first.
+        firsts = [lyr[0][0] for lyr in layers]
+        one = firsts[0].weight.new_ones(1)
+        w1 = torch.cat([torch.cat((lin.weight, lin.weight.new_zeros(1, lin.weight.shape[1])))
+                        for lin in firsts])  # [H1 + number of networks, message_dim]
+        b1 = torch.cat([torch.cat((_bias(lin), one)) for lin in firsts])
         h1 = w1.shape[0]
+        chains = [_homogeneous(rest) for rest in rests]
         k = self.message_dim - 2 * BOX_DIM  # inputs shared by the pairs of a view
         w_view = w1[:, :k]
         # A pair's input is ``[box_src, box_dst]``; the backward view reads the boxes swapped,
@@ -587,11 +603,6 @@ class PoserConv(nn.Module):
         wb2 = torch.cat((wb, torch.cat((wb[:, BOX_DIM:], wb[:, :BOX_DIM]), dim=1))).t()
         slopes = [lyr[0][1] for lyr in layers]
         shared_act = all(sl == slopes[0] for sl in slopes)
-        # Psi_E's last linear layer (no activation after it) commutes with the mean over the
-        # pairs: averaged hidden units, then one product per edge view instead of per pair.
-        edge_layers = layers[0]
-        defer = len(edge_layers) > 1 and edge_layers[-1][1] is None
-        edge_rest = edge_layers[1:-1] if defer else edge_layers[1:]
         n_pairs = scatter_count(pair_edge, E)  # [E], the same for both views
         has = n_pairs > 0
         denom = n_pairs.clamp_min(1).to(x.dtype)[:, None]
@@ -616,13 +627,14 @@ class PoserConv(nn.Module):
             if shared_act:
                 z = _leaky(z, slopes[0])
             outs, col = [], 0
-            for i, (lyr, width) in enumerate(zip(layers, widths, strict=True)):
-                y = z[:, col:col + width]
-                col += width
+            for i, (chain, width) in enumerate(zip(chains, widths, strict=True)):
+                # with the constant unit when layers follow (their bias column reads it)
+                y = z[:, col:col + width + (1 if chain else 0)]
+                col += width + 1
                 if not shared_act:
                     y = _leaky(y, slopes[i], inplace=False)
-                for lin, slope in (edge_rest if i == 0 else lyr[1:]):
-                    y = _leaky(nn.functional.linear(y, lin.weight, lin.bias), slope)
+                for weight, slope in chain:
+                    y = _leaky(torch.mm(y, weight), slope)
                 outs.append(y.reshape(pe.shape[0], 2 * y.shape[1]))
             return outs
 
@@ -769,6 +781,22 @@ def _linear_layers(net: MLP) -> list[tuple[nn.Linear, float | None]]:
 
 def _bias(lin: nn.Linear) -> Tensor:
     return lin.bias if lin.bias is not None else lin.weight.new_zeros(lin.weight.shape[0])
+
+
+def _homogeneous(chain: list[tuple[nn.Linear, float | None]]) -> list[tuple[Tensor,
+                                                                              float | None]]:
+    """The layers ``chain`` as plain products on inputs whose last column is 1: each weight
+    ``[in + 1, out]`` (transposed, the bias as the last row), and ``[in + 1, out + 1]`` with
+    the constant passed on (``e_last``) for every layer but the last; with its slope."""
+    out: list[tuple[Tensor, float | None]] = []
+    for j, (lin, slope) in enumerate(chain):
+        w = torch.cat((lin.weight, _bias(lin)[:, None]), dim=1)  # [out, in + 1]
+        if j < len(chain) - 1:  # the next layer reads the constant too
+            keep = w.new_zeros(1, w.shape[1])
+            keep[0, -1] = 1.0
+            w = torch.cat((w, keep))
+        out.append((w.t(), slope))
+    return out
 
 
 def _leaky(t: Tensor, slope: float | None, inplace: bool = True) -> Tensor:
