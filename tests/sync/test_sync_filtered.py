@@ -137,8 +137,12 @@ def roundoff(prob: PaddedProblem,
     return dw, dR.flatten(1).amax(1), kept
 
 
+@pytest.mark.parametrize("chunked", [False, True])
 @pytest.mark.parametrize("case", sorted(CASES))
-def test_dense_irls_matches_the_eigh_loop(case: str) -> None:
+def test_dense_irls_matches_the_eigh_loop(case: str, chunked: bool,
+                                          monkeypatch: pytest.MonkeyPatch) -> None:
+    if chunked:  # a few components per chunk (one of the larger ones)
+        monkeypatch.setattr(filtered, "_CHUNK", 3 * 24 * 24)
     prob = problem(CASES[case])
     ref = eigh_irls(prob)
     got = rotation_irls(prob, True, 50, 1e-5, 2.0, krylov=False)

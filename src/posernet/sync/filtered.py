@@ -22,7 +22,7 @@ eigenvectors: rotations built from any orthonormal basis of it differ by one glo
 * re-weights and stops by the published rules (:func:`~posernet.sync.robust.mad_cauchy_weights`,
   the relative weight change); stopped components are dropped from the batch in bulk.
 
-Components run in chunks of :data:`_CHUNK`, so that their work arrays stay in the cache.
+Components run in chunks (:func:`_chunk`), so that their work arrays stay in the cache.
 When every component has stopped, the eigenvectors of its *last* solve come from
 :func:`~posernet.sync.spectral.top3_dense` on exactly the matrix the eigh-per-iteration loop
 solved then (:func:`~posernet.sync.spectral.dense_N` of the same weights, padded to the size
@@ -58,7 +58,7 @@ _LO, _HI = -1.0, 0.9
 _SQUARINGS = 4  # Chebyshev polynomial of degree 2^4: more than 700x per product
 _FIRST = 5  # products before the first test (from the previous iteration's basis)
 _PASSES = 5  # most refinement passes (two products each) before the dense fallback
-_CHUNK = 2048  # components filtered at a time (their Z stays in the cache)
+_CHUNK = 2048 * 24 * 24  # entries of a chunk's [C, 3n, 3n] work array (2048 8-node graphs)
 _POLAR_ITERS = 4  # Newton steps of the polar factor before its test
 _TOL = 1e-15  # accepted invariance residual |N Q - Q Q^T N Q|_F, times sqrt(3n)
 
@@ -222,8 +222,13 @@ def _filter(Z0: Tensor, Vt: Tensor, squarings: int, first: int, passes: int,
     return Q, ok
 
 
+def _chunk(M: int) -> int:
+    """Components per chunk for ``[M, M]`` matrices: ``_CHUNK`` entries per work array."""
+    return max(1, _CHUNK // (M * M))
+
+
 def top3_filtered(N: Tensor, Vt: Tensor, squarings: int = _SQUARINGS, first: int = _FIRST,
-                  passes: int = _PASSES, chunk: int = _CHUNK) -> tuple[Tensor, Tensor]:
+                  passes: int = _PASSES, chunk: int | None = None) -> tuple[Tensor, Tensor]:
     """Orthonormal rows ``Qt [G, 3, M]`` spanning the top-3 invariant subspace of the
     symmetric ``N [G, M, M]`` (spectrum in ``[-1, 1]``, padded rows and columns 0), from a
     start ``Vt [G, 3, M]`` (rows; e.g. the previous IRLS iteration's basis); and ``ok [G]``.
@@ -246,6 +251,7 @@ def top3_filtered(N: Tensor, Vt: Tensor, squarings: int = _SQUARINGS, first: int
     solve those with :func:`~posernet.sync.spectral.top3_dense`.
     """
     G, M, _ = N.shape
+    chunk = _chunk(M) if chunk is None else chunk
     Q = torch.empty_like(Vt)
     ok = torch.empty(G, dtype=torch.bool, device=N.device)
     bufs = (torch.empty(min(chunk, G), M, M, dtype=N.dtype, device=N.device),
@@ -368,10 +374,10 @@ def dense_irls(prob: PaddedProblem, w_edge: Tensor, w_diag: Tensor, max_iters: i
     Cauchy weight, or ``None``). Returns the
     :class:`~posernet.sync.spectral.RotationSolution` (see the module docstring).
 
-    Each iteration runs :data:`_CHUNK` components at a time (their work arrays stay in the
-    cache). Components that stop stay in the batch (frozen: their weights no longer change)
-    until they are :data:`_COMPACT` of it, then the batch is rebuilt without them and trimmed
-    to the largest remaining component.
+    Each iteration runs a chunk of components at a time (:func:`_chunk`; their work arrays
+    stay in the cache). Components that stop stay in the batch (frozen: their weights no
+    longer change) until they are :data:`_COMPACT` of it, then the batch is rebuilt without
+    them and trimmed to the largest remaining component.
     """
     from .spectral import RotationSolution, degrees, dense_N, rotations_from_eigvecs, top3_dense
 
@@ -392,13 +398,14 @@ def dense_irls(prob: PaddedProblem, w_edge: Tensor, w_diag: Tensor, max_iters: i
     live = torch.ones(G, dtype=torch.bool, device=dev)
     for k in range(1, max_iters + 1):
         Gs, ns, ms = sub.G, sub.n, sub.m
-        bufs = (torch.empty(min(_CHUNK, Gs), 3 * ns, 3 * ns, dtype=dt, device=dev),
-                torch.empty(min(_CHUNK, Gs), 3 * ns, 3 * ns, dtype=dt, device=dev))
+        chunk = _chunk(3 * ns)
+        bufs = (torch.empty(min(chunk, Gs), 3 * ns, 3 * ns, dtype=dt, device=dev),
+                torch.empty(min(chunk, Gs), 3 * ns, 3 * ns, dtype=dt, device=dev))
         Qt, w_new = torch.empty_like(Vt), torch.empty_like(we)
         wd_new = torch.empty_like(wd)
         stop = torch.empty(Gs, dtype=torch.bool, device=dev)
-        for lo in range(0, Gs, _CHUNK):
-            c = slice(lo, min(Gs, lo + _CHUNK))
+        for lo in range(0, Gs, chunk):
+            c = slice(lo, min(Gs, lo + chunk))
             Qt[c], w_new[c], wd_new[c], stop[c] = _round(
                 pat[c], sub.src[c], sub.dst[c], sub.edge_mask[c], sub.node_mask[c],
                 sub.count[c], we[c], wd[c], None if wp is None else wp[c], Vt[c],
