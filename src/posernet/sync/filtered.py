@@ -1,4 +1,4 @@
-"""The robust dense rotation IRLS of :func:`posernet.sync.spectral.rotation_irls`, fast.
+"""The robust dense rotation IRLS of :func:`posernet.sync.irls.rotation_irls`, fast.
 
 Every IRLS iteration of EIG-SE3 (and of ``rotation_translation``) solves the top-3
 eigenproblem of ``N = D3^{-1/2} X_RR D3^{-1/2}`` ``[3n, 3n]`` of each component, turns the
@@ -36,17 +36,13 @@ input as well); the gauge-free result (relative poses) is unaffected.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import torch
 from torch import Tensor
 
 from ..geometry import project_to_so3
 from .padding import PaddedProblem
 from .robust import mad_cauchy_weights
-
-if TYPE_CHECKING:  # spectral imports this module's dense_irls when it runs
-    from .spectral import RotationSolution
+from .spectral import RotationSolution, degrees, dense_N, rotations_from_eigvecs, top3_dense
 
 __all__ = ["dense_irls", "edge_residuals", "orth_rows", "polar9", "top3_filtered"]
 
@@ -327,8 +323,6 @@ def _round(pat: Tensor, src: Tensor, dst: Tensor, edge_mask: Tensor, node_mask: 
     [C, m]``, ``wd [C]``, prior ``wp [C, m]`` or ``None``, start rows ``Vt [C, 3, 3n]``, edge
     rotations ``Re9 [9, C m]``. Returns the basis rows ``[C, 3, 3n]``, the new weights ``[C,
     m]``, ``[C]`` and the stop flags ``[C]`` (relative weight change ``<= tol``)."""
-    from .spectral import top3_dense
-
     C, n = node_mask.shape
     m = src.shape[1]
     deg = wd[:, None].expand(C, n).clone()
@@ -369,7 +363,7 @@ def _round(pat: Tensor, src: Tensor, dst: Tensor, edge_mask: Tensor, node_mask: 
 def dense_irls(prob: PaddedProblem, w_edge: Tensor, w_diag: Tensor, max_iters: int,
                tol: float, theta: float, seed: int,
                w_prior: Tensor | None) -> RotationSolution:
-    """The robust dense IRLS of :func:`~posernet.sync.spectral.rotation_irls` from the start
+    """The robust dense IRLS of :func:`~posernet.sync.irls.rotation_irls` from the start
     weights ``w_edge [G, m]``, ``w_diag [G]`` (``w_prior [G, m]``: multiplies every later
     Cauchy weight, or ``None``). Returns the
     :class:`~posernet.sync.spectral.RotationSolution` (see the module docstring).
@@ -379,8 +373,6 @@ def dense_irls(prob: PaddedProblem, w_edge: Tensor, w_diag: Tensor, max_iters: i
     longer change) until they are :data:`_COMPACT` of it, then the batch is rebuilt without
     them and trimmed to the largest remaining component.
     """
-    from .spectral import RotationSolution, degrees, dense_N, rotations_from_eigvecs, top3_dense
-
     G, n, m, dev, dt = prob.G, prob.n, prob.m, prob.R.device, prob.R.dtype
     used_edge, used_diag = w_edge.clone(), w_diag.clone()
     iters = torch.zeros(G, dtype=torch.long, device=dev)
