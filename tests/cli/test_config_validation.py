@@ -353,7 +353,7 @@ def test_help_is_written_from_the_commands_own_config(prog, name):
         assert text.splitlines()[0] == "usage: posernet-reconstruct images=... [key=value ...]"
         assert "\nrequired:\n  images" in text
         # only this command's groups, each with its choices, default first
-        assert "  matcher                  sift, auto, xfeat, xfeat_lighterglue" in text
+        assert "  matcher                  sift_xfeat, auto, sift, xfeat, xfeat_lighterglue" in text
         assert "trainer" not in text and "callbacks" not in text
         # meanings from the comment beside an option, or the block right above it
         line = next(ln for ln in text.splitlines() if ln.strip().startswith("pairs.mode "))

@@ -128,7 +128,7 @@ ROWS = [
     Row("reconstruct", "images={tmp} intrinsics=585,585,320,240 workers=-2 out_dir={out}",
         r"workers: -2 is not an integer >= 0$"),
     Row("reconstruct", "images={tmp} intrinsics=585,585,320,240 matcher=orb out_dir={out}",
-        r"matcher: 'orb' is not one of auto, sift, xfeat, xfeat_lighterglue$"),
+        r"matcher: 'orb' is not one of auto, sift, sift_xfeat, xfeat, xfeat_lighterglue$"),
     Row("reconstruct", "images={tmp} intrinsics=585,585,320,240 out_dir=/proc/posernet-x",
         r"out_dir: '/proc/posernet-x' is not a writable folder"),
     Row("reconstruct", "images={tmp} intrinsics=585,585,320,240 device=cuda out_dir={out}",
