@@ -143,9 +143,12 @@ def _bundle_stage(frontend: ImageFrontend, graph: ViewGraph, weights: Tensor,
     return runs
 
 
-def pair_evidence(frontend: ImageFrontend, graph: ViewGraph) -> PairEvidence:
+def pair_evidence(frontend: ImageFrontend, graph: ViewGraph,
+                  K: np.ndarray | None = None) -> PairEvidence:
     """The verified two-view geometry of ``graph``'s edges (their initial relative poses,
-    rotation-only flags and inlier counts) as the self-check's evidence."""
+    rotation-only flags and inlier counts) as the self-check's evidence. ``K (N, 3, 3)``:
+    the intrinsics to normalise the inliers with (the front end's when None); pass the
+    bundle adjustment's when it refined the focal length, else right poses miss the lines."""
     from .geometry import pose_vec_to_matrix
     from .sfm import undistort_keypoints
 
@@ -153,7 +156,8 @@ def pair_evidence(frontend: ImageFrontend, graph: ViewGraph) -> PairEvidence:
     edges = graph.edge_index.T.numpy().astype(np.int64)
     prs = [frontend.pair(i, j) for i, j in edges.tolist()]
     recs = frontend.records
-    K = np.stack([r.K for r in recs]).astype(np.float64)
+    if K is None:
+        K = np.stack([r.K for r in recs]).astype(np.float64)
     und = undistort_keypoints([frontend.image(i).features.uv for i in range(len(recs))], K,
                               [r.dist for r in recs])
     norm = [(u - K[i, :2, 2]) / np.diag(K[i])[:2] for i, u in enumerate(und)]
@@ -179,6 +183,16 @@ def pair_evidence(frontend: ImageFrontend, graph: ViewGraph) -> PairEvidence:
                         x_a=cat(xa, 2), x_b=cat(xb, 2), focal=focal)
 
 
+def final_intrinsics(rec: Reconstruction) -> list[np.ndarray]:
+    """Each image's ``K (3, 3)`` as used last: the bundle adjustment's (focal length
+    refined) where it ran on the final stage, the front end's elsewhere."""
+    K = [r.K.astype(np.float64) for r in rec.frontend.records]
+    for run in rec.sfm.get(rec.stage, []):
+        for i in np.flatnonzero(run.refined):
+            K[i] = run.K[i]
+    return K
+
+
 def self_check(rec: Reconstruction, options: CheckOptions | None = None) -> SelfCheck:
     """Hold the final stage of ``rec`` against its verified pairs and (after bundle
     adjustment) its 3D points, one connected component at a time
@@ -189,7 +203,7 @@ def self_check(rec: Reconstruction, options: CheckOptions | None = None) -> Self
     solved = res.solved[stage][0].bool()
     comp = res.component[stage][0]
     N = poses.shape[0]
-    evidence = pair_evidence(rec.frontend, rec.graph)
+    evidence = pair_evidence(rec.frontend, rec.graph, np.stack(final_intrinsics(rec)))
     passed = np.zeros(N, bool)
     reason = [""] * N
     rot = np.full(evidence.pairs.shape[0], np.nan)
@@ -414,11 +428,7 @@ def poses_json(rec: Reconstruction, info: dict[str, Any] | None = None) -> dict[
         poses = res.absolute[stage][0]
         solved, comp = res.solved[stage][0].bool(), res.component[stage][0]
         fixed = gauge_fixed(poses, solved, comp)
-    # intrinsics as used last: the bundle adjustment's (focal refined) where it ran
-    K_out = [r.K.astype(np.float64) for r in rec.frontend.records]
-    for run in rec.sfm.get(stage, []):
-        for i in np.flatnonzero(run.refined):
-            K_out[i] = run.K[i]
+    K_out = final_intrinsics(rec)
     degree = torch.bincount(g.edge_index.flatten(), minlength=g.num_nodes)
     n_boxes = torch.bincount(g.det_node, minlength=g.num_nodes)
     for i, r in enumerate(rec.frontend.records):
