@@ -127,6 +127,38 @@ def test_thin_support_and_rotation_alone(ring) -> None:
     assert "could not verify" in out.line()
 
 
+def test_a_single_pair_whose_matches_do_not_join_the_points_fails(ring) -> None:
+    """Camera 0 rests on one agreeing pair: it passes while the points it sees account for
+    that pair's inliers, and fails when most of them did not join the 3D points (a wrong
+    two-view geometry fits its own matches, not the other cameras' points)."""
+    ev = evidence(ring)
+    mine = (ev.pairs == 0).any(1)
+    keep = ~mine
+    keep[np.flatnonzero(mine)[0]] = True
+    sel = np.isin(ev.match_pair, np.flatnonzero(keep))
+    remap = np.cumsum(keep) - 1
+    thin = PairEvidence(ev.pairs[keep], ev.R[keep], ev.t[keep], ev.rotation_only[keep],
+                        ev.weight[keep], remap[ev.match_pair[sel]], ev.x_a[sel], ev.x_b[sel],
+                        ev.focal[keep])
+    w0 = int(thin.weight[(thin.pairs == 0).any(1)][0])
+    pts, img, pid = structure(ring)
+    seen = np.flatnonzero(img == 0)
+    assert len(seen) >= w0  # camera 0 sees at least its one pair's inliers
+    out = check_reconstruction(ring.w2c, np.ones(12, bool), thin, pts, img, pid)
+    assert out.passed.all()
+    # keep 40 % of the pair's inliers as camera 0's observations
+    drop = seen[int(0.4 * w0):]
+    kept = np.ones(len(img), bool)
+    kept[drop] = False
+    out = check_reconstruction(ring.w2c, np.ones(12, bool), thin, pts, img[kept], pid[kept])
+    assert out.failed.tolist() == [i == 0 for i in range(12)]
+    assert "join the 3D points" in out.reason[0]
+    loose = CheckOptions(min_single_pair_kept=0.3)
+    out = check_reconstruction(ring.w2c, np.ones(12, bool), thin, pts, img[kept], pid[kept],
+                               options=loose)
+    assert out.passed.all()
+
+
 def test_unplaced_cameras_are_left_alone(ring) -> None:
     placed = np.ones(12, bool)
     placed[[2, 9]] = False

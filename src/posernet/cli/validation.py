@@ -452,7 +452,7 @@ def _check(cfg: Any) -> Schema:
                     max_rotation_deg=number(0, 180, lo_open=True),
                     max_direction_deg=number(0, 180, lo_open=True),
                     min_agreeing_share=number(0, 1), min_points=integer(0),
-                    min_single_pair_inliers=integer(0),
+                    min_single_pair_inliers=integer(0), min_single_pair_kept=number(0, 1),
                     min_triangulation_deg=number(0, 90, hi_open=True),
                     coincide_ratio=number(0, 1, hi_open=True)),
             "_target_": text()}

@@ -50,10 +50,14 @@ class CheckOptions:
     agrees when its two-view rotation and (pairs with a baseline) translation direction are
     within these; ``min_agreeing_share``: the inlier-weighted share of a camera's pairs that must
     agree; ``min_points``: 3D points a camera must see (with bundle adjustment);
-    ``min_triangulation_deg``: the median angle between a camera's rays and the other views'
-    rays to the same points must reach it; ``coincide_ratio``: two cameras whose pair has a
-    baseline count as collapsed when their centres are closer than this times the median
-    distance between verified pairs' centres.
+    ``min_single_pair_inliers`` / ``min_single_pair_kept``: a camera that rests on one
+    agreeing pair needs that many inliers in it and (with bundle adjustment) must see at
+    least this share of them as 3D points (a wrong two-view geometry, e.g. a mirrored
+    match, agrees with the pose it produced but its matches do not join the other cameras'
+    points); ``min_triangulation_deg``: the median angle between a camera's rays and the
+    other views' rays to the same points must reach it; ``coincide_ratio``: two cameras
+    whose pair has a baseline count as collapsed when their centres are closer than this
+    times the median distance between verified pairs' centres.
     """
 
     max_epipolar_px: float = 2.0
@@ -62,6 +66,7 @@ class CheckOptions:
     max_direction_deg: float = 15.0
     min_agreeing_share: float = 0.5
     min_single_pair_inliers: int = 50
+    min_single_pair_kept: float = 0.75
     min_points: int = 15
     min_triangulation_deg: float = 1.0
     coincide_ratio: float = 0.02
@@ -75,6 +80,9 @@ class CheckOptions:
             raise ValueError(f"max_epipolar_px must be > 0, got {self.max_epipolar_px}")
         if not 0.0 <= float(self.min_inlier_share) <= 1.0:
             raise ValueError(f"min_inlier_share must be in [0, 1], got {self.min_inlier_share}")
+        if not 0.0 <= float(self.min_single_pair_kept) <= 1.0:
+            raise ValueError(f"min_single_pair_kept must be in [0, 1], got "
+                             f"{self.min_single_pair_kept}")
         if not 0.0 <= float(self.min_agreeing_share) <= 1.0:
             raise ValueError(f"min_agreeing_share must be in [0, 1], got "
                              f"{self.min_agreeing_share}")
@@ -346,6 +354,14 @@ def check_reconstruction(w2c: np.ndarray, placed: np.ndarray, evidence: PairEvid
         reason[i] = (f"rests on one verified image pair with {int(strongest[i])} inliers "
                      f"(< {opt.min_single_pair_inliers}): too few to rule out a two-view "
                      "ambiguity")
+    if points is not None:
+        thin = ok & (n_good == 1) & (n_pts < opt.min_single_pair_kept * strongest)
+        for i in np.flatnonzero(thin):
+            ok[i] = False
+            reason[i] = (f"rests on one verified image pair, and only {int(n_pts[i])} of its "
+                         f"{int(strongest[i])} inliers join the 3D points (< "
+                         f"{opt.min_single_pair_kept:g}): its two-view geometry does not fit "
+                         "the other cameras")
     share = np.full(N, np.nan)
     while True:
         live = ok[a] & ok[b] if E else np.zeros(0, bool)
