@@ -41,7 +41,8 @@ Writes ``benchmarks/results/real.md`` and ``real.json`` (every number, the exact
 overrides, versions, machine; ``--trust``: ``trust.md`` and ``trust.json``; ``--out`` another
 path); ``--quick`` writes under ``benchmarks/results/quick/``. ``--trust`` runs the sparse and
 hard sets of ``TRUST_SETS`` (build them first: ``benchmarks/data/real/build_sets.py dino
-trust``), without the rendered scene; the per-camera verdicts and errors are in the .json
+trust``) and the rendered low-texture rooms of ``TRUST_RENDERED``, without the default rendered
+scene; the per-camera verdicts and errors are in the .json
 (``trust`` of each row).
 """
 
@@ -73,6 +74,10 @@ TRUST_SETS = ("middlebury_dino_sparse_ring", "middlebury_dino_sparse_ring_far8",
               "strecha_herzjesu_p25_every3", "strecha_fountain_p11_every3",
               "strecha_entry_p10_every3", "strecha_herzjesu_p25_far8", "squirrel_turntable",
               "squirrel_turntable_far8")
+# ... and rendered low-texture rooms: (name, scene preset, seed, frames of the sweep, every
+# step-th frame kept, every k-th object textured)
+TRUST_RENDERED = (("lowtex_chess_every3", "chess", 0, 36, 3, 8),
+                  ("lowtex_office_every6", "office", 1, 72, 6, 8))
 COLMAP_METHODS = ("colmap-global", "colmap-incremental")
 DEFAULT_METHODS = ("posernet", *COLMAP_METHODS)
 PYCOLMAP_PIN = "pycolmap==4.2.1"
@@ -243,20 +248,41 @@ def subsample(s: ImageSet, n: int, work: Path) -> ImageSet:
 
 
 def rendered_set(work: Path, scene: str, frames: int, width: int, height: int,
-                 seed: int = 0) -> ImageSet:
-    """One rendered scene (7-Scenes layout, cached in ``work``) as a set."""
+                 seed: int = 0, step: int = 1, textured_every: int = 1,
+                 name: str | None = None) -> ImageSet:
+    """One rendered scene (7-Scenes layout, cached in ``work``) as a set: every ``step``-th of
+    ``frames`` frames of one sweep; ``textured_every`` > 1 renders it low-texture (plain room,
+    only every k-th object textured; :func:`posernet.data.render.render_sevenscenes`)."""
+    import shutil
+
     from posernet.data.render import render_intrinsics, render_sevenscenes
 
     focal = 585.0 * width / 640
-    folder = work / f"rendered-{scene}-{seed}-{frames}-{width}x{height}"
+    tag = "" if textured_every == 1 else f"-plain{textured_every}"
+    folder = work / f"rendered-{scene}-{seed}-{frames}-{width}x{height}{tag}"
     if not (folder / scene / "render.json").is_file():
         render_sevenscenes(folder, scene, seed=seed, train_sequences=0, test_sequences=1,
                            frames_per_sequence=frames, width=width, height=height, focal=focal,
-                           overwrite=True, progress=False)
+                           overwrite=True, progress=False, textured_every=textured_every)
     intr = ",".join(f"{v:g}" for v in render_intrinsics(folder / scene))
-    s = load_set(f"rendered-{scene}", folder / scene / "seq-01", intr)
-    s.source = (f"posernet.data.render: {scene}, seed {seed}, {frames} frames, "
-                f"{width}x{height}, f = {focal:g}")
+    images = folder / scene / "seq-01"
+    if step > 1:  # the chosen frames (colour and pose) in a folder of their own
+        sub = folder / f"every{step}"
+        if not sub.is_dir():
+            tmp = folder / f".every{step}.tmp"
+            shutil.rmtree(tmp, ignore_errors=True)
+            tmp.mkdir()
+            for k in range(0, frames, step):
+                for suffix in (".color.png", POSE_SUFFIX):
+                    shutil.copy(images / f"frame-{k:06d}{suffix}", tmp)
+            tmp.rename(sub)
+        images = sub
+    s = load_set(name or f"rendered-{scene}", images, intr)
+    texture = "" if textured_every == 1 else (
+        f", low texture (plain room, one object in {textured_every} textured)")
+    kept = f"one frame in {step} of {frames}" if step > 1 else f"{frames} frames"
+    s.source = (f"posernet.data.render: {scene}, seed {seed}, {kept} of one sweep, "
+                f"{width}x{height}, f = {focal:g}{texture}")
     return s
 
 
@@ -906,6 +932,10 @@ def main(argv: list[str] | None = None) -> int:
         frames = args.frames or (8 if args.quick else 16)
         size = (320, 240) if args.quick else (640, 480)
         sets.append(rendered_set(work / "render", args.scene, frames, *size))
+    if args.trust:
+        for name, scene, seed, frames, step, every in TRUST_RENDERED:
+            sets.append(rendered_set(work / "render", scene, frames, 640, 480, seed=seed,
+                                     step=step, textured_every=every, name=name))
     sets = [subsample(s, max_images, work / "subsets") for s in sets]
     for m in methods:
         if m.kind != "posernet" and (why := colmap_status(m.kind)):

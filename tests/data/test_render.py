@@ -237,3 +237,24 @@ def test_supersampling_keeps_geometry(scene: Scene) -> None:
     np.testing.assert_array_equal(a.depth, b.depth)
     np.testing.assert_array_equal(a.object_id, b.object_id)
     assert np.abs(a.rgb.astype(float) - b.rgb).mean() < 20
+
+
+def test_low_texture_keeps_geometry_and_loses_keypoints(scene: Scene) -> None:
+    """``textured_every`` > 1: the same depth and objects, fewer corners to match; the
+    objects it keeps (index % k == 0) look as before."""
+    w2c = make_trajectory(scene, 1, make_rng(0, "s"))[0]
+    full = Renderer(scene, 0, 320, 240, 292.5).render(w2c)
+    plain = Renderer(scene, 0, 320, 240, 292.5, textured_every=4).render(w2c)
+    np.testing.assert_array_equal(full.depth, plain.depth)
+    np.testing.assert_array_equal(full.object_id, plain.object_id)
+    sift = cv2.SIFT_create()
+
+    def corners(rgb: np.ndarray) -> int:
+        return len(sift.detect(cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY), None))
+
+    assert corners(plain.rgb) < 0.7 * corners(full.rgb)  # 132 vs 244 here
+    kept = np.isin(full.object_id, np.arange(0, scene.num_objects, 4))
+    assert kept.any()
+    np.testing.assert_array_equal(full.rgb[kept], plain.rgb[kept])
+    with pytest.raises(ValueError, match="textured_every"):
+        render_sevenscenes(Path("/nonexistent"), textured_every=0, progress=False)

@@ -265,8 +265,8 @@ def _room_texture(
 class _Textures:
     """Lazily generated textures of every face; each from its own seeded stream."""
 
-    def __init__(self, scene: Scene, seed: int) -> None:
-        self.scene, self.seed = scene, seed
+    def __init__(self, scene: Scene, seed: int, textured_every: int = 1) -> None:
+        self.scene, self.seed, self.textured_every = scene, seed, textured_every
         O = scene.num_objects
         rng = make_rng(seed, scene.name, "render", "palettes")
         hue0 = rng.uniform()
@@ -288,7 +288,17 @@ class _Textures:
             ua, _, va, _ = _FACE_UV[face]
             size = (2 * float(half[ua]), 2 * float(half[va]))
             rng = make_rng(self.seed, self.scene.name, "render", "texture", box, face)
-            if box == self.scene.num_objects:
+            plain = self.textured_every > 1 and (box == self.scene.num_objects
+                                                 or box % self.textured_every)
+            if plain:  # low-texture scene: one colour, a 1 % brightness drift
+                base = (self.wall if face < 4 else self.floor if face == 5 else self.ceiling) \
+                    if box == self.scene.num_objects else self.palettes[box].base
+                room = box == self.scene.num_objects
+                texel, cap = (_ROOM_TEXEL, _ROOM_MAX) if room else (_OBJ_TEXEL, _OBJ_MAX)
+                nu, nv = (_tex_size(s, texel, cap) for s in size)
+                drift = 1 + 0.01 * _noise(rng, (nv, nu), 20.0)
+                self._cache[key] = _to_u8(base * drift[..., None])
+            elif box == self.scene.num_objects:
                 kind = "floor" if face == 5 else "ceiling" if face == 4 else "wall"
                 colour = {"floor": self.floor, "ceiling": self.ceiling}.get(kind, self.wall)
                 self._cache[key] = _room_texture(kind, size, colour, rng)
@@ -354,6 +364,7 @@ class Renderer:
         height: int = 480,
         focal: float = 585.0,
         supersample: int = 1,
+        textured_every: int = 1,
     ) -> None:
         self.scene, self.width, self.height = scene, int(width), int(height)
         self.focal, self.supersample = float(focal), int(supersample)
@@ -373,7 +384,7 @@ class Renderer:
         self.half = np.vstack([scene.half, room / 2])
         self.R = np.concatenate([scene.rotation, np.eye(3)[None]])
         self.corners = cuboid_corners(scene.centre, scene.half, scene.rotation)  # (O, 8, 3)
-        self.textures = _Textures(scene, seed)
+        self.textures = _Textures(scene, seed, int(textured_every))
         self.num_objects = O
         # Lights: a ceiling lamp above the content and a fill light from behind the cameras.
         ahead = scene.kind == OBJECT
@@ -671,6 +682,7 @@ def render_sevenscenes(
     supersample: int = 1,
     min_visible_px: int | None = None,
     degrade: Degradation | None = None,
+    textured_every: int = 1,
 ) -> Path:
     """Render one scene into ``ROOT/<scene>`` in the 7-Scenes layout; returns the scene folder.
 
@@ -681,7 +693,9 @@ def render_sevenscenes(
     ``degrade``: camera degradations (:class:`~posernet.data.degrade.Degradation`: an
     uncorrected lens per scene; exposure, vignetting, blur, noise and JPEG per frame) applied
     to each frame, depth and boxes warped with the pixels; what was drawn goes to
-    ``render.json``. Same arguments give byte-identical files.
+    ``render.json``. ``textured_every`` k > 1 renders a low-texture scene: plain walls, floor
+    and ceiling, and only every k-th object keeps its texture (the others one colour with a
+    1 % brightness drift). Same arguments give byte-identical files.
     """
     if scene not in SCENE_PRESETS:
         raise ValueError(f"unknown scene {scene!r}; choose from {sorted(SCENE_PRESETS)}")
@@ -694,6 +708,7 @@ def render_sevenscenes(
     frames_per_sequence = _check_int("frames_per_sequence", frames_per_sequence, 1)
     width, height = _check_int("width", width, 16), _check_int("height", height, 16)
     supersample = _check_int("supersample", supersample, 1)
+    textured_every = _check_int("textured_every", textured_every, 1)
     seed = _check_int("seed", seed, 0)
     if not (np.isfinite(focal) and focal > 0):
         raise ValueError(f"focal must be a positive number, got {focal!r}")
@@ -711,7 +726,8 @@ def render_sevenscenes(
     folder.mkdir(parents=True, exist_ok=True)
 
     geometry = build_scene(scene, make_rng(seed, scene, "layout"))
-    renderer = Renderer(geometry, seed, width, height, float(focal), supersample)
+    renderer = Renderer(geometry, seed, width, height, float(focal), supersample,
+                        textured_every)
     lens = None if degrade is None else degrade.draw_lens(make_rng(seed, scene, "lens"))
     drawn: dict[str, dict[str, float]] = {}
     splits = ["train"] * train_sequences + ["test"] * test_sequences
@@ -762,6 +778,7 @@ def render_sevenscenes(
         "principal_point": [cx, cy],
         "intrinsics": [float(focal), float(focal), cx, cy],
         "supersample": supersample,
+        "textured_every": textured_every,
         "frames_per_sequence": frames_per_sequence,
         "num_frames": len(splits) * frames_per_sequence,
         "train_sequences": train_sequences,
