@@ -233,6 +233,57 @@ def test_bundle_adjustment_that_fails_is_reported_and_loses_nothing(scene, tmp_p
     assert len(rows) == 2 and rows[0].split("|")[3:] == rows[1].split("|")[3:], rows
 
 
+def _colmap_binary_names(folder: Path) -> list[str]:
+    """The image names of a COLMAP binary ``images.bin``, read as COLMAP reads them."""
+    import struct
+
+    data = (folder / "images.bin").read_bytes()
+    (n,), pos, names = struct.unpack_from("<Q", data), 8, []
+    for _ in range(n):
+        end = data.index(b"\0", pos + 64)
+        names.append(data[pos + 64:end].decode())
+        (k,) = struct.unpack_from("<Q", data, end + 1)
+        pos = end + 9 + 24 * k
+    assert pos == len(data)
+    return names
+
+
+@pytest.mark.slow
+def test_image_names_with_spaces_are_kept_in_every_output(scene, tmp_path):
+    """``kamera 13.png``: every output names the real file (no ``kamera_13.png``); the COLMAP
+    model is binary (COLMAP's text reader would cut the name at the space)."""
+    imgs = tmp_path / "my photos"
+    imgs.mkdir()
+    for k, p in enumerate(sorted((scene / "seq-01").glob("*.color.png"))[:6]):
+        shutil.copy(p, imgs / f"kamera {k + 10}.png")
+    names = sorted(p.name for p in imgs.iterdir())
+    out = tmp_path / "out"
+    r = _run(f"images={imgs}", f"intrinsics={_intr(scene)}", f"out_dir={out}", "matcher=sift",
+             "pictures=1")
+    assert r.returncode == 0, r.stderr
+    assert "COLMAP model in" in r.stdout and "binary" in r.stdout
+    cams = json.loads((out / "poses.json").read_text())["cameras"]
+    assert sorted(cams) == names and all(c["solved"] for c in cams.values())
+    model = out / "sparse" / "0"
+    assert sorted(p.name for p in model.iterdir()) == ["cameras.bin", "images.bin",
+                                                       "points3D.bin"]
+    assert sorted(_colmap_binary_names(model)) == names
+    try:
+        import pycolmap
+    except ImportError:
+        pycolmap = None
+    if pycolmap is not None:  # COLMAP itself reads the real names back
+        rec = pycolmap.Reconstruction(str(model))
+        assert sorted(im.name for im in rec.images.values()) == names
+    frames = json.loads((out / "transforms.json").read_text())["frames"]
+    assert sorted(Path(f["file_path"]).name for f in frames) == names
+    assert all((out / f["file_path"]).is_file() for f in frames)  # the real image files
+    view = (out / "cameras.html").read_text()
+    assert all(f'"name":"{n}"' in view for n in names) and "kamera_" not in view
+    assert not any("kamera_" in p.read_text(errors="replace")
+                   for p in out.iterdir() if p.is_file() and p.suffix in (".json", ".txt"))
+
+
 @pytest.mark.slow
 def test_reconstruct_unreadable_image(scene, tmp_path):
     imgs = tmp_path / "photos"

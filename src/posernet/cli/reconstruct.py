@@ -7,7 +7,8 @@ boxes) -> 5-point (KP) with two-view verification -> PoserNet (shipped checkpoin
 ``refine=true``; off by default, see ``posernet/conf/reconstruct.yaml``) -> robust motion
 averaging (``sync=``) -> tracks, triangulation and bundle adjustment (``ba=true``), then
 writes into ``out_dir``: ``poses.json`` (format ``posernet-poses``), ``sparse/<k>/`` (the
-bundle-adjusted cameras and points as COLMAP text models, one per component),
+bundle-adjusted cameras and points as COLMAP models, one per component: text, or binary
+when an image name has a space, which the text format cannot hold),
 ``transforms.json`` (nerfstudio) and ``trajectory_tum.txt`` (TUM RGB-D trajectory) of the
 largest component, ``summary.json`` (counts and per-stage timings), ``matches_<k>.png``
 (image pairs with their matches) and ``cameras.png`` (the recovered cameras in 3D). With a
@@ -296,8 +297,11 @@ def run(cfg: DictConfig) -> dict[str, Any]:
         traj = _trajectory_errors(record, records, out)
         if traj is not None:
             files["trajectory_errors"] = traj
+    binary = any((p / "images.bin").is_file() for p in files["colmap"])
     colmap = (f", COLMAP model{'s' if len(files['colmap']) > 1 else ''} in "
-              + ", ".join(str(p) for p in files["colmap"])) if files["colmap"] else ""
+              + ", ".join(str(p) for p in files["colmap"])
+              + (" (binary: an image name has a space, which COLMAP's text format cannot "
+                 "hold)" if binary else "")) if files["colmap"] else ""
     more = ", nerfstudio transforms.json, TUM trajectory_tum.txt" if "tum" in files else ""
     print(f"wrote {files['poses']}{colmap}{more} and pictures in {out} "
           f"({time.perf_counter() - t0:.0f} s)")
