@@ -234,3 +234,23 @@ def test_tum_trajectory_round_trip(tmp_path):
         np.testing.assert_allclose(T.numpy(), np.asarray(cams[name]["camera_to_world"]),
                                    atol=1e-7)
 
+
+def test_tum_header_names_the_image_of_every_row(tmp_path):
+    """Rows stay the standard 8 columns; the header maps each row to its image by a quoted
+    name, also for names with spaces (which a space-separated list could not tell apart)."""
+    from posernet.export import read_tum_image_names, write_tum
+
+    cams = {}
+    for name, c in zip(["kamera 13.png", "kamera 2.png", "a b c.png", 'odd "q"\u2028.png'],
+                       _record().values(), strict=False):
+        cams[name] = {**c, "component": 0}
+    path = write_tum(tmp_path / "traj.txt", cams)
+    text = path.read_text()
+    rows = [ln.split() for ln in text.split("\n") if ln and not ln.startswith("#")]
+    assert all(len(r) == 8 for r in rows) and len(rows) == 4
+    names = read_tum_image_names(path)
+    assert names == sorted(cams)  # no TUM timestamps in the names: name order
+    assert '# image 0.000000 "a b c.png"' in text.split("\n")
+    for row, name in zip(rows, names, strict=True):
+        c2w = np.asarray(cams[name]["camera_to_world"])
+        np.testing.assert_allclose([float(v) for v in row[1:4]], c2w[:3, 3], atol=1e-7)

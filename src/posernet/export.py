@@ -43,7 +43,7 @@ from .geometry import matrix_to_pose_vec
 from .io import atomic_write_bytes, atomic_write_text
 
 __all__ = ["colmap_camera", "colmap_text_name_ok", "largest_component", "point_colours",
-           "write_colmap_binary", "write_colmap_model",
+           "read_tum_image_names", "write_colmap_binary", "write_colmap_model",
            "write_colmap_text", "write_nerfstudio", "write_tum"]
 
 #: COLMAP's camera model ids (``CameraModelId`` in its ``sensor/models.h``), for the binary model
@@ -345,8 +345,13 @@ def _timestamp(name: str, index: int) -> float:
 
 def write_tum(path: str | os.PathLike[str], cameras: dict[str, dict]) -> Path:
     """TUM RGB-D trajectory text (``timestamp tx ty tz qx qy qz qw``, camera to world) of the
-    largest component of a ``poses.json`` ``cameras`` record, one line per camera in name
-    order; timestamps from TUM-style file names, else the camera's index in that order."""
+    largest component of a ``poses.json`` ``cameras`` record, one line per camera in time
+    order; timestamps from TUM-style file names, else the camera's index in name order.
+
+    The rows are the standard 8 columns; which image each row is stands in the header, one
+    comment line per row in the same order: ``# image <timestamp> <name>`` with the name as a
+    JSON string (quoted, so names with spaces or other characters are unambiguous;
+    :func:`read_tum_image_names` reads them back)."""
     names = largest_component(cameras)
     if not names:
         raise ValueError(f"{path}: no solved camera to export")
@@ -358,10 +363,22 @@ def write_tum(path: str | os.PathLike[str], cameras: dict[str, dict]) -> Path:
     q = matrix_to_pose_vec(c2w)[:, :4].numpy()  # w x y z
     lines = ["# posernet camera-to-world poses (largest component; positions up to one "
              "similarity), TUM format: timestamp tx ty tz qx qy qz qw",
-             "# images: " + " ".join(names[i] for i in order)]
+             f"# images: {len(names)}, one '# image <timestamp> <file name as a JSON string>' "
+             "line per row below, in the same order"]
+    lines += [f"# image {stamps[i]:.6f} {json.dumps(names[i], ensure_ascii=False)}"
+              for i in order.tolist()]
     for i in order.tolist():
         t = c2w[i, :3, 3].numpy()
         w, x, y, z = q[i]
         lines.append(f"{stamps[i]:.6f} {t[0]:.9g} {t[1]:.9g} {t[2]:.9g} "
                      f"{x:.9g} {y:.9g} {z:.9g} {w:.9g}")
     return atomic_write_text(path, "\n".join(lines) + "\n")
+
+
+def read_tum_image_names(path: str | os.PathLike[str]) -> list[str]:
+    """The image name of each row of a trajectory :func:`write_tum` wrote, in row order."""
+    names = []
+    for line in Path(path).read_text(encoding="utf-8").split("\n"):  # not at U+2028 & co.
+        if line.startswith("# image "):
+            names.append(json.loads(line.split(" ", 3)[3]))
+    return names

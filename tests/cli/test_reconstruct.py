@@ -251,7 +251,10 @@ def _colmap_binary_names(folder: Path) -> list[str]:
 @pytest.mark.slow
 def test_image_names_with_spaces_are_kept_in_every_output(scene, tmp_path):
     """``kamera 13.png``: every output names the real file (no ``kamera_13.png``); the COLMAP
-    model is binary (COLMAP's text reader would cut the name at the space)."""
+    model is binary (COLMAP's text reader would cut the name at the space), the TUM header
+    quotes each row's name."""
+    from posernet.export import read_tum_image_names
+
     imgs = tmp_path / "my photos"
     imgs.mkdir()
     for k, p in enumerate(sorted((scene / "seq-01").glob("*.color.png"))[:6]):
@@ -278,6 +281,10 @@ def test_image_names_with_spaces_are_kept_in_every_output(scene, tmp_path):
     frames = json.loads((out / "transforms.json").read_text())["frames"]
     assert sorted(Path(f["file_path"]).name for f in frames) == names
     assert all((out / f["file_path"]).is_file() for f in frames)  # the real image files
+    tum = out / "trajectory_tum.txt"
+    assert sorted(read_tum_image_names(tum)) == names
+    rows = [ln.split() for ln in tum.read_text().splitlines() if not ln.startswith("#")]
+    assert len(rows) == len(names) and all(len(row) == 8 for row in rows)
     view = (out / "cameras.html").read_text()
     assert all(f'"name":"{n}"' in view for n in names) and "kamera_" not in view
     assert not any("kamera_" in p.read_text(errors="replace")
