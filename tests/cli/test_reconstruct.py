@@ -511,6 +511,41 @@ def test_a_camera_failing_the_self_check_is_unsolved_in_every_output(scene, tmp_
 
 
 @pytest.mark.slow
+def test_html_view_title_and_status_count_the_same_points(scene, tmp_path, monkeypatch):
+    """A few points far out (bad triangulations), which the view does not draw: the page's
+    title and its status line still give the same number of 3D points, that of the model."""
+    from hydra import compose, initialize_config_module
+
+    import posernet.reconstruct as reconstruct_module
+    from posernet.cli.reconstruct import run
+
+    real = reconstruct_module.largest_point_cloud
+    seen = {}
+
+    def with_far_points(rec):
+        cams, pts, colours = real(rec)
+        far = pts.mean(0) + 1e5 * np.array([[1.0, 0, 0], [0, 1.0, 0], [0, 0, -1.0]])
+        seen["points"] = len(pts) + 3
+        return cams, np.concatenate([pts, far]), np.concatenate([colours, colours[:3]])
+
+    monkeypatch.setattr(reconstruct_module, "largest_point_cloud", with_far_points)
+    out = tmp_path / "o"
+    with initialize_config_module("posernet.conf", version_base=None):
+        cfg = compose("reconstruct", overrides=[f"images={scene / 'seq-01'}",
+                                                f"intrinsics='{_intr(scene)}'", "matcher=sift",
+                                                f"out_dir={out}", "progress=false",
+                                                "pictures=1"])
+    run(cfg)
+    page = (out / "cameras.html").read_text()
+    title = re.search(r"<title>(.*?)</title>", page).group(1)
+    status = json.loads(re.search(r'<script id="data" type="application/json">(.*?)</script>',
+                                  page, re.S).group(1))["status"]
+    count = re.compile(r"(\d+) points")
+    assert count.search(title).group(1) == count.search(status).group(1) == str(seen["points"])
+    assert f"({seen['points'] - 3} drawn; left out: 3 far from the cameras)" in status
+
+
+@pytest.mark.slow
 def test_a_run_that_cannot_verify_itself_says_so_and_exits_4(scene, tmp_path):
     out = tmp_path / "o"
     r = _run(f"images={scene / 'seq-01'}", f"intrinsics={_intr(scene)}", f"out_dir={out}",
