@@ -359,6 +359,83 @@ def test_same_command_again_resumes_from_the_cache(scene, tmp_path):
     assert got == poses["cameras"]
 
 
+def _cache_entries(out: Path) -> dict[str, int]:
+    return {kind: len(list(out.glob(f"cache/*/{kind}/*.npz"))) for kind in ("images", "pairs")}
+
+
+@pytest.mark.slow
+def test_ctrl_c_is_one_line_and_the_same_command_resumes(scene, tmp_path):
+    """Ctrl-C while pairs are matched: one line (what the cache keeps, counted), exit status
+    130, no traceback, nothing but the cache in out_dir; the same command again reuses
+    exactly those images and pairs."""
+    import signal
+    import time
+
+    out = tmp_path / "out"
+    cmd = [str(BIN / "posernet-reconstruct"), f"images={scene / 'seq-01'}",
+           f"intrinsics={_intr(scene)}", f"out_dir={out}", "matcher=sift", "pictures=0",
+           "workers=1", "progress=false"]
+    p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                         start_new_session=True, env=dict(os.environ, OMP_NUM_THREADS="1"))
+    deadline = time.monotonic() + 300
+    while _cache_entries(out)["pairs"] < 3 and p.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.01)
+    if p.poll() is None:
+        os.killpg(p.pid, signal.SIGINT)  # what Ctrl-C in a terminal does
+    _, err = p.communicate(timeout=300)
+    if p.returncode == 0:
+        pytest.skip("the run finished before the interrupt")
+    assert p.returncode == 130, err
+    assert "Traceback" not in err
+    (line,) = err.strip().splitlines()
+    kept = _cache_entries(out)
+    assert kept["images"] == 8 and 3 <= kept["pairs"] < 28
+    assert line == (
+        "posernet-reconstruct: interrupted; run the same command again to resume: it reuses "
+        f"the front-end work kept in {out / 'cache'} (8 image(s): features; {kept['pairs']} "
+        "image pair(s): matches and two-view verification) and computes the rest again (other "
+        "images and pairs, averaging, bundle adjustment, outputs)")
+    assert [q.name for q in out.iterdir()] == ["cache"]
+    again = subprocess.run(cmd, capture_output=True, text=True, timeout=600,
+                           env=dict(os.environ, OMP_NUM_THREADS="1"))
+    assert again.returncode == 0, again.stderr
+    assert f"reused from the cache: 8 images, {kept['pairs']} pairs" in again.stdout
+    assert sum(c["solved"] for c in
+               json.loads((out / "poses.json").read_text())["cameras"].values()) == 8
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(("error", "status"), [(KeyboardInterrupt, 130), (ValueError, 1)])
+def test_a_run_stopped_while_writing_leaves_no_partial_outputs(scene, tmp_path, monkeypatch,
+                                                              capsys, error, status):
+    """Ctrl-C (or an error) once the outputs are being written: those already written are
+    removed again, so that out_dir never holds a partial set (a lone poses.json would pass
+    for a finished run and make the same command refuse to start); its cache stays."""
+    from hydra import compose, initialize_config_module
+
+    import posernet.export as export_module
+    from posernet.cli.reconstruct import _direct
+
+    def stopped(*args, **kwargs):
+        raise error("stopped while writing")
+
+    monkeypatch.setattr(export_module, "write_tum", stopped)
+    out = tmp_path / "o"
+    with initialize_config_module("posernet.conf", version_base=None):
+        cfg = compose("reconstruct", overrides=[f"images={scene / 'seq-01'}",
+                                                f"intrinsics='{_intr(scene)}'", "matcher=sift",
+                                                f"out_dir={out}", "progress=false",
+                                                "pictures=1"])
+    with pytest.raises(SystemExit) as exc:
+        _direct(cfg)
+    assert exc.value.code == status
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(
+        "posernet-reconstruct: interrupted; run the same command again to resume"
+        if status == 130 else "posernet-reconstruct: error: stopped while writing")
+    assert [q.name for q in out.iterdir()] == ["cache"]  # no poses.json, sparse/, ...
+
+
 @pytest.mark.slow
 def test_pair_selection_and_boxes_only_when_used(scene, tmp_path):
     args = (f"images={scene / 'seq-01'}", f"intrinsics={_intr(scene)}", "pictures=0")
