@@ -1,11 +1,14 @@
-"""COLMAP text export: camera models, ids and tracks consistent, readable by pycolmap."""
+"""COLMAP export: camera models, ids and tracks consistent, readable by pycolmap; image names
+kept as they are (the binary model for names the text model cannot hold)."""
 
 from __future__ import annotations
+
+import struct
 
 import numpy as np
 import pytest
 
-from posernet.export import colmap_camera, write_colmap_text
+from posernet.export import colmap_camera, write_colmap_model, write_colmap_text
 from posernet.sfm.synthetic import make_scene
 
 K = np.array([[500.0, 0, 320], [0, 510.0, 240], [0, 0, 1]])
@@ -22,13 +25,16 @@ def test_camera_models():
         colmap_camera(K, np.ones(12))
 
 
-def _write(tmp_path, images=None):
+def _write(tmp_path, images=None, names="img{}.png", binary=False):
     s = make_scene(num_cameras=5, num_points=80, seed=3)
     n = s.w2c.shape[0]
     images = np.arange(n) if images is None else np.asarray(images)
-    files = write_colmap_text(tmp_path, [f"img {i}.png" for i in range(n)], None,
-                              [(640, 480)] * n, s.K, [None] * n, s.w2c, images, s.uv,
-                              s.points, s.obs_image, s.obs_kp, s.obs_point)
+    dist = [None, np.array([0.1, -0.05]), None, np.array([0.1, -0.05, 0.001, 0.002, 0.01]),
+            None]
+    errors = np.linspace(0.1, 0.9, s.obs_image.size)
+    files = write_colmap_model(tmp_path, [names.format(i) for i in range(n)], None,
+                               [(640, 480)] * n, s.K, dist, s.w2c, images, s.uv, s.points,
+                               s.obs_image, s.obs_kp, s.obs_point, errors, binary=binary)
     return s, files
 
 
@@ -41,15 +47,58 @@ def _parse(folder):
     for head, pts in zip(rows[0::2], rows[1::2], strict=True):
         f = head.split()
         vals = pts.split()
-        images[int(f[0])] = {"pose": [float(v) for v in f[1:8]], "name": f[9],
+        images[int(f[0])] = {"pose": [float(v) for v in f[1:8]], "camera": int(f[8]),
+                             "name": f[9],
                              "p2d": [(float(vals[k]), float(vals[k + 1]), int(vals[k + 2]))
                                      for k in range(0, len(vals), 3)]}
     points = {}
     for row in lines["points3D.txt"]:
         f = row.split()
         track = [(int(f[k]), int(f[k + 1])) for k in range(8, len(f), 2)]
-        points[int(f[0])] = {"xyz": [float(v) for v in f[1:4]], "track": track}
+        points[int(f[0])] = {"xyz": [float(v) for v in f[1:4]],
+                             "rgb": [int(v) for v in f[4:7]], "error": float(f[7]),
+                             "track": track}
     return lines["cameras.txt"], images, points
+
+
+def _parse_binary(folder):
+    """COLMAP's binary model, read as its reader does (reconstruction_io_binary.cc), into the
+    shapes of :func:`_parse`."""
+    models = {1: "PINHOLE", 4: "OPENCV", 6: "FULL_OPENCV"}
+    n_params = {"PINHOLE": 4, "OPENCV": 8, "FULL_OPENCV": 12}
+    data = (folder / "cameras.bin").read_bytes()
+    (n,), pos, cams = struct.unpack_from("<Q", data), 8, []
+    for _ in range(n):
+        cid, model, w, h = struct.unpack_from("<IiQQ", data, pos)
+        pos += 24
+        k = n_params[models[model]]
+        params = struct.unpack_from(f"<{k}d", data, pos)
+        pos += 8 * k
+        cams.append((cid, models[model], w, h, params))
+    assert pos == len(data)
+    data = (folder / "images.bin").read_bytes()
+    (n,), pos, images = struct.unpack_from("<Q", data), 8, {}
+    for _ in range(n):
+        v = struct.unpack_from("<I7dI", data, pos)
+        end = data.index(b"\0", pos + 64)
+        name = data[pos + 64:end].decode()
+        (k,) = struct.unpack_from("<Q", data, end + 1)
+        pos = end + 9
+        p2d = [struct.unpack_from("<ddQ", data, pos + 24 * j) for j in range(k)]
+        pos += 24 * k
+        images[v[0]] = {"pose": list(v[1:8]), "camera": v[8], "name": name,
+                        "p2d": [(x, y, int(p)) for x, y, p in p2d]}
+    assert pos == len(data)
+    data = (folder / "points3D.bin").read_bytes()
+    (n,), pos, points = struct.unpack_from("<Q", data), 8, {}
+    for _ in range(n):
+        pid, x, y, z, r, g, b, err, k = struct.unpack_from("<Q3d3BdQ", data, pos)
+        pos += 51
+        track = [struct.unpack_from("<II", data, pos + 8 * j) for j in range(k)]
+        pos += 8 * k
+        points[pid] = {"xyz": [x, y, z], "rgb": [r, g, b], "error": err, "track": track}
+    assert pos == len(data)
+    return cams, images, points
 
 
 def test_tracks_point_back_at_their_observations(tmp_path):
@@ -57,7 +106,7 @@ def test_tracks_point_back_at_their_observations(tmp_path):
     assert [f.name for f in files] == ["cameras.txt", "images.txt", "points3D.txt"]
     cams, images, points = _parse(tmp_path)
     assert len(cams) == 5 and cams[0].split()[1] == "PINHOLE"
-    assert images[1]["name"] == "img_0.png"  # no spaces in COLMAP names
+    assert images[1]["name"] == "img0.png"
     assert len(points) == len(np.unique(s.obs_point))
     for pid, p in points.items():
         for image_id, idx in p["track"]:
@@ -74,14 +123,53 @@ def test_a_subset_of_images(tmp_path):
     assert all(i in (1, 3, 4) for p in points.values() for i, _ in p["track"])
 
 
-def test_pycolmap_reads_it(tmp_path):
+def test_names_with_spaces_are_kept_in_the_binary_model(tmp_path):
+    """COLMAP's text reader stops a name at its first space: such a name is never renamed, the
+    model is written in the binary format, which holds it, with the same content."""
+    s = make_scene(num_cameras=2, num_points=10, seed=3)
+    with pytest.raises(ValueError, match="'kamera 13.png'.*text model cannot hold"):
+        write_colmap_text(tmp_path / "refused", ["kamera 13.png", "b.png"], None,
+                          [(640, 480)] * 2, s.K, [None] * 2, s.w2c, np.arange(2), s.uv,
+                          s.points, s.obs_image, s.obs_kp, s.obs_point)
+    assert not list((tmp_path / "refused").iterdir())
+    _, files = _write(tmp_path / "auto", names="img {}.png", binary=None)
+    assert [f.name for f in files] == ["cameras.bin", "images.bin", "points3D.bin"]
+    _write(tmp_path / "text", names="img{}.png", binary=None)
+    assert sorted(p.name for p in (tmp_path / "text").iterdir()) == [
+        "cameras.txt", "images.txt", "points3D.txt"]
+    cams_b, images_b, points_b = _parse_binary(tmp_path / "auto")
+    assert [im["name"] for im in images_b.values()] == [f"img {i}.png" for i in range(5)]
+    cams_t, images_t, points_t = _parse(tmp_path / "text")
+    # the same cameras, poses, 2D points, points, colours, errors and tracks
+    assert [(c[1], c[2], c[3]) for c in cams_b] == [
+        (ln.split()[1], int(ln.split()[2]), int(ln.split()[3])) for ln in cams_t]
+    assert [c[1] for c in cams_b] == ["PINHOLE", "OPENCV", "PINHOLE", "FULL_OPENCV", "PINHOLE"]
+    for c, ln in zip(cams_b, cams_t, strict=True):
+        np.testing.assert_allclose(c[4], [float(v) for v in ln.split()[4:]], rtol=1e-9)
+    assert images_b.keys() == images_t.keys() and points_b.keys() == points_t.keys()
+    for k, im in images_b.items():
+        assert im["name"].replace(" ", "") == images_t[k]["name"]
+        assert im["camera"] == images_t[k]["camera"] == k
+        np.testing.assert_allclose(im["pose"], images_t[k]["pose"], rtol=1e-9, atol=1e-12)
+        np.testing.assert_allclose(im["p2d"], images_t[k]["p2d"], atol=1e-4)
+    for k, p in points_b.items():
+        np.testing.assert_allclose(p["xyz"], points_t[k]["xyz"], rtol=1e-8)
+        assert p["rgb"] == points_t[k]["rgb"] and p["track"] == points_t[k]["track"]
+        assert p["error"] == pytest.approx(points_t[k]["error"], rel=1e-5)
+
+
+@pytest.mark.parametrize("binary", [False, True])
+def test_pycolmap_reads_it(tmp_path, binary):
     pycolmap = pytest.importorskip("pycolmap")
-    s, _ = _write(tmp_path)
+    names = "img {}.png" if binary else "img{}.png"
+    s, _ = _write(tmp_path, names=names, binary=binary)
     r = pycolmap.Reconstruction(str(tmp_path))
     assert r.num_images() == 5 and r.num_points3D() == len(np.unique(s.obs_point))
     assert r.compute_mean_reprojection_error() < 2.0  # synthetic noise 0.5 px
     img = r.images[2]
     assert np.allclose(img.cam_from_world().matrix(), s.w2c[1][:3], atol=1e-8)
+    assert sorted(im.name for im in r.images.values()) == [names.format(i) for i in range(5)]
+    assert r.cameras[4].model.name == "FULL_OPENCV"
 
 
 def _record(n: int = 4, seed: int = 0) -> dict:
@@ -145,3 +233,24 @@ def test_tum_trajectory_round_trip(tmp_path):
         T = pose_vec_to_matrix(torch.tensor([qw, qx, qy, qz, tx, ty, tz], dtype=torch.float64))
         np.testing.assert_allclose(T.numpy(), np.asarray(cams[name]["camera_to_world"]),
                                    atol=1e-7)
+
+
+def test_tum_header_names_the_image_of_every_row(tmp_path):
+    """Rows stay the standard 8 columns; the header maps each row to its image by a quoted
+    name, also for names with spaces (which a space-separated list could not tell apart)."""
+    from posernet.export import read_tum_image_names, write_tum
+
+    cams = {}
+    for name, c in zip(["kamera 13.png", "kamera 2.png", "a b c.png", 'odd "q"\u2028.png'],
+                       _record().values(), strict=False):
+        cams[name] = {**c, "component": 0}
+    path = write_tum(tmp_path / "traj.txt", cams)
+    text = path.read_text()
+    rows = [ln.split() for ln in text.split("\n") if ln and not ln.startswith("#")]
+    assert all(len(r) == 8 for r in rows) and len(rows) == 4
+    names = read_tum_image_names(path)
+    assert names == sorted(cams)  # no TUM timestamps in the names: name order
+    assert '# image 0.000000 "a b c.png"' in text.split("\n")
+    for row, name in zip(rows, names, strict=True):
+        c2w = np.asarray(cams[name]["camera_to_world"])
+        np.testing.assert_allclose([float(v) for v in row[1:4]], c2w[:3, 3], atol=1e-7)

@@ -81,6 +81,33 @@ def test_many_points_are_subsampled(tmp_path):
     assert len(data.split(",")) == 3 * 300
 
 
+def _data(page: str) -> dict:
+    import json
+
+    return json.loads(re.search(r'<script id="data" type="application/json">(.*?)</script>',
+                                page, re.S).group(1).replace("<\\/", "</"))
+
+
+def test_status_counts_the_points_given_like_the_title(tmp_path):
+    """Points far from the cameras, not finite or thinned out are not drawn: the status line
+    still counts every point given (the title's number) and says how many are drawn."""
+    cams, pts, col, _ = _scene()
+    far = np.array([[1e4, 0, 0], [0, -2e4, 0], [np.nan, 0, 0]])
+    pts, col = np.concatenate([pts, far]), np.concatenate([col, col[:3]])
+    title = f"10 of 10 cameras, {len(pts)} points"
+    data = _data(write_html_view(tmp_path / "v.html", cams, pts, col, title=title).read_text())
+    assert data["status"] == ("10 cameras, 503 points (500 drawn; left out: 1 not finite, "
+                              "2 far from the cameras), 2 components")
+    assert len(data["points"]) == 3 * 500
+    data = _data(write_html_view(tmp_path / "v.html", cams, pts, col, max_points=100)
+                 .read_text())
+    assert data["status"] == ("10 cameras, 503 points (99 drawn; left out: 1 not finite, 402 "
+                              "thinned out, 1 far from the cameras), 2 components")
+    cams.pop("img08.png"), cams.pop("img09.png")  # one component, every point drawn
+    data = _data(write_html_view(tmp_path / "v.html", cams, pts[:500], col[:500]).read_text())
+    assert data["status"] == "8 cameras, 500 points"
+
+
 @needs_browser
 def test_browser_draws_cameras_points_and_ground_truth(tmp_path):
     cams, pts, col, gt = _scene()
@@ -88,6 +115,11 @@ def test_browser_draws_cameras_points_and_ground_truth(tmp_path):
     dom = _browser("--dump-dom", path.as_uri()).stdout
     assert 'data-rendered="1"' in dom, dom[-2000:]  # the script ran to its end
     assert "10 cameras, 500 points, 2 components" in dom
+    far = write_html_view(tmp_path / "far.html", cams, np.concatenate([pts, [[1e4, 0, 0]]]),
+                          title="10 cameras, 501 points")
+    far_dom = _browser("--dump-dom", far.as_uri()).stdout
+    assert ('<div id="status">10 cameras, 501 points (500 drawn; left out: 1 far from the '
+            'cameras), 2 components</div>') in far_dom, far_dom[-2000:]
     assert "largest component: 8 cameras" in dom and "component 2: 2 cameras" in dom
     assert "ground truth (linked to its estimate)" in dom and "units: m" in dom
     shots = []

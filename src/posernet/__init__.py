@@ -4,6 +4,10 @@ then average them into absolute camera poses.
 The public API is re-exported here; see the README and docs/ for a tour.
 """
 
+# first, before torch, OpenCV and SciPy load: Ctrl-C while a posernet command starts up
+from . import startup  # noqa: F401
+
+# isort: split
 from . import geometry, sync
 from .checkpoints import CheckpointError, read_checkpoint
 from .geometry import umeyama_alignment

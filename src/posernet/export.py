@@ -1,4 +1,4 @@
-"""A reconstruction in the formats other tools read: COLMAP's sparse text model, nerfstudio's
+"""A reconstruction in the formats other tools read: a COLMAP sparse model, nerfstudio's
 ``transforms.json`` and a TUM RGB-D trajectory (for evo and the TUM / ETH3D evaluation tools).
 
 COLMAP:
@@ -12,6 +12,14 @@ Poses are COLMAP's world-to-camera (quaternion ``w x y z``, translation), the sa
 ``poses.json`` (the component's first camera at the identity); the scale is the
 reconstruction's (arbitrary).
 
+Image names are written as they are (the image's path relative to the image folder), so that
+tools find the image files by name. COLMAP's text reader takes an image's ``NAME`` as one
+whitespace-delimited token (``kamera 13.png`` would be read back as ``kamera``), and the text
+format has no quoting; a model with such a name is therefore written in COLMAP's binary format
+(``cameras.bin``, ``images.bin``, ``points3D.bin``: the same content, names NUL-terminated),
+which COLMAP and pycolmap read as well (it is COLMAP's own default output format;
+:func:`write_colmap_model`).
+
 nerfstudio (:func:`write_nerfstudio`) and TUM (:func:`write_tum`) are written from a
 ``poses.json`` record (its ``cameras``: ``camera_to_world``, ``K``, ``size``, ``dist``,
 ``component``) and hold the largest component only: both formats describe one coordinate frame,
@@ -20,8 +28,11 @@ and separate components have unrelated frames and scales.
 
 from __future__ import annotations
 
+import json
 import os
+import struct
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
@@ -29,10 +40,16 @@ import numpy as np
 import torch
 
 from .geometry import matrix_to_pose_vec
-from .io import atomic_write_text
+from .io import atomic_write_bytes, atomic_write_text
 
-__all__ = ["colmap_camera", "largest_component", "point_colours", "write_colmap_text",
-           "write_nerfstudio", "write_tum"]
+__all__ = ["colmap_camera", "colmap_text_name_ok", "largest_component", "point_colours",
+           "read_tum_image_names", "write_colmap_binary", "write_colmap_model",
+           "write_colmap_text", "write_nerfstudio", "write_tum"]
+
+#: COLMAP's camera model ids (``CameraModelId`` in its ``sensor/models.h``), for the binary model
+_COLMAP_MODEL_ID = {"PINHOLE": 1, "OPENCV": 4, "FULL_OPENCV": 6}
+#: what COLMAP's text reader (``std::istream >> name``) stops a name at
+_TEXT_SPACE = " \t\n\r\v\f"
 
 #: OpenCV camera axes (x right, y down, z forward) -> OpenGL / nerfstudio (x right, y up, z back)
 _CV_TO_GL = np.diag([1.0, -1.0, -1.0, 1.0])
@@ -76,32 +93,38 @@ def point_colours(image_paths: Sequence[str | os.PathLike[str]] | None,
     return colour
 
 
-def write_colmap_text(
-    folder: str | os.PathLike[str],
-    names: Sequence[str],
-    image_paths: Sequence[str | os.PathLike[str]] | None,
-    sizes: Sequence[tuple[int, int]],
-    K: np.ndarray,
-    dist: Sequence[np.ndarray | None],
-    w2c: np.ndarray,
-    images: np.ndarray,
-    uv: Sequence[np.ndarray],
-    points: np.ndarray,
-    obs_image: np.ndarray,
-    obs_keypoint: np.ndarray,
-    obs_point: np.ndarray,
-    errors: np.ndarray | None = None,
-) -> list[Path]:
-    """Write a COLMAP text model of ``images`` (indices into the ``N`` inputs) to ``folder``.
+def colmap_text_name_ok(name: str) -> bool:
+    """Whether COLMAP's text model can carry image name ``name``: its reader takes the name as
+    one whitespace-delimited token, so a name with a space (tab, line break) cannot be read
+    back (and the format has no quoting); an empty name neither."""
+    return bool(name) and not any(c in _TEXT_SPACE for c in name)
 
-    ``names (N,)`` image names (as in the image folder), ``image_paths`` to colour the points
-    (``None``: grey), ``sizes (N,)`` (W, H), ``K (N, 3, 3)``, ``dist`` per image or ``None``,
-    ``w2c (N, 4, 4)``; ``uv[i] (K_i, 2)`` keypoint pixels; ``points (P, 3)`` and their
-    observations ``obs_image, obs_keypoint, obs_point (O,)``; ``errors (O,)`` reprojection errors
-    (pixels; a point's ``ERROR`` is their mean, 0 without). Files are written atomically.
-    """
-    out = Path(folder)
-    out.mkdir(parents=True, exist_ok=True)
+
+@dataclass
+class _ColmapModel:
+    """What both COLMAP formats hold: per exported image (1-based ids ``image + 1``) its
+    camera, pose and observed keypoints; per point its position, colour, error and track."""
+
+    images: np.ndarray  # (I,) input indices of the exported images
+    cameras: list[tuple[str, int, int, list[float]]]  # model, width, height, params
+    poses: np.ndarray  # (I, 7) qw qx qy qz tx ty tz (world to camera)
+    names: list[str]
+    xy: list[np.ndarray]  # per image (K_i, 2) keypoint pixels of its observations
+    xy_point: list[np.ndarray]  # per image (K_i,) their point ids
+    point_ids: np.ndarray  # (P',) COLMAP ids, from 1
+    xyz: np.ndarray  # (P', 3)
+    rgb: np.ndarray  # (P', 3)
+    error: np.ndarray  # (P',)
+    tracks: list[tuple[np.ndarray, np.ndarray]]  # per point (image ids, POINT2D_IDX)
+    n_obs: int
+
+
+def _colmap_model(names: Sequence[str], image_paths: Sequence[str | os.PathLike[str]] | None,
+                  sizes: Sequence[tuple[int, int]], K: np.ndarray,
+                  dist: Sequence[np.ndarray | None], w2c: np.ndarray, images: np.ndarray,
+                  uv: Sequence[np.ndarray], points: np.ndarray, obs_image: np.ndarray,
+                  obs_keypoint: np.ndarray, obs_point: np.ndarray,
+                  errors: np.ndarray | None) -> _ColmapModel:
     images = np.asarray(images, np.int64).reshape(-1)
     keep = np.isin(obs_image, images)
     # a point left with one view because its others were not exported is not triangulated
@@ -119,44 +142,148 @@ def write_colmap_text(
     starts = np.searchsorted(oi, oi, side="left")
     p2d_idx = np.arange(oi.size) - starts
     colour = point_colours(image_paths, uv, oi, ok, op, points.shape[0])
-    cam_lines = ["# Camera list with one line of data per camera:",
-                 "#   CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]",
-                 f"# Number of cameras: {images.size}"]
-    img_lines = ["# Image list with two lines of data per image:",
-                 "#   IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME",
-                 "#   POINTS2D[] as (X, Y, POINT3D_ID)",
-                 f"# Number of images: {images.size}, mean observations per image: "
-                 f"{oi.size / max(images.size, 1):.1f}"]
+    cameras, poses, xy, xy_point = [], [], [], []
     for i in images.tolist():
         model, params = colmap_camera(K[i], dist[i])
         w, h = sizes[i]
-        cam_lines.append(f"{i + 1} {model} {int(w)} {int(h)} "
-                         + " ".join(f"{v:.10g}" for v in params))
-        q = matrix_to_pose_vec(torch.from_numpy(np.asarray(w2c[i], np.float64))).numpy()
-        img_lines.append(f"{i + 1} " + " ".join(f"{v:.12g}" for v in q) + f" {i + 1} "
-                         + names[i].replace(" ", "_"))
+        cameras.append((model, int(w), int(h), params))
+        poses.append(matrix_to_pose_vec(torch.from_numpy(np.asarray(w2c[i], np.float64)))
+                     .numpy())
         sel = oi == i
-        xy = uv[i][ok[sel]]
-        img_lines.append(" ".join(f"{x:.4f} {y:.4f} {p}" for (x, y), p in
-                                  zip(xy.tolist(), pid[op[sel]].tolist(), strict=True)))
+        xy.append(np.asarray(uv[i], np.float64)[ok[sel]].reshape(-1, 2))
+        xy_point.append(pid[op[sel]])
     n_obs = np.bincount(op, minlength=points.shape[0])
     mean_err = np.bincount(op, weights=err, minlength=points.shape[0]) / np.maximum(n_obs, 1)
     by_point = np.argsort(op, kind="stable")
     bounds = np.concatenate(([0], np.cumsum(n_obs)))
-    pt_lines = ["# 3D point list with one line of data per point:",
-                "#   POINT3D_ID, X, Y, Z, R, G, B, ERROR, TRACK[] as (IMAGE_ID, POINT2D_IDX)",
-                f"# Number of points: {used.size}, mean track length: "
-                f"{op.size / max(used.size, 1):.2f}"]
+    tracks = []
     for p in used.tolist():
         obs = by_point[bounds[p]:bounds[p + 1]]
-        track = " ".join(f"{oi[o] + 1} {p2d_idx[o]}" for o in obs.tolist())
-        x, y, z = points[p]
-        r, g, b = colour[p]
-        pt_lines.append(f"{pid[p]} {x:.9g} {y:.9g} {z:.9g} {r} {g} {b} {mean_err[p]:.6g} "
-                        + track)
+        tracks.append((oi[obs] + 1, p2d_idx[obs]))
+    return _ColmapModel(images=images, cameras=cameras, poses=np.asarray(poses).reshape(-1, 7),
+                        names=[str(names[i]) for i in images.tolist()], xy=xy,
+                        xy_point=xy_point, point_ids=pid[used], xyz=points[used],
+                        rgb=colour[used], error=mean_err[used], tracks=tracks, n_obs=int(oi.size))
+
+
+def _colmap_text(out: Path, m: _ColmapModel) -> list[Path]:
+    bad = [n for n in m.names if not colmap_text_name_ok(n)]
+    if bad:
+        raise ValueError(f"image name {bad[0]!r}: COLMAP's text model cannot hold a name with "
+                         "whitespace (its reader stops at the first space); write the binary "
+                         "model (write_colmap_model, binary=None or True)")
+    n_img = m.images.size
+    cam_lines = ["# Camera list with one line of data per camera:",
+                 "#   CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]",
+                 f"# Number of cameras: {n_img}"]
+    img_lines = ["# Image list with two lines of data per image:",
+                 "#   IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME",
+                 "#   POINTS2D[] as (X, Y, POINT3D_ID)",
+                 f"# Number of images: {n_img}, mean observations per image: "
+                 f"{m.n_obs / max(n_img, 1):.1f}"]
+    for k, i in enumerate(m.images.tolist()):
+        model, w, h, params = m.cameras[k]
+        cam_lines.append(f"{i + 1} {model} {w} {h} " + " ".join(f"{v:.10g}" for v in params))
+        img_lines.append(f"{i + 1} " + " ".join(f"{v:.12g}" for v in m.poses[k])
+                         + f" {i + 1} {m.names[k]}")
+        img_lines.append(" ".join(f"{x:.4f} {y:.4f} {p}" for (x, y), p in
+                                  zip(m.xy[k].tolist(), m.xy_point[k].tolist(), strict=True)))
+    pt_lines = ["# 3D point list with one line of data per point:",
+                "#   POINT3D_ID, X, Y, Z, R, G, B, ERROR, TRACK[] as (IMAGE_ID, POINT2D_IDX)",
+                f"# Number of points: {m.point_ids.size}, mean track length: "
+                f"{m.n_obs / max(m.point_ids.size, 1):.2f}"]
+    for k, p in enumerate(m.point_ids.tolist()):
+        img, idx = m.tracks[k]
+        track = " ".join(f"{a} {b}" for a, b in zip(img.tolist(), idx.tolist(), strict=True))
+        x, y, z = m.xyz[k]
+        r, g, b = m.rgb[k]
+        pt_lines.append(f"{p} {x:.9g} {y:.9g} {z:.9g} {r} {g} {b} {m.error[k]:.6g} " + track)
     return [atomic_write_text(out / "cameras.txt", "\n".join(cam_lines) + "\n"),
             atomic_write_text(out / "images.txt", "\n".join(img_lines) + "\n"),
             atomic_write_text(out / "points3D.txt", "\n".join(pt_lines) + "\n")]
+
+
+def _colmap_binary(out: Path, m: _ColmapModel) -> list[Path]:
+    """COLMAP's binary model (``reconstruction_io_binary.cc``): little-endian; cameras as
+    ``id u32, model i32, width u64, height u64, params f64[]``; images as ``id u32, q, t f64[7],
+    camera u32, name\\0, n u64, (x, y f64, point id u64)[n]``; points as ``id u64, xyz f64[3],
+    rgb u8[3], error f64, n u64, (image u32, point2D u32)[n]``."""
+    n_img = m.images.size
+    cams = [struct.pack("<Q", n_img)]
+    imgs = [struct.pack("<Q", n_img)]
+    for k, i in enumerate(m.images.tolist()):
+        model, w, h, params = m.cameras[k]
+        cams.append(struct.pack("<IiQQ", i + 1, _COLMAP_MODEL_ID[model], w, h)
+                    + np.asarray(params, "<f8").tobytes())
+        name = m.names[k].encode("utf-8")
+        if not name or b"\0" in name:
+            raise ValueError(f"image name {m.names[k]!r} cannot be stored in a COLMAP model")
+        obs = np.zeros(len(m.xy[k]), dtype=[("x", "<f8"), ("y", "<f8"), ("p", "<u8")])
+        obs["x"], obs["y"], obs["p"] = m.xy[k][:, 0], m.xy[k][:, 1], m.xy_point[k]
+        imgs.append(struct.pack("<I7dI", i + 1, *m.poses[k].tolist(), i + 1) + name + b"\0"
+                    + struct.pack("<Q", len(obs)) + obs.tobytes())
+    pts = [struct.pack("<Q", m.point_ids.size)]
+    for k, p in enumerate(m.point_ids.tolist()):
+        img, idx = m.tracks[k]
+        track = np.zeros(img.size, dtype=[("i", "<u4"), ("j", "<u4")])
+        track["i"], track["j"] = img, idx
+        pts.append(struct.pack("<Q3d3BdQ", p, *m.xyz[k].tolist(),
+                               *np.clip(m.rgb[k], 0, 255).astype(int).tolist(),
+                               float(m.error[k]), img.size) + track.tobytes())
+    return [atomic_write_bytes(out / "cameras.bin", b"".join(cams)),
+            atomic_write_bytes(out / "images.bin", b"".join(imgs)),
+            atomic_write_bytes(out / "points3D.bin", b"".join(pts))]
+
+
+def write_colmap_model(
+    folder: str | os.PathLike[str],
+    names: Sequence[str],
+    image_paths: Sequence[str | os.PathLike[str]] | None,
+    sizes: Sequence[tuple[int, int]],
+    K: np.ndarray,
+    dist: Sequence[np.ndarray | None],
+    w2c: np.ndarray,
+    images: np.ndarray,
+    uv: Sequence[np.ndarray],
+    points: np.ndarray,
+    obs_image: np.ndarray,
+    obs_keypoint: np.ndarray,
+    obs_point: np.ndarray,
+    errors: np.ndarray | None = None,
+    binary: bool | None = None,
+) -> list[Path]:
+    """Write a COLMAP model of ``images`` (indices into the ``N`` inputs) to ``folder``.
+
+    ``names (N,)`` image names (as in the image folder; written unchanged), ``image_paths``
+    to colour the points (``None``: grey), ``sizes (N,)`` (W, H), ``K (N, 3, 3)``, ``dist``
+    per image or ``None``, ``w2c (N, 4, 4)``; ``uv[i] (K_i, 2)`` keypoint pixels; ``points
+    (P, 3)`` and their observations ``obs_image, obs_keypoint, obs_point (O,)``; ``errors
+    (O,)`` reprojection errors (pixels; a point's ``ERROR`` is their mean, 0 without).
+
+    ``binary``: ``False`` the text model (``cameras.txt``, ``images.txt``, ``points3D.txt``;
+    a name with whitespace is a ``ValueError``, see :func:`colmap_text_name_ok`), ``True`` the
+    binary one (``cameras.bin``, ``images.bin``, ``points3D.bin``), ``None`` the text model
+    unless an exported image's name needs the binary one. Files are written atomically.
+    """
+    out = Path(folder)
+    out.mkdir(parents=True, exist_ok=True)
+    m = _colmap_model(names, image_paths, sizes, K, dist, w2c, images, uv, points, obs_image,
+                      obs_keypoint, obs_point, errors)
+    if binary is None:
+        binary = not all(colmap_text_name_ok(n) for n in m.names)
+    return _colmap_binary(out, m) if binary else _colmap_text(out, m)
+
+
+def write_colmap_text(folder: str | os.PathLike[str], *args: object, **kwargs: object
+                      ) -> list[Path]:
+    """:func:`write_colmap_model` with ``binary=False``: the text model."""
+    return write_colmap_model(folder, *args, binary=False, **kwargs)  # type: ignore[arg-type]
+
+
+def write_colmap_binary(folder: str | os.PathLike[str], *args: object, **kwargs: object
+                        ) -> list[Path]:
+    """:func:`write_colmap_model` with ``binary=True``: the binary model."""
+    return write_colmap_model(folder, *args, binary=True, **kwargs)  # type: ignore[arg-type]
 
 
 def largest_component(cameras: dict[str, dict]) -> list[str]:
@@ -179,11 +306,8 @@ def write_nerfstudio(path: str | os.PathLike[str], cameras: dict[str, dict],
     ``cameras`` record: per frame ``file_path`` (relative to ``path``'s folder),
     ``transform_matrix`` (camera to world in OpenGL axes), intrinsics ``fl_x, fl_y, cx, cy,
     w, h`` and OpenCV distortion ``k1, k2, p1, p2`` (``k3`` when given); ``camera_model``
-    OPENCV. ``image_dir``: the folder the record's names are relative to."""
-    import json
-
-    from .io import atomic_write_text
-
+    OPENCV. ``image_dir``: the folder the record's names are relative to (``file_path`` is
+    the image file's real path, whatever characters its name holds)."""
     out = Path(path)
     names = largest_component(cameras)
     if not names:
@@ -221,10 +345,13 @@ def _timestamp(name: str, index: int) -> float:
 
 def write_tum(path: str | os.PathLike[str], cameras: dict[str, dict]) -> Path:
     """TUM RGB-D trajectory text (``timestamp tx ty tz qx qy qz qw``, camera to world) of the
-    largest component of a ``poses.json`` ``cameras`` record, one line per camera in name
-    order; timestamps from TUM-style file names, else the camera's index in that order."""
-    from .io import atomic_write_text
+    largest component of a ``poses.json`` ``cameras`` record, one line per camera in time
+    order; timestamps from TUM-style file names, else the camera's index in name order.
 
+    The rows are the standard 8 columns; which image each row is stands in the header, one
+    comment line per row in the same order: ``# image <timestamp> <name>`` with the name as a
+    JSON string (quoted, so names with spaces or other characters are unambiguous;
+    :func:`read_tum_image_names` reads them back)."""
     names = largest_component(cameras)
     if not names:
         raise ValueError(f"{path}: no solved camera to export")
@@ -236,10 +363,22 @@ def write_tum(path: str | os.PathLike[str], cameras: dict[str, dict]) -> Path:
     q = matrix_to_pose_vec(c2w)[:, :4].numpy()  # w x y z
     lines = ["# posernet camera-to-world poses (largest component; positions up to one "
              "similarity), TUM format: timestamp tx ty tz qx qy qz qw",
-             "# images: " + " ".join(names[i] for i in order)]
+             f"# images: {len(names)}, one '# image <timestamp> <file name as a JSON string>' "
+             "line per row below, in the same order"]
+    lines += [f"# image {stamps[i]:.6f} {json.dumps(names[i], ensure_ascii=False)}"
+              for i in order.tolist()]
     for i in order.tolist():
         t = c2w[i, :3, 3].numpy()
         w, x, y, z = q[i]
         lines.append(f"{stamps[i]:.6f} {t[0]:.9g} {t[1]:.9g} {t[2]:.9g} "
                      f"{x:.9g} {y:.9g} {z:.9g} {w:.9g}")
     return atomic_write_text(path, "\n".join(lines) + "\n")
+
+
+def read_tum_image_names(path: str | os.PathLike[str]) -> list[str]:
+    """The image name of each row of a trajectory :func:`write_tum` wrote, in row order."""
+    names = []
+    for line in Path(path).read_text(encoding="utf-8").split("\n"):  # not at U+2028 & co.
+        if line.startswith("# image "):
+            names.append(json.loads(line.split(" ", 3)[3]))
+    return names

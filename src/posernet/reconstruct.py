@@ -492,16 +492,20 @@ def _keypoints(rec: Reconstruction) -> list[np.ndarray]:
 
 
 def write_colmap_models(folder: str | os.PathLike[str], rec: Reconstruction) -> list[Path]:
-    """The final bundle-adjusted stage as COLMAP text models, one per component of two or more
+    """The final bundle-adjusted stage as COLMAP models, one per component of two or more
     refined cameras, largest first: ``folder/0``, ``folder/1``, ... (:mod:`posernet.export`), in
-    the frame of ``poses.json``. Returns the model folders (none without bundle adjustment)."""
-    from .export import write_colmap_text
+    the frame of ``poses.json``. Text models, or binary ones (every model of the run) when an
+    exported image's name holds whitespace, which COLMAP's text format cannot carry. Returns
+    the model folders (none without bundle adjustment)."""
+    from .export import colmap_text_name_ok, write_colmap_model
     from .sfm import reprojection_errors, undistort_keypoints
 
     models = list(_component_models(rec))
     if not models:
         return []
     recs = rec.frontend.records
+    names = [x.key for x in recs]
+    binary = not all(colmap_text_name_ok(names[i]) for _, cams, _ in models for i in cams)
     K = np.stack([r.K for r in recs]).astype(np.float64)
     dist = [r.dist for r in recs]
     uv = _keypoints(rec)
@@ -516,9 +520,9 @@ def write_colmap_models(folder: str | os.PathLike[str], rec: Reconstruction) -> 
         xy = flat[offs[r.obs_image] + r.obs_keypoint]
         err = reprojection_errors(r.points, xy, r.obs_point, r.obs_image, r.K, r.w2c)
         folder_k = Path(folder) / str(len(out))
-        write_colmap_text(folder_k, [x.key for x in recs], [x.path for x in recs],
-                          [x.size for x in recs], r.K, dist, fixed.numpy(), cams, uv, pts,
-                          r.obs_image, r.obs_keypoint, r.obs_point, err)
+        write_colmap_model(folder_k, names, [x.path for x in recs], [x.size for x in recs],
+                           r.K, dist, fixed.numpy(), cams, uv, pts, r.obs_image,
+                           r.obs_keypoint, r.obs_point, err, binary=binary)
         out.append(folder_k)
     return out
 

@@ -61,6 +61,10 @@ def write_html_view(
         units: axis unit shown in the legend (``"m"`` when aligned to metric ground truth).
         max_points: points beyond this are subsampled (evenly, deterministically) to keep the
             file small and the page fluid.
+
+    The page's status line counts the cameras and every point given, the number a title
+    should quote; points not drawn (not finite, subsampled, or far out: beyond 20 x the
+    cameras' radius, which would shrink the cameras to a dot) are counted there as well.
     """
     cams = {k: c for k, c in cameras.items()
             if c.get("camera_to_world") is not None and c.get("solved", True)}
@@ -80,10 +84,13 @@ def write_html_view(
            else np.asarray(colours).reshape(-1, 3))
     if len(rgb) != len(pts):
         raise ValueError(f"colours: {len(rgb)} rows for {len(pts)} points")
+    n_given = len(pts)
     ok = np.isfinite(pts).all(1)
     pts, rgb = pts[ok], rgb[ok]
+    left_out = {"not finite": n_given - len(pts)}
     if len(pts) > max_points:
         pick = np.linspace(0, len(pts) - 1, max_points).round().astype(np.int64)
+        left_out["thinned out"] = len(pts) - max_points
         pts, rgb = pts[pick], rgb[pick]
 
     # display frame: centred on the cameras, scaled to unit radius, "up" the cameras' mean -y
@@ -104,7 +111,14 @@ def write_html_view(
     radius = float(np.percentile(np.linalg.norm(all_c - mid, axis=1), 90)) or 1.0
     if len(pts):  # points far out (a few bad triangulations) must not shrink the cameras
         keep = np.linalg.norm(pts - mid, axis=1) < 20 * radius
+        left_out["far from the cameras"] = int((~keep).sum())
         pts, rgb = pts[keep], rgb[keep]
+    status = f"{len(names)} cameras, {n_given} points"
+    if len(pts) < n_given:
+        status += f" ({len(pts)} drawn; left out: " + ", ".join(
+            f"{n} {why}" for why, n in left_out.items() if n) + ")"
+    if len(sizes) > 1:
+        status += f", {len(sizes)} components"
 
     def show(x: np.ndarray) -> np.ndarray:
         return ((x - mid) @ D.T) / radius
@@ -128,6 +142,7 @@ def write_html_view(
         "points": np.round(show(pts), 4).reshape(-1).tolist() if len(pts) else [],
         "rgb": np.clip(rgb, 0, 255).astype(np.int64).reshape(-1).tolist(),
         "components": len(sizes),
+        "status": status,
     }
     # "</" inside the script element would end it: escape the slash
     blob = json.dumps(data, separators=(",", ":")).replace("</", "<\\/")
@@ -302,8 +317,7 @@ window.addEventListener("resize", draw);
 readHash();
 legend();
 draw();
-document.getElementById("status").textContent = D.cameras.length + " cameras, " +
-  D.points.length / 3 + " points" + (D.components > 1 ? ", " + D.components + " components" : "");
+document.getElementById("status").textContent = D.status;
 document.body.dataset.rendered = "1";
 </script>
 </body></html>

@@ -321,6 +321,32 @@ def test_lightning_exit_after_ctrl_c_is_an_interruption(capsys, monkeypatch):
     assert capsys.readouterr().err == "posernet-train: interrupted\n"
 
 
+def test_ctrl_c_while_a_command_imports_is_one_line():
+    """A command spends its first second or more importing torch & co., before run_app sets up
+    its Ctrl-C handling: a Ctrl-C then is still one line and exit status 130, not a traceback
+    from inside an import. Only in a posernet-* command: a program importing posernet keeps
+    Python's own handling."""
+    import subprocess
+
+    from posernet import startup
+
+    script = ("import os, signal, sys, threading\n"
+              "sys.argv[0] = {prog!r}\n"
+              "threading.Timer(0.3, os.kill, (os.getpid(), signal.SIGINT)).start()\n"
+              "import posernet, time\n"
+              "time.sleep(30)\n")
+    r = subprocess.run([sys.executable, "-c", script.format(prog="/venv/bin/posernet-x")],
+                       capture_output=True, text=True, timeout=120)
+    assert (r.returncode, r.stderr) == (130, "posernet-x: interrupted\n")
+    r = subprocess.run([sys.executable, "-c", script.format(prog="my-tool")],
+                       capture_output=True, text=True, timeout=120)
+    # Python's own handling: a traceback (KeyboardInterrupt, or another error from the import
+    # it broke off, e.g. numpy's "cannot load module more than once per process")
+    assert r.returncode != 130 and "Traceback" in r.stderr
+    assert not startup.install()  # under pytest: not a command, nothing installed
+    assert signal.getsignal(signal.SIGINT) is not startup.interrupted_while_starting
+
+
 def test_multiline_messages_become_one_line(capsys):
     from omegaconf import OmegaConf
     from omegaconf.errors import MissingMandatoryValue

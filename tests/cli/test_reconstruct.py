@@ -233,6 +233,64 @@ def test_bundle_adjustment_that_fails_is_reported_and_loses_nothing(scene, tmp_p
     assert len(rows) == 2 and rows[0].split("|")[3:] == rows[1].split("|")[3:], rows
 
 
+def _colmap_binary_names(folder: Path) -> list[str]:
+    """The image names of a COLMAP binary ``images.bin``, read as COLMAP reads them."""
+    import struct
+
+    data = (folder / "images.bin").read_bytes()
+    (n,), pos, names = struct.unpack_from("<Q", data), 8, []
+    for _ in range(n):
+        end = data.index(b"\0", pos + 64)
+        names.append(data[pos + 64:end].decode())
+        (k,) = struct.unpack_from("<Q", data, end + 1)
+        pos = end + 9 + 24 * k
+    assert pos == len(data)
+    return names
+
+
+@pytest.mark.slow
+def test_image_names_with_spaces_are_kept_in_every_output(scene, tmp_path):
+    """``kamera 13.png``: every output names the real file (no ``kamera_13.png``); the COLMAP
+    model is binary (COLMAP's text reader would cut the name at the space), the TUM header
+    quotes each row's name."""
+    from posernet.export import read_tum_image_names
+
+    imgs = tmp_path / "my photos"
+    imgs.mkdir()
+    for k, p in enumerate(sorted((scene / "seq-01").glob("*.color.png"))[:6]):
+        shutil.copy(p, imgs / f"kamera {k + 10}.png")
+    names = sorted(p.name for p in imgs.iterdir())
+    out = tmp_path / "out"
+    r = _run(f"images={imgs}", f"intrinsics={_intr(scene)}", f"out_dir={out}", "matcher=sift",
+             "pictures=1")
+    assert r.returncode == 0, r.stderr
+    assert "COLMAP model in" in r.stdout and "binary" in r.stdout
+    cams = json.loads((out / "poses.json").read_text())["cameras"]
+    assert sorted(cams) == names and all(c["solved"] for c in cams.values())
+    model = out / "sparse" / "0"
+    assert sorted(p.name for p in model.iterdir()) == ["cameras.bin", "images.bin",
+                                                       "points3D.bin"]
+    assert sorted(_colmap_binary_names(model)) == names
+    try:
+        import pycolmap
+    except ImportError:
+        pycolmap = None
+    if pycolmap is not None:  # COLMAP itself reads the real names back
+        rec = pycolmap.Reconstruction(str(model))
+        assert sorted(im.name for im in rec.images.values()) == names
+    frames = json.loads((out / "transforms.json").read_text())["frames"]
+    assert sorted(Path(f["file_path"]).name for f in frames) == names
+    assert all((out / f["file_path"]).is_file() for f in frames)  # the real image files
+    tum = out / "trajectory_tum.txt"
+    assert sorted(read_tum_image_names(tum)) == names
+    rows = [ln.split() for ln in tum.read_text().splitlines() if not ln.startswith("#")]
+    assert len(rows) == len(names) and all(len(row) == 8 for row in rows)
+    view = (out / "cameras.html").read_text()
+    assert all(f'"name":"{n}"' in view for n in names) and "kamera_" not in view
+    assert not any("kamera_" in p.read_text(errors="replace")
+                   for p in out.iterdir() if p.is_file() and p.suffix in (".json", ".txt"))
+
+
 @pytest.mark.slow
 def test_reconstruct_unreadable_image(scene, tmp_path):
     imgs = tmp_path / "photos"
@@ -299,6 +357,83 @@ def test_same_command_again_resumes_from_the_cache(scene, tmp_path):
     assert not (tmp_path / "fresh" / "cache").exists()
     got = json.loads((tmp_path / "fresh" / "poses.json").read_text())["cameras"]
     assert got == poses["cameras"]
+
+
+def _cache_entries(out: Path) -> dict[str, int]:
+    return {kind: len(list(out.glob(f"cache/*/{kind}/*.npz"))) for kind in ("images", "pairs")}
+
+
+@pytest.mark.slow
+def test_ctrl_c_is_one_line_and_the_same_command_resumes(scene, tmp_path):
+    """Ctrl-C while pairs are matched: one line (what the cache keeps, counted), exit status
+    130, no traceback, nothing but the cache in out_dir; the same command again reuses
+    exactly those images and pairs."""
+    import signal
+    import time
+
+    out = tmp_path / "out"
+    cmd = [str(BIN / "posernet-reconstruct"), f"images={scene / 'seq-01'}",
+           f"intrinsics={_intr(scene)}", f"out_dir={out}", "matcher=sift", "pictures=0",
+           "workers=1", "progress=false"]
+    p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                         start_new_session=True, env=dict(os.environ, OMP_NUM_THREADS="1"))
+    deadline = time.monotonic() + 300
+    while _cache_entries(out)["pairs"] < 3 and p.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.01)
+    if p.poll() is None:
+        os.killpg(p.pid, signal.SIGINT)  # what Ctrl-C in a terminal does
+    _, err = p.communicate(timeout=300)
+    if p.returncode == 0:
+        pytest.skip("the run finished before the interrupt")
+    assert p.returncode == 130, err
+    assert "Traceback" not in err
+    (line,) = err.strip().splitlines()
+    kept = _cache_entries(out)
+    assert kept["images"] == 8 and 3 <= kept["pairs"] < 28
+    assert line == (
+        "posernet-reconstruct: interrupted; run the same command again to resume: it reuses "
+        f"the front-end work kept in {out / 'cache'} (8 image(s): features; {kept['pairs']} "
+        "image pair(s): matches and two-view verification) and computes the rest again (other "
+        "images and pairs, averaging, bundle adjustment, outputs)")
+    assert [q.name for q in out.iterdir()] == ["cache"]
+    again = subprocess.run(cmd, capture_output=True, text=True, timeout=600,
+                           env=dict(os.environ, OMP_NUM_THREADS="1"))
+    assert again.returncode == 0, again.stderr
+    assert f"reused from the cache: 8 images, {kept['pairs']} pairs" in again.stdout
+    assert sum(c["solved"] for c in
+               json.loads((out / "poses.json").read_text())["cameras"].values()) == 8
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(("error", "status"), [(KeyboardInterrupt, 130), (ValueError, 1)])
+def test_a_run_stopped_while_writing_leaves_no_partial_outputs(scene, tmp_path, monkeypatch,
+                                                              capsys, error, status):
+    """Ctrl-C (or an error) once the outputs are being written: those already written are
+    removed again, so that out_dir never holds a partial set (a lone poses.json would pass
+    for a finished run and make the same command refuse to start); its cache stays."""
+    from hydra import compose, initialize_config_module
+
+    import posernet.export as export_module
+    from posernet.cli.reconstruct import _direct
+
+    def stopped(*args, **kwargs):
+        raise error("stopped while writing")
+
+    monkeypatch.setattr(export_module, "write_tum", stopped)
+    out = tmp_path / "o"
+    with initialize_config_module("posernet.conf", version_base=None):
+        cfg = compose("reconstruct", overrides=[f"images={scene / 'seq-01'}",
+                                                f"intrinsics='{_intr(scene)}'", "matcher=sift",
+                                                f"out_dir={out}", "progress=false",
+                                                "pictures=1"])
+    with pytest.raises(SystemExit) as exc:
+        _direct(cfg)
+    assert exc.value.code == status
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(
+        "posernet-reconstruct: interrupted; run the same command again to resume"
+        if status == 130 else "posernet-reconstruct: error: stopped while writing")
+    assert [q.name for q in out.iterdir()] == ["cache"]  # no poses.json, sparse/, ...
 
 
 @pytest.mark.slow
@@ -450,6 +585,41 @@ def test_a_camera_failing_the_self_check_is_unsolved_in_every_output(scene, tmp_
     html = (out / "cameras.html").read_text()
     assert bad not in html and all(n in html for n in placed)
     assert json.loads((out / "summary.json").read_text())["cameras_placed"] == len(placed)
+
+
+@pytest.mark.slow
+def test_html_view_title_and_status_count_the_same_points(scene, tmp_path, monkeypatch):
+    """A few points far out (bad triangulations), which the view does not draw: the page's
+    title and its status line still give the same number of 3D points, that of the model."""
+    from hydra import compose, initialize_config_module
+
+    import posernet.reconstruct as reconstruct_module
+    from posernet.cli.reconstruct import run
+
+    real = reconstruct_module.largest_point_cloud
+    seen = {}
+
+    def with_far_points(rec):
+        cams, pts, colours = real(rec)
+        far = pts.mean(0) + 1e5 * np.array([[1.0, 0, 0], [0, 1.0, 0], [0, 0, -1.0]])
+        seen["points"] = len(pts) + 3
+        return cams, np.concatenate([pts, far]), np.concatenate([colours, colours[:3]])
+
+    monkeypatch.setattr(reconstruct_module, "largest_point_cloud", with_far_points)
+    out = tmp_path / "o"
+    with initialize_config_module("posernet.conf", version_base=None):
+        cfg = compose("reconstruct", overrides=[f"images={scene / 'seq-01'}",
+                                                f"intrinsics='{_intr(scene)}'", "matcher=sift",
+                                                f"out_dir={out}", "progress=false",
+                                                "pictures=1"])
+    run(cfg)
+    page = (out / "cameras.html").read_text()
+    title = re.search(r"<title>(.*?)</title>", page).group(1)
+    status = json.loads(re.search(r'<script id="data" type="application/json">(.*?)</script>',
+                                  page, re.S).group(1))["status"]
+    count = re.compile(r"(\d+) points")
+    assert count.search(title).group(1) == count.search(status).group(1) == str(seen["points"])
+    assert f"({seen['points'] - 3} drawn; left out: 3 far from the cameras)" in status
 
 
 @pytest.mark.slow

@@ -273,6 +273,41 @@ def test_ground_truth_from_a_tum_trajectory_or_a_colmap_model(tmp_path):
     np.testing.assert_allclose(np.stack([r.c2w for r in recs]), c2w, atol=1e-6)
 
 
+def test_ground_truth_from_a_colmap_model_with_spaces_in_names(tmp_path):
+    """Our binary model (written for names with spaces) and COLMAP's own text model, which
+    writes such names unchanged at the end of the line, are both read back by the real name."""
+    from posernet.export import write_colmap_model
+    from posernet.frontend.images import read_colmap_images
+    from posernet.sfm.synthetic import make_scene
+
+    sc = make_scene(num_cameras=4, num_points=60, seed=2)
+    c2w = np.linalg.inv(sc.w2c)
+    imgs = tmp_path / "photos"
+    imgs.mkdir()
+    img = np.full((32, 48, 3), 90, np.uint8)
+    img[4:20, 6:30] = 200
+    names = [f"kamera {i}.png" for i in range(4)]
+    for n in names:
+        cv2.imwrite(str(imgs / n), img)
+    model = tmp_path / "model"
+    files = write_colmap_model(model, names, None, [(48, 32)] * 4, sc.K, [None] * 4, sc.w2c,
+                               np.arange(4), sc.uv, sc.points, sc.obs_image, sc.obs_kp,
+                               sc.obs_point)
+    assert files[1].name == "images.bin"
+    for src in (model, model / "images.bin"):
+        got = read_colmap_images(src)
+        assert sorted(got) == names
+        np.testing.assert_allclose(np.stack([got[n] for n in names]), c2w, atol=1e-6)
+    recs = records_for_images(imgs, "50,50,24,16", gt_poses=str(model))
+    np.testing.assert_allclose(np.stack([r.c2w for r in recs]), c2w, atol=1e-6)
+    text = tmp_path / "images.txt"
+    text.write_text("# COLMAP\n1 1 0 0 0 0.5 0 0 1 kamera 0.png\n\n")
+    assert list(read_colmap_images(text)) == ["kamera 0.png"]
+    (model / "images.bin").write_bytes(b"\x02\0\0")
+    with pytest.raises(ImageError, match="not a readable binary images file"):
+        read_colmap_images(model)
+
+
 def test_given_intrinsics_must_fit_the_images(tmp_path):
     from posernet.frontend.images import image_size
 

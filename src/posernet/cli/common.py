@@ -165,7 +165,10 @@ def run_app(prog: str, config_name: str, app: Callable[[], Any], *,
     and configures no logging (``posernet-reconstruct``), a plain run (not ``--help``, ``-m``,
     ...) calls it with the config the check already composed instead of letting ``app``
     compose it twice more (about 0.3 s of a few-second run)."""
-    if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
+    from ..startup import interrupted_while_starting
+
+    if signal.getsignal(signal.SIGINT) in (signal.default_int_handler,
+                                           interrupted_while_starting):
         signal.signal(signal.SIGINT, _on_sigint)
     _skip_final_collection()
     if any(a in ("--help", "-h") for a in sys.argv[1:]):

@@ -7,19 +7,24 @@ boxes) -> 5-point (KP) with two-view verification -> PoserNet (shipped checkpoin
 ``refine=true``; off by default, see ``posernet/conf/reconstruct.yaml``) -> robust motion
 averaging (``sync=``) -> tracks, triangulation and bundle adjustment (``ba=true``), then
 writes into ``out_dir``: ``poses.json`` (format ``posernet-poses``), ``sparse/<k>/`` (the
-bundle-adjusted cameras and points as COLMAP text models, one per component),
+bundle-adjusted cameras and points as COLMAP models, one per component: text, or binary
+when an image name has a space, which the text format cannot hold),
 ``transforms.json`` (nerfstudio) and ``trajectory_tum.txt`` (TUM RGB-D trajectory) of the
 largest component, ``summary.json`` (counts and per-stage timings), ``matches_<k>.png``
 (image pairs with their matches) and ``cameras.png`` (the recovered cameras in 3D). With a
 pose file per image (``<name>.pose.txt``, 7-Scenes layout, or ``gt_poses=DIR``) it also
 prints and writes the error tables (``table.md``, ``abs_table.md``). A run that places no
-camera still writes ``poses.json`` and ``summary.json`` and exits with status 3.
+camera still writes ``poses.json`` and ``summary.json`` and exits with status 3. Ctrl-C is
+one line saying what the same command reuses when run again (the front-end cache in
+``out_dir/cache``), exit status 130; outputs being written then are removed again.
 """
 
 from __future__ import annotations
 
 import sys
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, NoReturn
 
@@ -249,55 +254,63 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     out.mkdir(parents=True, exist_ok=True)
     if replace:
         _clear_outputs(out)
-    record = poses_json(rec, info)  # built once: poses.json and the summary share it
-    files: dict[str, Any] = {"poses": atomic_write_json(out / "poses.json", record, indent=1)}
-    files["colmap"] = write_colmap_models(out / "sparse", rec)
-    if _solved_any(record):
-        from ..export import write_nerfstudio, write_tum
+    with _all_or_none(out):  # an interrupted or failed run leaves no partial set
+        record = poses_json(rec, info)  # built once: poses.json and the summary share it
+        files: dict[str, Any] = {"poses": atomic_write_json(out / "poses.json", record,
+                                                            indent=1)}
+        files["colmap"] = write_colmap_models(out / "sparse", rec)
+        if _solved_any(record):
+            from ..export import write_nerfstudio, write_tum
 
-        files["nerfstudio"] = write_nerfstudio(out / "transforms.json", record["cameras"],
-                                               cfg.images)
-        files["tum"] = write_tum(out / "trajectory_tum.txt", record["cameras"])
-    solved = sum(c["solved"] for c in record["cameras"].values())
-    print(f"[3/3] {'PoserNet + ' if model is not None else ''}{backend!r}"
-          f"{' + bundle adjustment' if bundle is not None else ''}: {solved} of "
-          f"{len(records)} cameras placed ({rec.graph.num_edges} edges)")
-    for stage, runs in rec.sfm.items():
-        for r in runs:
-            print(f"      {stage}: " + "\n      ".join(line for line in r.lines()[-4:] if line))
-    if rec.check is not None:
-        print("      " + rec.check.line([r.key for r in records]))
-    print("      seconds: " + ", ".join(
-        f"{k.replace('_', ' ')} {v['seconds']:.2f}"
-        + (f" ({1000 * v['seconds'] / v['items']:.1f} ms x {v['items']})"
-           if k in ("images", "pairs") and v["items"] else "")
-        for k, v in rec.stages.items())
-        + f"; peak memory {max(v['peak_mb'] for v in rec.stages.values()):.0f} MB")
-    files["summary"] = atomic_write_json(out / "summary.json", {
-        **info, "frontend": frontend.summary.to_dict(), "pair_selection": record["pair_selection"],
-        "stages": rec.stages, "cameras_placed": solved, "self_check": record["self_check"],
-        "edges": rec.graph.num_edges, "rotation_only_edges": frontend.summary.rotation_only,
-        "rejected_pairs": frontend.summary.rejected and dict(frontend.summary.rejected),
-        "bundle_adjustment": record["bundle_adjustment"],
-        "seconds_total": round(time.perf_counter() - t0, 2)})
-    files["pictures"] = _pictures(rec, out, int(cfg.pictures))
-    files["cameras_png"] = _camera_plot(rec, out) if int(cfg.pictures) > 0 else None
-    files["html"] = _html_view(rec, record, out) if int(cfg.pictures) > 0 else None
-    if has_gt:
-        ev = evaluate_result(rec.result)
-        tables = result_tables(ev, label=str(cfg.estimate).upper(), backend=rec.result.backend,
-                               title=f": {len(records)} images of {Path(cfg.images).name}")
-        for key, stem in (("relative", "table"), ("absolute", "abs_table")):
-            if key in tables:
-                tables[key].write(out, stem, digits=int(cfg.digits))
-                print(tables[key].to_markdown(int(cfg.digits)) + "\n")
-        files["tables"] = tables
-        files["evaluation"] = ev
-        traj = _trajectory_errors(record, records, out)
-        if traj is not None:
-            files["trajectory_errors"] = traj
+            files["nerfstudio"] = write_nerfstudio(out / "transforms.json", record["cameras"],
+                                                   cfg.images)
+            files["tum"] = write_tum(out / "trajectory_tum.txt", record["cameras"])
+        solved = sum(c["solved"] for c in record["cameras"].values())
+        print(f"[3/3] {'PoserNet + ' if model is not None else ''}{backend!r}"
+              f"{' + bundle adjustment' if bundle is not None else ''}: {solved} of "
+              f"{len(records)} cameras placed ({rec.graph.num_edges} edges)")
+        for stage, runs in rec.sfm.items():
+            for r in runs:
+                print(f"      {stage}: "
+                      + "\n      ".join(line for line in r.lines()[-4:] if line))
+        if rec.check is not None:
+            print("      " + rec.check.line([r.key for r in records]))
+        print("      seconds: " + ", ".join(
+            f"{k.replace('_', ' ')} {v['seconds']:.2f}"
+            + (f" ({1000 * v['seconds'] / v['items']:.1f} ms x {v['items']})"
+               if k in ("images", "pairs") and v["items"] else "")
+            for k, v in rec.stages.items())
+            + f"; peak memory {max(v['peak_mb'] for v in rec.stages.values()):.0f} MB")
+        files["summary"] = atomic_write_json(out / "summary.json", {
+            **info, "frontend": frontend.summary.to_dict(),
+            "pair_selection": record["pair_selection"], "stages": rec.stages,
+            "cameras_placed": solved, "self_check": record["self_check"],
+            "edges": rec.graph.num_edges, "rotation_only_edges": frontend.summary.rotation_only,
+            "rejected_pairs": frontend.summary.rejected and dict(frontend.summary.rejected),
+            "bundle_adjustment": record["bundle_adjustment"],
+            "seconds_total": round(time.perf_counter() - t0, 2)})
+        files["pictures"] = _pictures(rec, out, int(cfg.pictures))
+        files["cameras_png"] = _camera_plot(rec, out) if int(cfg.pictures) > 0 else None
+        files["html"] = _html_view(rec, record, out) if int(cfg.pictures) > 0 else None
+        if has_gt:
+            ev = evaluate_result(rec.result)
+            tables = result_tables(ev, label=str(cfg.estimate).upper(),
+                                   backend=rec.result.backend,
+                                   title=f": {len(records)} images of {Path(cfg.images).name}")
+            for key, stem in (("relative", "table"), ("absolute", "abs_table")):
+                if key in tables:
+                    tables[key].write(out, stem, digits=int(cfg.digits))
+                    print(tables[key].to_markdown(int(cfg.digits)) + "\n")
+            files["tables"] = tables
+            files["evaluation"] = ev
+            traj = _trajectory_errors(record, records, out)
+            if traj is not None:
+                files["trajectory_errors"] = traj
+    binary = any((p / "images.bin").is_file() for p in files["colmap"])
     colmap = (f", COLMAP model{'s' if len(files['colmap']) > 1 else ''} in "
-              + ", ".join(str(p) for p in files["colmap"])) if files["colmap"] else ""
+              + ", ".join(str(p) for p in files["colmap"])
+              + (" (binary: an image name has a space, which COLMAP's text format cannot "
+                 "hold)" if binary else "")) if files["colmap"] else ""
     more = ", nerfstudio transforms.json, TUM trajectory_tum.txt" if "tum" in files else ""
     print(f"wrote {files['poses']}{colmap}{more} and pictures in {out} "
           f"({time.perf_counter() - t0:.0f} s)")
@@ -366,20 +379,59 @@ def _claim_out_dir(out: Path, overwrite: bool) -> bool:
     return True
 
 
-def _clear_outputs(out: Path) -> None:
-    """Remove an earlier run's outputs from ``out`` (never its cache or unknown files)."""
+def _remove_outputs(out: Path) -> int:
+    """Remove the outputs a run writes from ``out`` (never its cache or unknown files);
+    returns how many were removed."""
     import shutil
 
     removed = 0
     for pattern in _OUTPUTS:
         for p in out.glob(pattern):
             if p.is_dir():
-                shutil.rmtree(p)
+                shutil.rmtree(p, ignore_errors=True)
             else:
-                p.unlink()
+                p.unlink(missing_ok=True)
             removed += 1
+    return removed
+
+
+def _clear_outputs(out: Path) -> None:
+    """Remove an earlier run's outputs from ``out`` (never its cache or unknown files)."""
+    removed = _remove_outputs(out)
     print(f"out_dir: replaced the previous outputs in {out} ({removed} removed; its cache "
           "was reused)")
+
+
+@contextmanager
+def _all_or_none(out: Path) -> Iterator[None]:
+    """The outputs written inside the block form one set: when the block is interrupted
+    (Ctrl-C) or fails, the ones already written are removed again, so that ``out`` holds a
+    complete run or none (each file is written atomically, and a lone ``poses.json`` would
+    pass for a finished run). Only its cache stays, and the same command resumes from it.
+    The outputs of an earlier run are gone by then (removed just before the block)."""
+    try:
+        yield
+    except BaseException as exc:
+        if not isinstance(exc, SystemExit):
+            _remove_outputs(out)
+        raise
+
+
+def _resume_hint(cfg: DictConfig) -> str:
+    """After Ctrl-C: what the same command reuses when run again (the front-end cache's
+    entries in ``out_dir/cache``, counted on disk) and what it does again."""
+    out = Path(str(cfg.out_dir))
+    if not cfg.get("cache", True):
+        return "nothing was cached (cache=false): running it again starts over"
+    folders = sorted((out / "cache").glob("*/options.json"), key=lambda p: p.stat().st_mtime)
+    done = {kind: sum(1 for _ in folders[-1].parent.glob(f"{kind}/*.npz")) if folders else 0
+            for kind in ("images", "pairs")}
+    if not any(done.values()):
+        return "nothing was finished yet: running it again starts over"
+    return (f"run the same command again to resume: it reuses the front-end work kept in "
+            f"{out / 'cache'} ({done['images']} image(s): features; {done['pairs']} image "
+            "pair(s): matches and two-view verification) and computes the rest again (other "
+            "images and pairs, averaging, bundle adjustment, outputs)")
 
 
 def _solved_any(record: dict[str, Any]) -> bool:
@@ -400,19 +452,20 @@ def _report_nothing_placed(err: Any, out: Path, info: dict[str, Any], pictures: 
     fe = err.frontend
     print("[2/3] front end: " + "\n      ".join([*err.pairs.lines(), *fe.summary.lines()]))
     out.mkdir(parents=True, exist_ok=True)
-    record = unplaced_json(err, info)
-    atomic_write_json(out / "poses.json", record, indent=1)
-    atomic_write_json(out / "summary.json", {
-        **info, "frontend": fe.summary.to_dict(), "pair_selection": record["pair_selection"],
-        "stages": err.stages, "cameras_placed": 0, "edges": 0,
-        "rejected_pairs": dict(fe.summary.rejected),
-        "seconds_total": round(time.perf_counter() - t0, 2)})
-    best = sorted(fe.matches.items(), key=lambda kv: -len(kv[1]))[:max(pictures, 0)]
-    for n, ((a, b), m) in enumerate(best):
-        ra, rb, pr = fe.records[a], fe.records[b], fe.pair(a, b)
-        draw_matches(read_image(ra.path), read_image(rb.path), m, out / f"matches_{n}.png",
-                     max_lines=80, title=f"{ra.key} <-> {rb.key}: {len(m)} matches, rejected "
-                     f"({pr.reason or pr.status})")
+    with _all_or_none(out):
+        record = unplaced_json(err, info)
+        atomic_write_json(out / "poses.json", record, indent=1)
+        atomic_write_json(out / "summary.json", {
+            **info, "frontend": fe.summary.to_dict(),
+            "pair_selection": record["pair_selection"], "stages": err.stages,
+            "cameras_placed": 0, "edges": 0, "rejected_pairs": dict(fe.summary.rejected),
+            "seconds_total": round(time.perf_counter() - t0, 2)})
+        best = sorted(fe.matches.items(), key=lambda kv: -len(kv[1]))[:max(pictures, 0)]
+        for n, ((a, b), m) in enumerate(best):
+            ra, rb, pr = fe.records[a], fe.records[b], fe.pair(a, b)
+            draw_matches(read_image(ra.path), read_image(rb.path), m, out / f"matches_{n}.png",
+                         max_lines=80, title=f"{ra.key} <-> {rb.key}: {len(m)} matches, "
+                         f"rejected ({pr.reason or pr.status})")
     print(f"posernet-reconstruct: placed no camera: {err}; wrote {out / 'poses.json'} (every "
           f"camera unsolved, every pair with its reason){' and pictures' if best else ''}",
           file=sys.stderr)
@@ -434,7 +487,7 @@ def _needs_boxes(cfg: DictConfig) -> bool:
 @hydra.main(version_base="1.3", config_path=CONFIG_DIR, config_name="reconstruct")
 def _hydra_main(cfg: DictConfig) -> None:
     # ImageError, ProposalError and MatcherError are ValueErrors
-    run_task("posernet-reconstruct", run, cfg, errors=(ValueError,))
+    run_task("posernet-reconstruct", run, cfg, errors=(ValueError,), resume_hint=_resume_hint)
 
 
 def main() -> None:
@@ -444,7 +497,7 @@ def main() -> None:
 
 
 def _direct(cfg: DictConfig) -> None:
-    run_task("posernet-reconstruct", run, cfg, errors=(ValueError,))
+    run_task("posernet-reconstruct", run, cfg, errors=(ValueError,), resume_hint=_resume_hint)
 
 
 if __name__ == "__main__":

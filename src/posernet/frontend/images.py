@@ -439,10 +439,15 @@ def associate(stamps: np.ndarray, gt_stamps: np.ndarray, max_diff: float = 0.02)
 
 
 def read_colmap_images(folder: str | os.PathLike[str]) -> dict[str, np.ndarray]:
-    """Camera-to-world poses by image name from a COLMAP text model's ``images.txt`` (in
-    ``folder`` or ``folder/images.txt`` itself)."""
+    """Camera-to-world poses by image name from a COLMAP model's images: ``images.bin`` (the
+    binary model, preferred when ``folder`` holds both, as COLMAP does) or ``images.txt``, in
+    ``folder`` or the file itself. A text line's name is the rest of the line after its camera
+    id (COLMAP writes names unchanged, spaces included)."""
     p = Path(folder)
-    p = p / "images.txt" if p.is_dir() else p
+    if p.is_dir():
+        p = p / "images.bin" if (p / "images.bin").is_file() else p / "images.txt"
+    if p.suffix == ".bin":
+        return _read_colmap_images_bin(p)
     try:
         lines = [ln for ln in p.read_text(encoding="utf-8").splitlines()
                  if ln.strip() and not ln.startswith("#")]
@@ -450,16 +455,46 @@ def read_colmap_images(folder: str | os.PathLike[str]) -> dict[str, np.ndarray]:
         raise ImageError(f"cannot read COLMAP model {p}: {e}") from None
     out = {}
     for head in lines[0::2]:  # each image: a pose line, then its 2D points line
-        f = head.split()
+        f = head.split(maxsplit=9)
         try:
             q = np.array([float(v) for v in f[1:5]])[None]
             t = np.array([float(v) for v in f[5:8]])
             name = f[9]
         except (ValueError, IndexError):
             raise ImageError(f"COLMAP model {p}: bad image line {head[:60]!r}") from None
-        w2c = np.eye(4)
-        w2c[:3, :3], w2c[:3, 3] = _quat_to_matrix(q)[0], t
-        out[name] = np.linalg.inv(w2c)
+        out[name] = _c2w(q, t)
+    return out
+
+
+def _c2w(q_wxyz: np.ndarray, t: np.ndarray) -> np.ndarray:
+    w2c = np.eye(4)
+    w2c[:3, :3], w2c[:3, 3] = _quat_to_matrix(q_wxyz)[0], t
+    return np.linalg.inv(w2c)
+
+
+def _read_colmap_images_bin(p: Path) -> dict[str, np.ndarray]:
+    """COLMAP's binary ``images.bin``: per image ``id u32, qw qx qy qz tx ty tz f64, camera
+    u32, name\\0, n u64, (x, y f64, point id u64)[n]``, little-endian."""
+    import struct
+
+    try:
+        data = p.read_bytes()
+    except OSError as e:
+        raise ImageError(f"cannot read COLMAP model {p}: {e}") from None
+    out = {}
+    try:
+        (n,), pos = struct.unpack_from("<Q", data), 8
+        for _ in range(n):
+            v = struct.unpack_from("<I7dI", data, pos)
+            end = data.index(b"\0", pos + 64)
+            name = data[pos + 64:end].decode("utf-8")
+            (k,) = struct.unpack_from("<Q", data, end + 1)
+            pos = end + 9 + 24 * k
+            if pos > len(data):
+                raise ValueError("truncated")
+            out[name] = _c2w(np.array(v[1:5])[None], np.array(v[5:8]))
+    except (struct.error, ValueError, UnicodeDecodeError) as e:
+        raise ImageError(f"COLMAP model {p}: not a readable binary images file ({e})") from None
     return out
 
 
@@ -476,7 +511,7 @@ def _pose_path(image: Path, pose_dir: Path | None) -> Path:
 
 def _external_gt(records: list[ImageRecord], src: Path) -> list[ImageRecord]:
     """Ground truth from a COLMAP model or a TUM trajectory file for every record."""
-    if src.is_dir() or src.name == "images.txt":
+    if src.is_dir() or src.name in ("images.txt", "images.bin"):
         poses = read_colmap_images(src)
         missing = [r.key for r in records if r.key not in poses and r.path.name not in poses]
         if missing:
@@ -520,7 +555,8 @@ def records_for_images(
     ``gt_poses``: ``"auto"`` uses ``<name>.pose.txt`` files beside the images when every image
     has one (7-Scenes layout: ``frame-000000.color.png`` -> ``frame-000000.pose.txt``),
     ``"none"``/``None`` ignores them; a folder requires one pose file per image there, a COLMAP
-    text model (a folder with ``images.txt``) one image entry per image (matched by name), and
+    model (a folder with ``images.bin`` or ``images.txt``) one image entry per image (matched
+    by name), and
     a TUM trajectory file (``groundtruth.txt``) a pose within 20 ms of each image's
     timestamp (from TUM-style names, ``1305031102.175304.png``).
     """
@@ -563,7 +599,8 @@ def records_for_images(
     if mode.lower() == "none":
         return records
     pose_dir = None if mode == "auto" else Path(mode)
-    if pose_dir is not None and (pose_dir.is_file() or (pose_dir / "images.txt").is_file()):
+    if pose_dir is not None and (pose_dir.is_file() or (pose_dir / "images.txt").is_file()
+                                 or (pose_dir / "images.bin").is_file()):
         return _external_gt(records, pose_dir)
     if pose_dir is not None and not pose_dir.is_dir():
         raise ImageError(f"gt_poses folder not found: {pose_dir}")
