@@ -53,6 +53,28 @@ def test_registration_recovers_poses_from_a_poor_start(long_lens) -> None:
     assert pos < 0.01 * 25, pos
 
 
+@pytest.mark.parametrize("growth", [1.0, 1.25, 2.0])
+def test_registration_adjusts_as_the_model_grows(long_lens, monkeypatch, growth) -> None:
+    """The placed cameras are adjusted when their number has grown by ``growth``: every
+    registration at 1, fewer at larger factors, and the cameras are recovered either way."""
+    import posernet.sfm.incremental as inc
+
+    calls = []
+    real = inc.bundle_adjust
+    monkeypatch.setattr(inc, "bundle_adjust", lambda *a, **k: calls.append(1) or real(*a, **k))
+    sc = long_lens
+    w0 = perturb_poses(sc.w2c, 8.0, 0.3, seed=1)
+    members = np.ones(8, bool)
+    xy, tr = _tracks(sc, members)
+    reg = register_incrementally(xy, tr.track, tr.image, tr.num_tracks, sc.K, w0, members,
+                                 growth=growth)
+    assert reg.registered.all()
+    # 2 seed cameras, then 6 registrations: adjusted at 2,3,...,8 / 2,3,4,5,7 / 2,4,8
+    assert len(calls) == {1.0: 7, 1.25: 5, 2.0: 3}[growth]
+    rot, pos = _errors(reg.w2c, sc.w2c)
+    assert rot < 0.5 and pos < 0.01 * 25, (rot, pos)
+
+
 def _collapsed(w2c: np.ndarray, factor: float) -> np.ndarray:
     """Camera centres pulled to their mean by ``factor`` (rotations kept): what translation
     averaging gave one dino component, whose edge directions were mutually inconsistent."""

@@ -82,7 +82,7 @@ def register_incrementally(xy: np.ndarray, track: np.ndarray, image: np.ndarray,
                            num_tracks: int, K: np.ndarray, w2c: np.ndarray,
                            members: np.ndarray, options: BundleOptions | None = None,
                            min_inliers: int = 15, min_inlier_ratio: float = 0.25,
-                           seed: int = 0) -> Registration:
+                           seed: int = 0, growth: float = 1.25) -> Registration:
     """Place the ``members (N,)`` cameras one at a time (see the module docstring).
 
     Observations as in :func:`~posernet.sfm.triangulation.triangulate_tracks` (undistorted
@@ -92,7 +92,10 @@ def register_incrementally(xy: np.ndarray, track: np.ndarray, image: np.ndarray,
     essential matrix; each PnP also tries the averaged pose as its start. A camera
     is registered when ``min_inliers`` and ``min_inlier_ratio`` of its correspondences agree
     within ``options.max_reproj_px``; the loop ends when no camera left sees ``min_inliers``
-    points (a Python loop over cameras: meant for small components).
+    points (a Python loop over cameras: meant for small components). The placed cameras are
+    adjusted together when their number has grown by the factor ``growth`` since the last
+    adjustment (every registration with ``growth=1``): a logarithmic number of adjustments,
+    as the caller adjusts the result once more as a whole.
     """
     opt = options or BundleOptions()
     N = w2c.shape[0]
@@ -112,6 +115,7 @@ def register_incrementally(xy: np.ndarray, track: np.ndarray, image: np.ndarray,
     order = [int(a), int(b)]
     tried = reg.copy()
     thr = opt.max_reproj_px
+    adjusted_at = 0  # cameras placed at the last adjustment
     while True:
         # triangulate what the placed cameras see, adjust them, drop what they still miss
         sel = reg[image]
@@ -123,10 +127,12 @@ def register_incrementally(xy: np.ndarray, track: np.ndarray, image: np.ndarray,
             first = max(thr, opt.initial_reproj_factor * float(np.median(tri.max_error[tri.valid])))
             err = reprojection_errors(np.nan_to_num(pts), xy, track, image, K, out)
             ok &= err <= first
-        ba = bundle_adjust(out, np.nan_to_num(pts), K, xy[ok], image[ok], track[ok], opt)
-        if ba.accepted:
-            out = np.where(reg[:, None, None], ba.w2c, out)
-            pts = np.where(tri.valid[:, None], ba.points, pts)
+        if int(reg.sum()) >= growth * adjusted_at:
+            adjusted_at = int(reg.sum())
+            ba = bundle_adjust(out, np.nan_to_num(pts), K, xy[ok], image[ok], track[ok], opt)
+            if ba.accepted:
+                out = np.where(reg[:, None, None], ba.w2c, out)
+                pts = np.where(tri.valid[:, None], ba.points, pts)
         err = reprojection_errors(np.nan_to_num(pts), xy, track, image, K, out)
         good = ok & (err <= thr)
         good_tr = np.bincount(track[good], minlength=num_tracks) >= 2
