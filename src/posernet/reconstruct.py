@@ -48,8 +48,8 @@ from .sfm import BundleOptions, SfmResult, anchored_cameras, bundle_adjust_recon
 from .sfm.selfcheck import CheckOptions, PairEvidence, SelfCheck, check_reconstruction
 
 __all__ = ["Reconstruction", "edge_weights", "focal_mode", "gauge_fixed",
-           "largest_point_cloud", "pair_evidence", "poses_json", "reconstruct", "self_check",
-           "write_colmap_models", "write_poses_json"]
+           "largest_point_cloud", "main_first_line", "pair_evidence", "poses_json",
+           "reconstruct", "self_check", "write_colmap_models", "write_poses_json"]
 
 
 @dataclass
@@ -68,6 +68,10 @@ class Reconstruction:
     #: the final stage held against its evidence (:func:`self_check`); cameras that failed
     #: are unsolved in ``result.solved[stage]``. None when the check was not run.
     check: SelfCheck | None = None
+    #: in a weakly textured set whose matcher has a fallback: how many images the main
+    #: matcher alone placed (``placed``, ``images``, ``main_first``) and whether the
+    #: fallback then ``"ran"`` or was ``"not needed"``. None elsewhere.
+    main_first: dict[str, Any] | None = None
 
     @property
     def stage(self) -> str:
@@ -270,6 +274,49 @@ def reconstruct(
     clock.done("images", n)
     selection = select_pairs([frontend.image(i).features for i in range(n)], pairs)
     clock.done("pair_selection", len(selection.pairs))
+    args = (model, backend, device, name, estimate, progress, guard, bundle_adjust, bundle,
+            check)
+    if not frontend.fallback_pending():
+        return _solve(frontend, selection, clock, *args)
+    # A weakly textured set: the main matcher alone first; the fallback's less precise
+    # matches only where that leaves too many images unplaced.
+    share = float(frontend.matcher.main_first)
+    frontend.hold_fallback(True)
+    try:
+        rec = _solve(frontend, selection, clock, *args)
+        placed = int(rec.result.solved[rec.stage][0].sum()) if rec.result.absolute else 0
+    except NothingPlaced:
+        rec, placed = None, 0
+    finally:
+        frontend.hold_fallback(False)
+    main = {"placed": placed, "images": n, "main_first": share}
+    if rec is not None and placed >= share * n:
+        rec.main_first = {**main, "fallback": "not needed"}
+        return rec
+    frontend.forget_pairs()
+    rec = _solve(frontend, selection, clock, *args)
+    rec.main_first = {**main, "fallback": "ran"}
+    return rec
+
+
+def main_first_line(record: dict[str, Any]) -> str:
+    """One line on :attr:`Reconstruction.main_first`."""
+    head = (f"weakly textured set: the main matcher alone placed {record['placed']} of "
+            f"{record['images']} images")
+    if record["fallback"] == "ran":
+        return (f"{head} (< {record['main_first']:.0%}), so the pairs were matched again "
+                "with the fallback")
+    return f"{head} (>= {record['main_first']:.0%}): the fallback was not needed"
+
+
+def _solve(frontend: ImageFrontend, selection: PairSelection, clock: _StageClock,
+           model: torch.nn.Module | None, backend: Any, device: str | torch.device,
+           name: str, estimate: str, progress: bool, guard: bool, bundle_adjust: bool,
+           bundle: BundleOptions | None, check: CheckOptions | bool | None
+           ) -> Reconstruction:
+    """:func:`reconstruct` from the selected pairs on: evaluate and screen them, build the
+    graph, refine, average, bundle-adjust and check."""
+    n = len(frontend.records)
     frontend.evaluate_pairs(selection.pairs, progress=progress)
     from .frontend.consistency import screen_edges
 
@@ -314,7 +361,8 @@ class _StageClock:
 
     def done(self, name: str, items: int) -> None:
         now = time.perf_counter()
-        self.stages[name] = {"seconds": round(now - self.t, 3), "items": int(items),
+        took = now - self.t + self.stages.get(name, {}).get("seconds", 0.0)  # stage again
+        self.stages[name] = {"seconds": round(took, 3), "items": int(items),
                              "peak_mb": _peak_mb()}
         self.t = now
 
@@ -467,6 +515,7 @@ def poses_json(rec: Reconstruction, info: dict[str, Any] | None = None) -> dict[
             "stages": rec.stages,
             "bundle_adjustment": bundle,
             "self_check": None if rec.check is None else rec.check.to_dict(keys),
+            "main_first": rec.main_first,
             "cameras": cams, "edges": edges,
             "rejected_pairs": rec.frontend.rejected_pairs()}
 

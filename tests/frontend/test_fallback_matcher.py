@@ -341,3 +341,43 @@ def test_xfeat_fallback_keypoints_make_tracks(scene, tmp_path) -> None:
     assert [len(third.image(i).features) for i in range(N)] == n_kp
     for k, v in fe.verified_matches().items():
         np.testing.assert_array_equal(third.verified_matches()[k], v)
+
+
+class _MainFirst(_Stub):
+    """The stub asking for the main matcher's result first (``main_first``)."""
+
+    def __init__(self, keep: int, main_first: float = 0.75) -> None:
+        super().__init__(keep=keep)
+        self.main_first = main_first
+
+
+@pytest.mark.parametrize(("keep", "fallback"), [(10**6, "not needed"), (8, "ran")])
+def test_reconstruct_places_with_the_main_matcher_first(scene, keep, fallback) -> None:
+    """In a weakly textured set the main matcher alone places the cameras first; its result is
+    kept when it places at least ``main_first`` of the images (the fallback never runs),
+    else every pair is matched again with the fallback and its result is the one returned,
+    with the counts of that second pass only."""
+    from posernet.reconstruct import main_first_line, poses_json, reconstruct
+    from posernet.sync import get_backend
+
+    fe = _frontend(scene, _MainFirst(keep))
+    rec = reconstruct(fe, None, get_backend("rotation_translation"), progress=False)
+    assert rec.main_first is not None and rec.main_first["fallback"] == fallback
+    placed = int(rec.result.solved[rec.stage][0].sum())
+    assert placed >= 0.75 * N
+    if fallback == "ran":
+        assert rec.main_first["placed"] == 0  # 8 matches a pair: no edge for SIFT alone
+        assert fe.summary.fallback["tried"] == len(PAIRS)
+        assert all(fe.pair(a, b).info.get("matcher") == "fallback"
+                   for a, b in PAIRS if fe.pair(a, b).is_edge)
+        assert "matched again with the fallback" in main_first_line(rec.main_first)
+    else:
+        assert rec.main_first["placed"] == placed and fe.summary.fallback["tried"] == 0
+        assert "not needed" in main_first_line(rec.main_first)
+    assert sum(v for k, v in fe.summary.pairs.items()
+               if k not in ("too_few_matches", "edge_few_boxes")) == len(PAIRS)
+    assert poses_json(rec)["main_first"] == rec.main_first
+    # without main_first the fallback is decided pair by pair at once
+    at_once = _frontend(scene, _MainFirst(keep, main_first=0.0))
+    assert reconstruct(at_once, None, get_backend("rotation_translation"),
+                       progress=False).main_first is None

@@ -181,7 +181,13 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     from ..frontend.pipeline import ImageFrontend
     from ..guard import load_refiner
     from ..io import atomic_write_json
-    from ..reconstruct import NothingPlaced, poses_json, reconstruct, write_colmap_models
+    from ..reconstruct import (
+        NothingPlaced,
+        main_first_line,
+        poses_json,
+        reconstruct,
+        write_colmap_models,
+    )
     from .build import backend_from_config
 
     check_config(cfg, "reconstruct")  # out_dir included: made only once there is output
@@ -246,7 +252,8 @@ def run(cfg: DictConfig) -> dict[str, Any]:
             _clear_outputs(out)
         _report_nothing_placed(err, out, info, int(cfg.pictures), t0)
     print("[2/3] front end: " + "\n      ".join(
-        [*(rec.pairs.lines() if rec.pairs else []), *frontend.summary.lines()]))
+        [*(rec.pairs.lines() if rec.pairs else []), *frontend.summary.lines(),
+         *([main_first_line(rec.main_first)] if rec.main_first else [])]))
     if checks is not None and bool(cfg.get("check_inputs", True)):
         line, info["input_check"] = checks.check([rec.graph], rec.result)
         if line:
@@ -285,6 +292,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
             **info, "frontend": frontend.summary.to_dict(),
             "pair_selection": record["pair_selection"], "stages": rec.stages,
             "cameras_placed": solved, "self_check": record["self_check"],
+            "main_first": record["main_first"],
             "edges": rec.graph.num_edges, "rotation_only_edges": frontend.summary.rotation_only,
             "rejected_pairs": frontend.summary.rejected and dict(frontend.summary.rejected),
             "bundle_adjustment": record["bundle_adjustment"],

@@ -217,6 +217,7 @@ class ImageFrontend:
         self.max_image_size = None if max_image_size is None else int(max_image_size)
         self._digest: dict[int, str] = {}
         self._fallback: bool | None = None  # the matcher's fallback runs (decided once)
+        self._held = False  # the fallback held back: the main matcher alone (hold_fallback)
         self._fallback_lock = threading.Lock()
         self._augment_lock = threading.Lock()
         # per image: edges the main matcher verified firmly (None: not counted yet), and the
@@ -494,7 +495,10 @@ class ImageFrontend:
         """Whether the matcher's fallback runs: it has one, and at least its ``weak_share`` of
         all images (each prepared once to tell) are weakly textured, so that a textured set
         with a few plain frames stays with the main matcher (one warning line when the
-        fallback cannot run in a weak set). Decided once."""
+        fallback cannot run in a weak set). Decided once; False while held back
+        (:meth:`hold_fallback`)."""
+        if self._held:
+            return False
         if self._fallback is None:
             fm = self.matcher
             if not hasattr(fm, "match_fallback"):
@@ -511,6 +515,36 @@ class ImageFrontend:
                         self._fallback = False  # weak, but no fallback to run
                         getattr(fm, "notice_unavailable", lambda: None)()
         return self._fallback
+
+    def fallback_pending(self) -> bool:
+        """Whether the matcher's fallback would run on this set (:meth:`fallback_on`) and the
+        matcher asks for the main matcher's result first (its ``main_first`` share)."""
+        held, self._held = self._held, False
+        try:
+            return self.fallback_on() and float(getattr(self.matcher, "main_first", 0)) > 0
+        finally:
+            self._held = held
+
+    def hold_fallback(self, held: bool) -> None:
+        """Hold the matcher's fallback back (pairs are matched by the main matcher alone) or
+        let it run again. Pairs evaluated while held keep the main matcher's result until
+        :meth:`forget_pairs`."""
+        self._held = bool(held)
+
+    def forget_pairs(self) -> None:
+        """Drop every pair result and its counts (images and their features stay), so that
+        the pairs are evaluated again, e.g. with the fallback after the main matcher alone."""
+        self._pairs.clear()
+        self._first.clear()
+        self.matches.clear()
+        self._strong = None
+        s = self.summary
+        s.pairs.clear()
+        s.rejected.clear()
+        s.rotation_only = 0
+        s.reused.pop("pairs", None)
+        for k in ("matching", "box_matching", "five_point", "fallback", "cached"):
+            s.seconds.pop(k, None)
 
     def _agreement(self, m: Matches, res: PairResult, a: int, b: int) -> float:
         """Share of the matches ``m`` of pair ``a, b`` that the verified pose of ``res``
