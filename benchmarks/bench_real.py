@@ -347,6 +347,11 @@ def _nanmedian(x: Any) -> float:
 
 TRUST_ROT_DEG = 5.0  # a placed camera is right within this rotation error ...
 TRUST_POS_FRAC = 0.05  # ... and this position error, as a fraction of the scene's extent
+# alignment hypotheses of a component: every 2-camera sample up to this many (drawn at random
+# when more, i.e. over 63 cameras: all n(n-1)/2 of 1024 cameras would take half an hour) ...
+TRUST_MAX_PAIRS = 2000
+# ... and 300 3-camera samples, chosen from the list of all of them while it is this short
+TRUST_LIST_TRIPLES = 100_000
 
 
 def scene_extent(gt_c2w: dict[str, np.ndarray]) -> float:
@@ -406,9 +411,18 @@ def _align_robust(x: np.ndarray, y: np.ndarray, A: np.ndarray, B: np.ndarray, ro
     n = len(x)
     tau_p, tau_r = max(pos_tol, 1e-12), np.radians(rot_deg)
     samples = [list(p) for p in zip(*np.triu_indices(n, 1), strict=True)]
-    triples = [[i, j, k] for i in range(n) for j in range(i + 1, n) for k in range(j + 1, n)]
-    if len(triples) > 300:
-        triples = [triples[i] for i in rng.choice(len(triples), 300, replace=False)]
+    if len(samples) > TRUST_MAX_PAIRS:  # over 63 cameras: a random subset of the pairs
+        samples = [samples[i] for i in rng.choice(len(samples), TRUST_MAX_PAIRS, replace=False)]
+    if n * (n - 1) * (n - 2) // 6 <= TRUST_LIST_TRIPLES:
+        triples = [[i, j, k] for i in range(n) for j in range(i + 1, n)
+                   for k in range(j + 1, n)]
+        if len(triples) > 300:
+            triples = [triples[i] for i in rng.choice(len(triples), 300, replace=False)]
+    else:  # too many to list (1024 cameras: 1.8e8): 300 distinct ones drawn directly
+        drawn: set[tuple[int, ...]] = set()
+        while len(drawn) < 300:
+            drawn.add(tuple(sorted(int(v) for v in rng.choice(n, 3, replace=False))))
+        triples = [list(t) for t in sorted(drawn)]
     samples += triples
 
     def score(fit: tuple[float, np.ndarray, np.ndarray]) -> tuple[tuple[int, float], np.ndarray]:
@@ -454,8 +468,9 @@ def trust_counts(keys: list[str], gt_c2w: dict[str, np.ndarray],
     camera centres) of the truth; else *wrong*. Cameras not in ``est_w2c`` (unsolved) and a
     camera alone in its component (placed relative to nothing) are *not placed*.
 
-    Alignment (a few wrong cameras cannot drag it): hypotheses from every 2-camera sample and
-    up to 300 3-camera samples (all when fewer) of the component, each a similarity fitted to
+    Alignment (a few wrong cameras cannot drag it): hypotheses from every 2-camera sample (up
+    to ``TRUST_MAX_PAIRS``, drawn at random when more) and up to 300 3-camera samples (all
+    when fewer) of the component, each a similarity fitted to
     the sample's centres and orientations (:func:`_fit_similarity`); the one with the most
     right cameras wins (ties: the smaller summed squared errors over the thresholds of the
     right ones); then the least-squares similarity on its right cameras, refitted until the
