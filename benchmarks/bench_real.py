@@ -24,8 +24,10 @@ COLMAP through pycolmap in a worker process of this script), so wall time and pe
   resident memory (MB).
 
 COLMAP: SIFT extraction with the set's intrinsics (one shared PINHOLE camera; OPENCV when the
-set gives distortion), exhaustive matching, then ``pycolmap.global_mapping`` (GLOMAP) or
-``pycolmap.incremental_mapping`` with every intrinsic held fixed in bundle adjustment.
+set gives distortion), exhaustive matching (``--colmap-matching sequential``: overlap 10 with
+quadratic overlap, i.e. each image in name order with those 1, 2, 4, ..., 512 further on),
+then ``pycolmap.global_mapping`` (GLOMAP) or ``pycolmap.incremental_mapping`` with every
+intrinsic held fixed in bundle adjustment.
 pycolmap is an optional benchmark-only dependency (``pip install pycolmap==4.2.1``); without
 it the COLMAP rows are skipped with a note.
 
@@ -79,6 +81,7 @@ TRUST_SETS = ("middlebury_dino_sparse_ring", "middlebury_dino_sparse_ring_far8",
 TRUST_RENDERED = (("lowtex_chess_every3", "chess", 0, 36, 3, 8),
                   ("lowtex_office_every6", "office", 1, 72, 6, 8))
 COLMAP_METHODS = ("colmap-global", "colmap-incremental")
+COLMAP_MATCHING = ("exhaustive", "sequential")  # the COLMAP worker's pair selection
 DEFAULT_METHODS = ("posernet", *COLMAP_METHODS)
 PYCOLMAP_PIN = "pycolmap==4.2.1"
 POSE_SUFFIX = ".pose.txt"
@@ -344,6 +347,11 @@ def _nanmedian(x: Any) -> float:
 
 TRUST_ROT_DEG = 5.0  # a placed camera is right within this rotation error ...
 TRUST_POS_FRAC = 0.05  # ... and this position error, as a fraction of the scene's extent
+# alignment hypotheses of a component: every 2-camera sample up to this many (drawn at random
+# when more, i.e. over 63 cameras: all n(n-1)/2 of 1024 cameras would take half an hour) ...
+TRUST_MAX_PAIRS = 2000
+# ... and 300 3-camera samples, chosen from the list of all of them while it is this short
+TRUST_LIST_TRIPLES = 100_000
 
 
 def scene_extent(gt_c2w: dict[str, np.ndarray]) -> float:
@@ -403,9 +411,18 @@ def _align_robust(x: np.ndarray, y: np.ndarray, A: np.ndarray, B: np.ndarray, ro
     n = len(x)
     tau_p, tau_r = max(pos_tol, 1e-12), np.radians(rot_deg)
     samples = [list(p) for p in zip(*np.triu_indices(n, 1), strict=True)]
-    triples = [[i, j, k] for i in range(n) for j in range(i + 1, n) for k in range(j + 1, n)]
-    if len(triples) > 300:
-        triples = [triples[i] for i in rng.choice(len(triples), 300, replace=False)]
+    if len(samples) > TRUST_MAX_PAIRS:  # over 63 cameras: a random subset of the pairs
+        samples = [samples[i] for i in rng.choice(len(samples), TRUST_MAX_PAIRS, replace=False)]
+    if n * (n - 1) * (n - 2) // 6 <= TRUST_LIST_TRIPLES:
+        triples = [[i, j, k] for i in range(n) for j in range(i + 1, n)
+                   for k in range(j + 1, n)]
+        if len(triples) > 300:
+            triples = [triples[i] for i in rng.choice(len(triples), 300, replace=False)]
+    else:  # too many to list (1024 cameras: 1.8e8): 300 distinct ones drawn directly
+        drawn: set[tuple[int, ...]] = set()
+        while len(drawn) < 300:
+            drawn.add(tuple(sorted(int(v) for v in rng.choice(n, 3, replace=False))))
+        triples = [list(t) for t in sorted(drawn)]
     samples += triples
 
     def score(fit: tuple[float, np.ndarray, np.ndarray]) -> tuple[tuple[int, float], np.ndarray]:
@@ -451,8 +468,9 @@ def trust_counts(keys: list[str], gt_c2w: dict[str, np.ndarray],
     camera centres) of the truth; else *wrong*. Cameras not in ``est_w2c`` (unsolved) and a
     camera alone in its component (placed relative to nothing) are *not placed*.
 
-    Alignment (a few wrong cameras cannot drag it): hypotheses from every 2-camera sample and
-    up to 300 3-camera samples (all when fewer) of the component, each a similarity fitted to
+    Alignment (a few wrong cameras cannot drag it): hypotheses from every 2-camera sample (up
+    to ``TRUST_MAX_PAIRS``, drawn at random when more) and up to 300 3-camera samples (all
+    when fewer) of the component, each a similarity fitted to
     the sample's centres and orientations (:func:`_fit_similarity`); the one with the most
     right cameras wins (ties: the smaller summed squared errors over the thresholds of the
     right ones); then the least-squares similarity on its right cameras, refitted until the
@@ -633,10 +651,18 @@ def colmap_status(kind: str) -> str | None:
     return None
 
 
-def colmap_options(kind: str, threads: int, seed: int) -> dict[str, dict[str, Any]]:
+def colmap_options(kind: str, threads: int, seed: int, matching: str = "exhaustive"
+                   ) -> dict[str, dict[str, Any]]:
     """The pycolmap options this benchmark sets (dotted paths; all others at their defaults):
     every intrinsic fixed in bundle adjustment and pose registration, models down to 2 images
-    kept (defaults 10 incremental, 3 global) so components count as posernet's do."""
+    kept (defaults 10 incremental, 3 global) so components count as posernet's do.
+    ``matching="sequential"`` adds the ``SequentialPairingOptions`` under ``pairing``:
+    overlap 10 with quadratic overlap (COLMAP's defaults), loop detection off (it needs a
+    vocabulary tree). In pycolmap 4.2.1 quadratic overlap pairs each image (name order) with
+    those 1, 2, 4, ..., 512 further on, instead of the next 10: 33 pairs on 12 images, not
+    65."""
+    if matching not in COLMAP_MATCHING:
+        raise BenchError(f"COLMAP matching {matching!r}: choose {', '.join(COLMAP_MATCHING)}")
     mapper: dict[str, Any] = {"num_threads": threads, "random_seed": seed, "min_model_size": 2}
     if kind == "colmap-global":
         mapper.update({
@@ -651,8 +677,12 @@ def colmap_options(kind: str, threads: int, seed: int) -> dict[str, dict[str, An
             "ba_refine_focal_length": False, "ba_refine_principal_point": False,
             "ba_refine_extra_params": False, "mapper.abs_pose_refine_focal_length": False,
             "mapper.abs_pose_refine_extra_params": False})
-    return {"extraction": {"num_threads": threads}, "matching": {"num_threads": threads},
-            "mapper": mapper}
+    out = {"extraction": {"num_threads": threads}, "matching": {"num_threads": threads},
+           "mapper": mapper}
+    if matching == "sequential":
+        out["pairing"] = {"overlap": 10, "quadratic_overlap": True, "loop_detection": False,
+                          "num_threads": threads}
+    return out
 
 
 def _apply(obj: Any, settings: dict[str, Any]) -> Any:
@@ -668,9 +698,27 @@ def _apply(obj: Any, settings: dict[str, Any]) -> Any:
     return obj
 
 
+def _pair_counts(pycolmap: Any, db: Path) -> dict[str, int] | None:
+    """Image pairs matched and pairs geometrically verified in the database (``None`` when
+    this pycolmap cannot say)."""
+    try:
+        d = pycolmap.Database.open(db)
+    except (AttributeError, RuntimeError, ValueError):
+        return None
+    try:
+        return {"matched": int(d.num_matched_image_pairs()),
+                "verified": int(d.num_verified_image_pairs())}
+    except (AttributeError, RuntimeError, TypeError):
+        return None
+    finally:
+        d.close()
+
+
 def colmap_worker(spec_path: str) -> None:
     """The COLMAP side of one run (in its own process): SIFT with fixed intrinsics,
-    exhaustive matching, the mapper; writes the placed cameras to ``spec["result"]``."""
+    exhaustive or sequential matching (``spec["matching"]``, default exhaustive; matching
+    includes the two-view verification), the mapper; writes the placed cameras, the seconds
+    of each step and the matched / verified pair counts to ``spec["result"]``."""
     import pycolmap
 
     spec = json.loads(Path(spec_path).read_text(encoding="utf-8"))
@@ -691,8 +739,15 @@ def colmap_worker(spec_path: str) -> None:
     seconds["features"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     matching = _apply(pycolmap.FeatureMatchingOptions(), spec["options"]["matching"])
-    pycolmap.match_exhaustive(db, matching_options=matching, **dev)
+    mode = spec.get("matching", "exhaustive")
+    if mode == "sequential":
+        pairing = _apply(pycolmap.SequentialPairingOptions(), spec["options"]["pairing"])
+        pycolmap.match_sequential(db, matching_options=matching, pairing_options=pairing,
+                                  **dev)
+    else:
+        pycolmap.match_exhaustive(db, matching_options=matching, **dev)
     seconds["matching"] = time.perf_counter() - t0
+    pairs = _pair_counts(pycolmap, db)
     t0 = time.perf_counter()
     out = work / "sparse"
     shutil.rmtree(out, ignore_errors=True)
@@ -718,14 +773,16 @@ def colmap_worker(spec_path: str) -> None:
             M[:3] = np.asarray(T.matrix() if callable(getattr(T, "matrix", None)) else T)
             cams[im.name] = {"w2c": M.tolist(), "component": c}
     Path(spec["result"]).write_text(json.dumps({
-        "cameras": cams, "models": len(ranked), "seconds": seconds,
+        "cameras": cams, "models": len(ranked), "seconds": seconds, "matching": mode,
+        "pairs": pairs,
         "camera_params_after": params, "pycolmap": pycolmap.__version__}), encoding="utf-8")
 
 
 def run_method(s: ImageSet, m: Method, work: Path, threads: int, timeout: float,
-               seed: int = 0) -> dict[str, Any]:
+               seed: int = 0, colmap_matching: str = "exhaustive") -> dict[str, Any]:
     """One method on one set in a subprocess: the row of the results (errors, wall time, peak
-    memory, the command), or a row with a ``note`` when it was skipped or failed."""
+    memory, the command), or a row with a ``note`` when it was skipped or failed.
+    ``colmap_matching``: the COLMAP methods' pair selection (:data:`COLMAP_MATCHING`)."""
     row: dict[str, Any] = {"set": s.name, "method": m.label, "kind": m.kind,
                            "overrides": m.overrides, "images": len(s.keys), "note": ""}
     out = work / "runs" / s.name / m.label
@@ -740,8 +797,8 @@ def run_method(s: ImageSet, m: Method, work: Path, threads: int, timeout: float,
             return row
         model, params = colmap_camera(s.K, s.dist)
         spec = {"images": str(s.images), "names": s.keys, "camera_model": model,
-                "camera_params": params, "mapper": m.kind,
-                "options": colmap_options(m.kind, threads, seed),
+                "camera_params": params, "mapper": m.kind, "matching": colmap_matching,
+                "options": colmap_options(m.kind, threads, seed, colmap_matching),
                 "work": str(out), "result": str(out / "result.json")}
         (out / "spec.json").write_text(json.dumps(spec, indent=1), encoding="utf-8")
         cmd = [sys.executable, str(Path(__file__).resolve()), "--colmap-worker",
@@ -769,7 +826,9 @@ def run_method(s: ImageSet, m: Method, work: Path, threads: int, timeout: float,
                 w2c = {k: np.asarray(v["w2c"]) for k, v in res["cameras"].items()}
                 comp = {k: int(v["component"]) for k, v in res["cameras"].items()}
                 row.update(seconds_inside=res["seconds"],
-                           camera_params_after=res["camera_params_after"])
+                           camera_params_after=res["camera_params_after"],
+                           colmap_matching=res.get("matching", colmap_matching),
+                           colmap_pairs=res.get("pairs"))
         except (OSError, ValueError, KeyError, TypeError) as e:
             row["note"] = f"unreadable output ({type(e).__name__}: {e})"[:200]
     row.update(evaluate(s.keys, s.c2w, w2c, comp))
@@ -885,6 +944,9 @@ def main(argv: list[str] | None = None) -> int:
                     help="threads of every method (posernet num_threads/workers, COLMAP "
                          "num_threads, OMP)")
     ap.add_argument("--seed", type=int, default=0, help="COLMAP mapper seed")
+    ap.add_argument("--colmap-matching", choices=COLMAP_MATCHING, default="exhaustive",
+                    help="COLMAP's pair selection: exhaustive (default) or sequential (overlap "
+                         "10, quadratic: the images 1, 2, 4, ..., 512 further on in name order)")
     ap.add_argument("--timeout", type=float, default=3600, help="seconds per method and set")
     ap.add_argument("--work", default=None,
                     help="folder for renders and run outputs (default: a temp folder)")
@@ -942,8 +1004,8 @@ def main(argv: list[str] | None = None) -> int:
             notes.append(f"{m.label}: {why}")
 
     notes.append(compile_bytecode())
-    rows = [run_method(s, m, work, args.threads, args.timeout, args.seed)
-            for s in sets for m in methods]
+    rows = [run_method(s, m, work, args.threads, args.timeout, args.seed,
+                       args.colmap_matching) for s in sets for m in methods]
 
     if str(ROOT) not in sys.path:
         sys.path.insert(0, str(ROOT))  # benchmarks/_common.py
@@ -955,7 +1017,8 @@ def main(argv: list[str] | None = None) -> int:
     body = [
         f"- packages: {', '.join(f'{k} {v}' for k, v in ver.items() if k != 'python')}",
         f"- threads per method: {args.threads}; COLMAP: SIFT with the set's intrinsics "
-        "(one shared camera), exhaustive matching, mapper with focal length, principal point "
+        f"(one shared camera), {args.colmap_matching} matching, mapper with focal length, "
+        "principal point "
         "and distortion fixed and models down to 2 images kept (options in the .json)",
         "- errors on the largest component (COLMAP: largest model); abs. rot after the best "
         "global rotation, abs. pos after a similarity (Umeyama) on the camera centres; rel. "

@@ -140,3 +140,14 @@ def test_colmap_rows_skipped_without_pycolmap(bench, tmp_path, monkeypatch):
     assert [r["method"] for r in report["rows"]] == ["colmap-global", "colmap-incremental"]
     assert all("command" not in r and r["note"].startswith("skipped") for r in report["rows"])
     assert report["versions"]["posernet"] and report["machine"]["cores"] >= 1
+
+
+def test_colmap_matching_option(bench):
+    # exhaustive stays the default and sets no pairing options
+    assert "pairing" not in bench.colmap_options("colmap-global", 2, 0)
+    opts = bench.colmap_options("colmap-global", 2, 0, "sequential")
+    assert opts["pairing"] == {"overlap": 10, "quadratic_overlap": True,
+                               "loop_detection": False, "num_threads": 2}
+    assert opts["matching"] == {"num_threads": 2}
+    with pytest.raises(bench.BenchError, match="vocabtree"):
+        bench.colmap_options("colmap-global", 2, 0, "vocabtree")

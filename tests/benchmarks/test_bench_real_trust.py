@@ -115,6 +115,22 @@ def test_gross_outliers_do_not_drag_the_alignment(bench):
     assert all(r["cameras"][k]["pos"] < 1e-6 for k in keys[4:])
 
 
+def test_many_cameras_sample_the_hypotheses(bench, monkeypatch):
+    # over 63 cameras the 2-camera samples are drawn (TRUST_MAX_PAIRS), and with more than
+    # TRUST_LIST_TRIPLES triples they are drawn without listing them (1024 cameras: 1.8e8)
+    monkeypatch.setattr(bench, "TRUST_MAX_PAIRS", 200)
+    monkeypatch.setattr(bench, "TRUST_LIST_TRIPLES", 1000)
+    gt = {f"img{i:03d}.jpg": T for i, T in enumerate(_ring(80, seed=2).values())}
+    keys = sorted(gt)
+    est = dict(gt)
+    for k in keys[:10]:
+        est[k] = _moved(_turned(gt[k], 30.0), 2.0)
+    r = bench.trust_counts(keys, gt, _to_w2c(est, 2.0, _rot([0, 1, 1], 40), np.ones(3)),
+                           dict.fromkeys(keys, 0))
+    assert (r["right"], r["wrong"]) == (70, 10)
+    assert all(r["cameras"][k]["pos"] < 1e-6 for k in keys[10:])
+
+
 def test_thresholds_are_five_degrees_and_five_percent(bench):
     gt = _ring(12, seed=1)
     keys = sorted(gt)
