@@ -128,3 +128,33 @@ def test_vanishing_robust_weights_do_not_make_the_solve_singular(monkeypatch):
     g = make_graph(8, 4, seed=3)
     poses = get_backend("rotation_translation", robust=True).solve(g, g.edge_pose)
     assert bool(torch.isfinite(poses).all())
+
+
+@pytest.mark.parametrize("robust", [False, True])
+def test_sparse_position_solve_equals_the_dense_one(monkeypatch, robust):
+    """Large components solve the position system sparsely (scipy's LU): the same centres as
+    the dense batched solve, with two components padded to one size, per-edge start weights
+    and an edge-free component."""
+    import posernet.sync.rotation_translation as rt
+
+    b = GraphBatch.from_graphs([make_graph(30, 60, seed=31, rot_noise_deg=2.0, trans_noise=0.05),
+                                make_graph(18, 20, seed=32, rot_noise_deg=2.0,
+                                           trans_noise=0.05)])
+    st = graph_structure(b)
+    comps = connected_components(st["edge_index"], st["num_nodes"], st["node_batch"], 2)
+    prob = build_padded(st["edge_index"], edge_rotations(b.edge_pose),
+                        torch.nn.functional.normalize(b.edge_pose[:, 4:], dim=-1), comps)
+    assert prob.G == 2 and not bool(prob.node_mask.all())  # padded
+    R = torch.zeros(prob.G, prob.n, 3, 3, dtype=torch.float64)
+    R[prob.node_mask] = b.pose_gt[prob.node[prob.node_mask], :3, :3]
+    R[~prob.node_mask] = torch.eye(3, dtype=torch.float64)
+    w0 = torch.rand(prob.G, prob.m, generator=torch.Generator().manual_seed(0),
+                    dtype=torch.float64) + 0.5
+    out = {}
+    for limit in (10**9, 8):  # dense everywhere / sparse above 8 cameras
+        monkeypatch.setattr(rt, "SPARSE_MIN_NODES", limit)
+        out[limit] = translations_from_directions(prob, R, 10, robust, 2.0, w0=w0)
+        none = translations_from_directions(prob, R, 1, robust, 2.0, w0=torch.zeros_like(w0))
+        assert float(none.abs().max()) == 0.0  # no edge: every centre at 0
+    assert float(out[8].abs().max()) > 0.1
+    torch.testing.assert_close(out[8], out[10**9], atol=1e-9, rtol=0)
