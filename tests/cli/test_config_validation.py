@@ -338,11 +338,15 @@ def test_ctrl_c_while_a_command_imports_is_one_line():
     r = subprocess.run([sys.executable, "-c", script.format(prog="/venv/bin/posernet-x")],
                        capture_output=True, text=True, timeout=120)
     assert (r.returncode, r.stderr) == (130, "posernet-x: interrupted\n")
-    r = subprocess.run([sys.executable, "-c", script.format(prog="my-tool")],
-                       capture_output=True, text=True, timeout=120)
-    # Python's own handling: a traceback (KeyboardInterrupt, or another error from the import
-    # it broke off, e.g. numpy's "cannot load module more than once per process")
-    assert r.returncode != 130 and "Traceback" in r.stderr
+    # another program importing posernet keeps Python's own handler (what a Ctrl-C does
+    # inside a third-party import then is that library's business: checked without a signal)
+    probe = ("import signal, sys\n"
+             "sys.argv[0] = 'my-tool'\n"
+             "import posernet\n"
+             "print(signal.getsignal(signal.SIGINT) is signal.default_int_handler)\n")
+    r = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True,
+                       timeout=120)
+    assert (r.returncode, r.stdout.strip()) == (0, "True"), r.stderr
     assert not startup.install()  # under pytest: not a command, nothing installed
     assert signal.getsignal(signal.SIGINT) is not startup.interrupted_while_starting
 
