@@ -65,15 +65,19 @@ def random_view_graph(
     generator: torch.Generator | None = None,
     dtype: torch.dtype = torch.float32,
     name: str = "random",
+    edge_index: Tensor | None = None,
 ) -> ViewGraph:
     """A valid random :class:`ViewGraph` with ground truth and noisy initial poses.
 
     Initial poses are the ground truth perturbed by a random rotation of up to ``rot_noise_deg``
     and a translation perturbation, then given unit translation (as from the 5-point algorithm).
+    ``edge_index [2, E]``: the edges to use (e.g. a sequence's neighbours); random ones
+    (:func:`random_edges`, ``extra_edges`` beyond a spanning tree) when None.
     """
     g = generator
     pose_gt = random_absolute_poses(num_nodes, g, torch.float64)
-    edge_index = random_edges(num_nodes, extra_edges, g)
+    if edge_index is None:
+        edge_index = random_edges(num_nodes, extra_edges, g)
     E = edge_index.shape[1]
     gt = matrix_to_pose_vec(relative_pose(pose_gt[edge_index[0]], pose_gt[edge_index[1]]))
     axis = torch.randn(E, 3, generator=g, dtype=torch.float64)

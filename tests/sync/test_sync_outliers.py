@@ -398,3 +398,31 @@ def test_triangle_weights_chunking_and_batching(monkeypatch):
         one = be.solve(g)
         c_1 = -(one[:, :3, :3].mT @ one[:, :3, 3:]).squeeze(-1)
         torch.testing.assert_close(c_b, c_1, atol=1e-8, rtol=0)
+
+
+@pytest.mark.parametrize("translation", ["bata", "linear"])
+def test_sparse_rigidity_test_and_solve_agree_with_the_dense_ones(monkeypatch, translation):
+    """Large components test parallel rigidity (5 smallest eigenvalues, shift-invert) and
+    solve positions sparsely: the same flags and poses as the dense paths, on a rigid graph
+    and a chain padded into one batch, and with weights that cut the rigid one in two."""
+    import posernet.sync.translation as tr
+
+    rigid, _, _ = trajectory_graph(12, seed=72)
+    b = GraphBatch.from_graphs([rigid, _chain_graph(9, seed=73)])
+    E = rigid.edge_index.shape[1]
+    w = torch.ones(E, 2, dtype=F64)
+    w[(rigid.edge_index[0] < 6) & (rigid.edge_index[1] >= 6), 1] = 0.0
+    out = {}
+    for limit in (10**9, 4):  # dense everywhere / sparse above 4 cameras
+        monkeypatch.setattr(tr, "SPARSE_MIN_NODES", limit)
+        be = get_backend("rotation_translation", translation=translation)
+        out[limit] = (be.solve_with_info(b), be.solve_with_info(rigid, edge_weight=w))
+    for a, s in zip(out[10**9], out[4], strict=True):
+        assert a.info["parallel_rigid"].tolist() == s.info["parallel_rigid"].tolist()
+        assert bool(torch.isfinite(s.poses).all())
+    # the rigid component's poses are determined: equal; a chain's are not (each solve
+    # returns its own finite answer along the free directions)
+    torch.testing.assert_close(out[4][0].poses[:12], out[10**9][0].poses[:12], atol=1e-8,
+                               rtol=0)
+    assert out[4][0].info["parallel_rigid"].tolist() == [True, False]
+    assert out[4][1].info["parallel_rigid"].tolist() == [False]

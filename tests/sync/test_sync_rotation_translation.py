@@ -135,7 +135,7 @@ def test_sparse_position_solve_equals_the_dense_one(monkeypatch, robust):
     """Large components solve the position system sparsely (scipy's LU): the same centres as
     the dense batched solve, with two components padded to one size, per-edge start weights
     and an edge-free component."""
-    import posernet.sync.rotation_translation as rt
+    import posernet.sync.translation as tr
 
     b = GraphBatch.from_graphs([make_graph(30, 60, seed=31, rot_noise_deg=2.0, trans_noise=0.05),
                                 make_graph(18, 20, seed=32, rot_noise_deg=2.0,
@@ -152,7 +152,7 @@ def test_sparse_position_solve_equals_the_dense_one(monkeypatch, robust):
                     dtype=torch.float64) + 0.5
     out = {}
     for limit in (10**9, 8):  # dense everywhere / sparse above 8 cameras
-        monkeypatch.setattr(rt, "SPARSE_MIN_NODES", limit)
+        monkeypatch.setattr(tr, "SPARSE_MIN_NODES", limit)
         out[limit] = translations_from_directions(prob, R, 10, robust, 2.0, w0=w0)
         none = translations_from_directions(prob, R, 1, robust, 2.0, w0=torch.zeros_like(w0))
         assert float(none.abs().max()) == 0.0  # no edge: every centre at 0

@@ -60,6 +60,7 @@ from .padding import PaddedProblem, assemble, build_padded, edge_rotations
 from .robust import mad_cauchy_weights, mad_huber_weights
 from .spectral import SpectralOptions, split_by_size
 from .translation import (
+    block_laplacian_sparse,
     direction_residual_deg,
     gather,
     incidence_rhs,
@@ -70,6 +71,7 @@ from .translation import (
     translations_bata,
     translations_lud,
     triangle_weights,
+    use_sparse,
 )
 from .weighted import WEIGHT_MODES, padded_weights, weighted_rotation_irls
 
@@ -253,7 +255,7 @@ def translations_from_directions(prob: PaddedProblem, R: Tensor, iters: int, rob
     c = torch.zeros(G, n, 3, dtype=dt, device=dev)
     for it in range(iters if robust else 1):
         aP = a[..., None, None] * P
-        if _sparse_solve(n, dev):
+        if use_sparse(n, dev):
             C = _constraint_rows(prob, a, d, vm)
             # large components come one per group (split_by_size): a loop of one or few
             c_new = torch.stack([
@@ -278,15 +280,6 @@ def translations_from_directions(prob: PaddedProblem, R: Tensor, iters: int, rob
             break
     rms = ((c * c).sum(-1) * vm).sum(1) / vm.sum(1)
     return c / rms.sqrt().clamp_min(1e-300)[:, None, None]
-
-
-#: components with more cameras than this solve the position system sparsely on the CPU (the
-#: dense LU of the (3n + 4)^2 system grows as n^3: 0.6 s at 256 cameras, 22 s at 1024)
-SPARSE_MIN_NODES = 128
-
-
-def _sparse_solve(n: int, device: torch.device) -> bool:
-    return n > SPARSE_MIN_NODES and device.type == "cpu"
 
 
 def _constraint_rows(prob: PaddedProblem, a: Tensor, d: Tensor, vm: Tensor) -> Tensor:
@@ -347,14 +340,8 @@ def _kkt_solve_sparse(src: Tensor, dst: Tensor, aP: Tensor, C: Tensor, empty: bo
 
     n = vm.shape[0]
     size = 3 * n + 4
-    i, j = src.cpu().numpy(), dst.cpu().numpy()
-    blk = aP.detach().cpu().numpy()  # [m, 3, 3]
-    r3 = np.arange(3)
-    rows, cols, vals = [], [], []
-    for p, q, sign in ((i, i, 2.0), (j, j, 2.0), (i, j, -2.0), (j, i, -2.0)):
-        rows.append((3 * p[:, None, None] + r3[None, :, None]).repeat(3, 2).ravel())
-        cols.append((3 * q[:, None, None] + r3[None, None, :]).repeat(3, 1).ravel())
-        vals.append((sign * blk).ravel())
+    K2 = block_laplacian_sparse(src, dst, 2.0 * aP, n).tocoo()
+    rows, cols, vals = [K2.row], [K2.col], [K2.data]
     Cn = C.detach().cpu().numpy()
     cr, cc = np.nonzero(Cn)
     rows += [cr + 3 * n, cc]

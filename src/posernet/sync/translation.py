@@ -28,6 +28,8 @@ to one global translation and scale.
 
 from __future__ import annotations
 
+from typing import Any
+
 import torch
 from torch import Tensor
 
@@ -36,6 +38,7 @@ from .padding import PaddedProblem
 from .robust import batch_median, mad_cauchy_weights
 
 __all__ = [
+    "block_laplacian_sparse",
     "direction_residual_deg",
     "laplacian_solve",
     "mad_threshold",
@@ -145,6 +148,45 @@ def direction_residual_deg(prob: PaddedProblem, c: Tensor, d: Tensor) -> Tensor:
     return torch.where(prob.edge_mask, ang, torch.zeros_like(ang))
 
 
+#: components with more cameras than this take the sparse CPU paths (the dense 3n x 3n
+#: eigen- and LU solves grow as n^3: seconds per call at 1024 cameras)
+SPARSE_MIN_NODES = 128
+
+
+def use_sparse(n: int, device: torch.device) -> bool:
+    """Whether components padded to ``n`` cameras on ``device`` are solved sparsely."""
+    return n > SPARSE_MIN_NODES and device.type == "cpu"
+
+
+def block_laplacian_sparse(src: Tensor, dst: Tensor, blocks: Tensor, n: int) -> Any:
+    """The ``3n x 3n`` scipy CSC matrix ``sum_e`` of ``blocks [m, 3, 3]`` on each edge's
+    incidence (``+B`` at ``(i, i)`` and ``(j, j)``, ``-B`` at ``(i, j)`` and ``(j, i)``, for
+    ``src``/``dst [m]``): the sparse form of the dense ``[3n, 3n]`` matrices built here."""
+    import numpy as np
+    import scipy.sparse as sp
+
+    i, j = src.cpu().numpy(), dst.cpu().numpy()
+    blk = blocks.detach().cpu().numpy()
+    r3 = np.arange(3)
+    rows, cols, vals = [], [], []
+    for p, q, sign in ((i, i, 1.0), (j, j, 1.0), (i, j, -1.0), (j, i, -1.0)):
+        rows.append((3 * p[:, None, None] + r3[None, :, None]).repeat(3, 2).ravel())
+        cols.append((3 * q[:, None, None] + r3[None, None, :]).repeat(3, 1).ravel())
+        vals.append((sign * blk).ravel())
+    return sp.coo_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
+                         shape=(3 * n, 3 * n)).tocsc()
+
+
+def _null_dims_sparse(K: Any, top: float, k: int = 5) -> int:
+    """How many eigenvalues of the PSD scipy matrix ``K`` are below ``1e-9 * top`` (counting
+    at most ``k``): its ``k`` smallest, by shift-invert just below 0."""
+    from scipy.sparse.linalg import eigsh
+
+    k = min(k, K.shape[0] - 1)
+    ev = eigsh(K, k=k, sigma=-1e-6 * top, which="LM", return_eigenvectors=False)
+    return int((ev < 1e-9 * top).sum())
+
+
 def parallel_rigid(prob: PaddedProblem, keep: Tensor, seed: int = 0) -> Tensor:
     """Whether the edges ``keep [G, m]`` make each component parallel rigid ``[G]`` bool.
 
@@ -161,6 +203,8 @@ def parallel_rigid(prob: PaddedProblem, keep: Tensor, seed: int = 0) -> Tensor:
     d = torch.nn.functional.normalize(baselines(prob, X), dim=-1)
     P = torch.eye(3, dtype=dt, device=dev) - d[..., :, None] * d[..., None, :]
     P = P * keep.to(dt)[..., None, None]
+    if use_sparse(n, torch.device(dev)):
+        return _parallel_rigid_sparse(prob, P)
     gi = torch.arange(G, device=dev)[:, None].expand(G, m)
     K = torch.zeros(G, n, n, 3, 3, dtype=dt, device=dev)
     K.index_put_((gi, prob.src, prob.src), P, accumulate=True)
@@ -174,6 +218,25 @@ def parallel_rigid(prob: PaddedProblem, keep: Tensor, seed: int = 0) -> Tensor:
     ev = torch.linalg.eigvalsh(K)
     null = (ev < 1e-9 * ev[:, -1:].clamp_min(1e-300)).sum(-1)
     return null == 4
+
+
+def _parallel_rigid_sparse(prob: PaddedProblem, P: Tensor) -> Tensor:
+    """:func:`parallel_rigid` for large components, one at a time: the null space of the
+    sparse bearing matrix from its 5 smallest eigenvalues (``P [G, m, 3, 3]``: the edges'
+    projectors, zero on edges left out). The threshold is relative to the largest diagonal
+    entry (within 2x of the largest eigenvalue, which sets the dense test's threshold)."""
+    import numpy as np
+    import scipy.sparse as sp
+
+    out = torch.zeros(prob.G, dtype=torch.bool)
+    for g in range(prob.G):
+        K = block_laplacian_sparse(prob.src[g], prob.dst[g], P[g], prob.n)
+        diag = K.diagonal()
+        top = max(float(diag.max()), 1.0)
+        pad = 1.0 - prob.node_mask[g].cpu().numpy().repeat(3).astype(np.float64)
+        K = (K + sp.diags(pad * top)).tocsc()
+        out[g] = _null_dims_sparse(K, top) == 4
+    return out.to(prob.R.device)
 
 
 def _chord_weights(prob: PaddedProblem, b: Tensor, d: Tensor, keep: Tensor,
