@@ -40,7 +40,10 @@ convention ``t_e = t_j - R_j R_i^T t_i = -R_j (c_j - c_i)``, edge ``e`` says
   same Cauchy IRLS on ``|c_j - c_i - u_e|``.
 
 Dense batched linear algebra on padded ``[G, n, n]`` / ``[G, 3n + 4, 3n + 4]`` systems; large
-components use the Krylov eigen-solver of :mod:`posernet.sync.spectral` for the rotations.
+components use the Krylov eigen-solver of :mod:`posernet.sync.spectral` for the rotations,
+and on the CPU (over ``posernet.sync.translation.SPARSE_MIN_NODES`` cameras) scipy's sparse
+solvers for the linear KKT system and the parallel-rigidity test, whose dense forms grow as
+``n^3``.
 """
 
 from __future__ import annotations
