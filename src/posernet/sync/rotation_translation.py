@@ -63,6 +63,7 @@ from .padding import PaddedProblem, assemble, build_padded, edge_rotations
 from .robust import mad_cauchy_weights, mad_huber_weights
 from .spectral import SpectralOptions, split_by_size
 from .translation import (
+    block_laplacian_dense,
     block_laplacian_sparse,
     direction_residual_deg,
     gather,
@@ -301,14 +302,8 @@ def _kkt_solve_dense(prob: PaddedProblem, aP: Tensor, a: Tensor, d: Tensor, vm: 
     (``aP [G, m, 3, 3]``: each edge's weight times its projector): the centres ``[G, n, 3]``."""
     G, n = prob.G, prob.n
     dt, dev = a.dtype, a.device
-    gi = torch.arange(G, device=dev)[:, None].expand(G, prob.m)
     size = 3 * n + 4
-    K = torch.zeros(G, n, n, 3, 3, dtype=dt, device=dev)
-    K.index_put_((gi, prob.src, prob.src), aP, accumulate=True)
-    K.index_put_((gi, prob.dst, prob.dst), aP, accumulate=True)
-    K.index_put_((gi, prob.src, prob.dst), -aP, accumulate=True)
-    K.index_put_((gi, prob.dst, prob.src), -aP, accumulate=True)
-    K = K.permute(0, 1, 3, 2, 4).reshape(G, 3 * n, 3 * n)
+    K = block_laplacian_dense(prob, aP)
     scale = K.diagonal(dim1=-2, dim2=-1).mean(-1)
     scale = torch.where(empty, torch.ones_like(scale), scale.clamp_min(1e-300))
     A = torch.zeros(G, size, size, dtype=dt, device=dev)

@@ -38,6 +38,7 @@ from .padding import PaddedProblem
 from .robust import batch_median, mad_cauchy_weights
 
 __all__ = [
+    "block_laplacian_dense",
     "block_laplacian_sparse",
     "direction_residual_deg",
     "laplacian_solve",
@@ -158,6 +159,19 @@ def use_sparse(n: int, device: torch.device) -> bool:
     return n > SPARSE_MIN_NODES and device.type == "cpu"
 
 
+def block_laplacian_dense(prob: PaddedProblem, blocks: Tensor) -> Tensor:
+    """``[G, 3n, 3n]``: per component, ``sum_e`` of ``blocks [G, m, 3, 3]`` on each edge's
+    incidence (``+B`` at ``(i, i)`` and ``(j, j)``, ``-B`` at ``(i, j)`` and ``(j, i)``)."""
+    G, n = prob.G, prob.n
+    gi = torch.arange(G, device=blocks.device)[:, None].expand(G, prob.m)
+    K = torch.zeros(G, n, n, 3, 3, dtype=blocks.dtype, device=blocks.device)
+    K.index_put_((gi, prob.src, prob.src), blocks, accumulate=True)
+    K.index_put_((gi, prob.dst, prob.dst), blocks, accumulate=True)
+    K.index_put_((gi, prob.src, prob.dst), -blocks, accumulate=True)
+    K.index_put_((gi, prob.dst, prob.src), -blocks, accumulate=True)
+    return K.permute(0, 1, 3, 2, 4).reshape(G, 3 * n, 3 * n)
+
+
 def block_laplacian_sparse(src: Tensor, dst: Tensor, blocks: Tensor, n: int) -> Any:
     """The ``3n x 3n`` scipy CSC matrix ``sum_e`` of ``blocks [m, 3, 3]`` on each edge's
     incidence (``+B`` at ``(i, i)`` and ``(j, j)``, ``-B`` at ``(i, j)`` and ``(j, i)``, for
@@ -196,7 +210,7 @@ def parallel_rigid(prob: PaddedProblem, keep: Tensor, seed: int = 0) -> Tensor:
     edge's incidence) then has a null space of dimension exactly 4 (3 translations + scale)
     iff the graph is rigid; a graph that fell apart or hangs on a chain has more.
     """
-    G, n, m = prob.G, prob.n, prob.m
+    G, n = prob.G, prob.n
     dt, dev = torch.float64, prob.R.device
     gen = torch.Generator().manual_seed(seed)
     X = torch.randn(G, n, 3, generator=gen, dtype=dt).to(dev)
@@ -205,13 +219,7 @@ def parallel_rigid(prob: PaddedProblem, keep: Tensor, seed: int = 0) -> Tensor:
     P = P * keep.to(dt)[..., None, None]
     if use_sparse(n, torch.device(dev)):
         return _parallel_rigid_sparse(prob, P)
-    gi = torch.arange(G, device=dev)[:, None].expand(G, m)
-    K = torch.zeros(G, n, n, 3, 3, dtype=dt, device=dev)
-    K.index_put_((gi, prob.src, prob.src), P, accumulate=True)
-    K.index_put_((gi, prob.dst, prob.dst), P, accumulate=True)
-    K.index_put_((gi, prob.src, prob.dst), -P, accumulate=True)
-    K.index_put_((gi, prob.dst, prob.src), -P, accumulate=True)
-    K = K.permute(0, 1, 3, 2, 4).reshape(G, 3 * n, 3 * n)
+    K = block_laplacian_dense(prob, P)
     pad = 1.0 - prob.node_mask.to(dt).repeat_interleave(3, dim=1)
     top = K.diagonal(dim1=-2, dim2=-1).amax(-1).clamp_min(1.0)
     K = K + torch.diag_embed(pad * top[:, None])  # padded unknowns: eigenvalue >= the scale
