@@ -34,6 +34,17 @@ def scene(tmp_path_factory) -> Path:
                               frames_per_sequence=8, width=W, height=H, focal=F, progress=False)
 
 
+def _composed(scene: Path, out: Path) -> object:
+    """The command's config for the scene's first sequence (SIFT, pictures, no bars)."""
+    from hydra import compose, initialize_config_module
+
+    with initialize_config_module("posernet.conf", version_base=None):
+        return compose("reconstruct", overrides=[f"images={scene / 'seq-01'}",
+                                                 f"intrinsics='{_intr(scene)}'", "matcher=sift",
+                                                 f"out_dir={out}", "progress=false",
+                                                 "pictures=1"])
+
+
 def _intr(scene: Path) -> str:
     return ",".join(f"{v:g}" for v in render_intrinsics(scene))
 
@@ -411,8 +422,6 @@ def test_a_run_stopped_while_writing_leaves_no_partial_outputs(scene, tmp_path, 
     """Ctrl-C (or an error) once the outputs are being written: those already written are
     removed again, so that out_dir never holds a partial set (a lone poses.json would pass
     for a finished run and make the same command refuse to start); its cache stays."""
-    from hydra import compose, initialize_config_module
-
     import posernet.export as export_module
     from posernet.cli.reconstruct import _direct
 
@@ -421,11 +430,7 @@ def test_a_run_stopped_while_writing_leaves_no_partial_outputs(scene, tmp_path, 
 
     monkeypatch.setattr(export_module, "write_tum", stopped)
     out = tmp_path / "o"
-    with initialize_config_module("posernet.conf", version_base=None):
-        cfg = compose("reconstruct", overrides=[f"images={scene / 'seq-01'}",
-                                                f"intrinsics='{_intr(scene)}'", "matcher=sift",
-                                                f"out_dir={out}", "progress=false",
-                                                "pictures=1"])
+    cfg = _composed(scene, out)
     with pytest.raises(SystemExit) as exc:
         _direct(cfg)
     assert exc.value.code == status
@@ -591,7 +596,6 @@ def test_a_camera_failing_the_self_check_is_unsolved_in_every_output(scene, tmp_
 def test_html_view_title_and_status_count_the_same_points(scene, tmp_path, monkeypatch):
     """A few points far out (bad triangulations), which the view does not draw: the page's
     title and its status line still give the same number of 3D points, that of the model."""
-    from hydra import compose, initialize_config_module
 
     import posernet.reconstruct as reconstruct_module
     from posernet.cli.reconstruct import run
@@ -607,11 +611,7 @@ def test_html_view_title_and_status_count_the_same_points(scene, tmp_path, monke
 
     monkeypatch.setattr(reconstruct_module, "largest_point_cloud", with_far_points)
     out = tmp_path / "o"
-    with initialize_config_module("posernet.conf", version_base=None):
-        cfg = compose("reconstruct", overrides=[f"images={scene / 'seq-01'}",
-                                                f"intrinsics='{_intr(scene)}'", "matcher=sift",
-                                                f"out_dir={out}", "progress=false",
-                                                "pictures=1"])
+    cfg = _composed(scene, out)
     run(cfg)
     page = (out / "cameras.html").read_text()
     title = re.search(r"<title>(.*?)</title>", page).group(1)
