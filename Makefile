@@ -47,7 +47,7 @@ demo: $(STAMP)  ## run the main job on the built-in synthetic default
 # the committed full tables: run each script without --quick (BENCH_ARGS="--device cuda" on a GPU).
 BENCH_ARGS ?=
 bench: $(STAMP)  ## quick run of every benchmark (tables in benchmarks/results/quick/)
-	cd benchmarks && for b in bench_forward bench_sync bench_train_epoch bench_large; do \
+	cd benchmarks && for b in bench_forward bench_sync bench_train_epoch bench_large bench_averaging; do \
 		../$(PY) $$b.py --quick $(BENCH_ARGS) || exit 1; done
 	cd benchmarks && ../$(PY) bench_frontend.py --frames 6 --scenes chess --no-write
 	# CPU beside GPU (the CPU columns only without CUDA; about 30 s here)
