@@ -108,3 +108,15 @@ def write_results(name: str, title: str, body: Sequence[str], quick: bool, devic
 
 def fmt_s(x: float) -> str:
     return f"{x * 1000:.1f} ms" if x < 1 else f"{x:.2f} s"
+
+
+def baseline_label(src: str) -> str:
+    """``commit`` of the checkout holding ``src`` (or the folder's name): how ``--baseline``
+    runs are labelled."""
+    import subprocess
+
+    try:
+        return subprocess.run(["git", "-C", src, "rev-parse", "--short", "HEAD"],
+                              capture_output=True, text=True, check=True).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return Path(src).resolve().parent.name

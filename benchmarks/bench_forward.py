@@ -29,7 +29,7 @@ import tempfile
 from pathlib import Path
 
 import torch
-from _common import best_of, fmt_s, paper_batch, table, write_results
+from _common import baseline_label, best_of, fmt_s, paper_batch, table, write_results
 
 from posernet.checkpoints import CheckpointError
 from posernet.nn import PoserConv, PoserNet
@@ -89,15 +89,6 @@ def worker(args: argparse.Namespace, n: int, repeat: int) -> None:
         out = model(batch)
         t, times = best_of(lambda: model(batch), repeat, args.device)
     torch.save({"time": t, "times": times, "out": out.cpu()}, args.worker)
-
-
-def baseline_label(src: str) -> str:
-    """``commit`` of the checkout holding ``src`` (or the folder's name)."""
-    try:
-        return subprocess.run(["git", "-C", src, "rev-parse", "--short", "HEAD"],
-                              capture_output=True, text=True, check=True).stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        return Path(src).resolve().parent.name
 
 
 def main() -> None:

@@ -75,6 +75,7 @@ for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
 
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
+from _common import baseline_label  # noqa: E402  (benchmarks/ is the script's folder)
 
 from posernet.geometry import (  # noqa: E402
     axis_angle_to_rotation_matrix,
@@ -282,17 +283,6 @@ def run_baseline(args: argparse.Namespace, k: int) -> dict:
                "--repeat", str(args.repeat), "--sizes", *map(str, args.sizes)]
         subprocess.run(cmd, env=env, check=True)
         return torch.load(out)
-
-
-def baseline_label(src: str) -> str:
-    """``commit`` of the checkout holding ``src`` (or the folder's name)."""
-    import subprocess
-
-    try:
-        return subprocess.run(["git", "-C", src, "rev-parse", "--short", "HEAD"],
-                              capture_output=True, text=True, check=True).stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        return Path(src).resolve().parent.name
 
 
 def fmt_s(x: float | None) -> str:
