@@ -832,6 +832,7 @@ def run_method(s: ImageSet, m: Method, work: Path, threads: int, timeout: float,
         except (OSError, ValueError, KeyError, TypeError) as e:
             row["note"] = f"unreadable output ({type(e).__name__}: {e})"[:200]
     row.update(evaluate(s.keys, s.c2w, w2c, comp))
+    row["_w2c"] = w2c  # the placed poses, for the pairs mode (removed before writing)
     trust = trust_counts(s.keys, s.c2w, w2c, comp, seed=seed)
     row.update(right=trust["right"], wrong=trust["wrong"], not_placed=trust["not_placed"],
                extent=trust["extent"], trust=trust["cameras"])
@@ -840,6 +841,176 @@ def run_method(s: ImageSet, m: Method, work: Path, threads: int, timeout: float,
           f"{_cell(row.get('rot_deg'))} deg, {row['wall_s']:.1f} s, {row['peak_mb']:.0f} MB "
           f"{row['note']}", flush=True)
     return row
+
+
+# ------------------------------------------------------------------------------------ pairs
+
+#: the wide-baseline pairs mode: indoor sets (real, and a rendered room with every object
+#: textured) whose pairs far apart in rotation are run two images at a time
+PAIR_SETS = ("7scenes_redkitchen_wide",)
+PAIR_RENDERED: tuple[tuple[str, str, int, int, int, int], ...] = ()  # (a rendered sweep turns
+# by 25 deg at most: no pair is wide enough)
+PAIR_MIN_DEG = 30.0  # pairs at least this far apart in rotation ...
+PAIR_MIN_OVERLAP = 0.2  # ... that still see this share of each other's view (view_overlap)
+PAIR_DEPTH = 2.0  # metres in front of the camera where the overlap proxy puts the scene
+PAIR_LIMIT = 15  # pairs per set, spread evenly over the candidates' rotation angles
+PAIR_AUC_DEG = (5.0, 10.0, 20.0)
+
+
+def view_overlap(K: np.ndarray, size: tuple[int, int], c2w_a: np.ndarray, c2w_b: np.ndarray,
+                 depth: float = PAIR_DEPTH, grid: int = 12) -> float:
+    """Share of camera a's view, put on a fronto-parallel plane at ``depth``, that lies in
+    front of camera b and inside its image ``size`` (W, H), the smaller of both directions.
+    A proxy for co-visibility where a set has no depth maps (7-Scenes scenes lie 1-3 m
+    away)."""
+    W, H = size
+    u, v = np.meshgrid(np.linspace(0.5, W - 0.5, grid), np.linspace(0.5, H - 0.5, grid))
+    pix = np.stack((u.ravel(), v.ravel(), np.ones(u.size)))
+
+    def share(src: np.ndarray, dst: np.ndarray) -> float:
+        X = src[:3, :3] @ (np.linalg.solve(K, pix) * depth) + src[:3, 3:4]
+        Y = np.linalg.inv(dst)[:3] @ np.vstack((X, np.ones(X.shape[1])))
+        front = Y[2] > 1e-6
+        p = K @ (Y / np.where(front, Y[2], 1.0))
+        inside = front & (p[0] >= 0) & (p[0] < W) & (p[1] >= 0) & (p[1] < H)
+        return float(inside.mean())
+
+    return min(share(c2w_a, c2w_b), share(c2w_b, c2w_a))
+
+
+def rotation_angle_deg(c2w_a: np.ndarray, c2w_b: np.ndarray) -> float:
+    """Angle (deg) of the relative rotation between two camera-to-world poses."""
+    R = c2w_a[:3, :3].T @ c2w_b[:3, :3]
+    return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))))
+
+
+def wide_pairs(s: ImageSet, size: tuple[int, int], min_deg: float = PAIR_MIN_DEG,
+               min_overlap: float = PAIR_MIN_OVERLAP, limit: int = PAIR_LIMIT,
+               depth: float = PAIR_DEPTH) -> list[tuple[str, str, float, float]]:
+    """Pairs ``(a, b, rotation deg, overlap)`` of ``s`` at least ``min_deg`` apart in rotation
+    that keep ``min_overlap`` of their views (:func:`view_overlap`): ``limit`` of them spread
+    evenly over the candidates sorted by angle (ties by overlap), widest first.
+    Deterministic."""
+    out = []
+    for i, a in enumerate(s.keys):
+        for b in s.keys[i + 1:]:
+            ang = rotation_angle_deg(s.c2w[a], s.c2w[b])
+            if ang < min_deg:
+                continue
+            ov = view_overlap(s.K, size, s.c2w[a], s.c2w[b], depth)
+            if ov >= min_overlap:
+                out.append((a, b, ang, ov))
+    out.sort(key=lambda p: (-p[2], -p[3], p[0], p[1]))
+    if len(out) <= limit:
+        return out
+    return [out[i] for i in sorted({round(float(v)) for v in
+                                    np.linspace(0, len(out) - 1, limit)})]
+
+
+def pair_set(s: ImageSet, a: str, b: str, work: Path) -> ImageSet:
+    """The two images ``a``, ``b`` of ``s`` linked into a folder of their own, with their
+    pose files."""
+    dst = work / f"{s.name}-{Path(a).stem}-{Path(b).stem}"
+    shutil.rmtree(dst, ignore_errors=True)
+    dst.mkdir(parents=True)
+    for key in (a, b):
+        os.symlink(s.images / key, dst / key)
+        np.savetxt(dst / _pose_name(key), s.c2w[key], fmt="%.9f")
+    return ImageSet(dst.name, dst, [a, b], s.intrinsics, s.K, s.dist,
+                    {a: s.c2w[a], b: s.c2w[b]}, s.source, f"pair of {s.name}")
+
+
+def pair_error(gt_c2w: dict[str, np.ndarray], est_w2c: dict[str, np.ndarray], a: str, b: str
+               ) -> tuple[float, float]:
+    """Relative rotation error and *signed* translation-direction error (deg) of the
+    estimated pair ``a -> b`` (a direction pointing backwards is 180 deg off, not 0); both
+    ``inf`` when either camera is not placed."""
+    if a not in est_w2c or b not in est_w2c:
+        return math.inf, math.inf
+    gt = {k: np.linalg.inv(gt_c2w[k]) for k in (a, b)}
+
+    def rel(P: dict[str, np.ndarray]) -> np.ndarray:
+        return P[b] @ np.linalg.inv(P[a])
+
+    E, G = rel(est_w2c), rel(gt)
+    rot = rotation_angle_deg(np.eye(4), np.block([[E[:3, :3] @ G[:3, :3].T, np.zeros((3, 1))],
+                                                 [np.zeros((1, 3)), np.ones((1, 1))]]))
+    te, tg = E[:3, 3], G[:3, 3]
+    ne, ng = np.linalg.norm(te), np.linalg.norm(tg)
+    if ne < 1e-12 or ng < 1e-12:
+        return rot, math.inf
+    tdir = float(np.degrees(np.arccos(np.clip(te @ tg / (ne * ng), -1.0, 1.0))))
+    return rot, tdir
+
+
+def pose_auc(errors: list[float], thresholds: tuple[float, ...] = PAIR_AUC_DEG) -> list[float]:
+    """Area under the recall curve of ``errors`` (deg; ``inf`` for a failed pair) up to each
+    threshold, normalised by it, in percent: the pose AUC as SuperGlue reports it."""
+    e = np.sort(np.asarray(errors, np.float64))
+    n = e.size
+    recall = np.arange(1, n + 1) / max(n, 1)
+    e = np.concatenate(([0.0], e))
+    recall = np.concatenate(([0.0], recall))
+    out = []
+    for t in thresholds:
+        last = int(np.searchsorted(e, t))
+        x = np.concatenate((e[:last], [t]))
+        y = np.concatenate((recall[:last], [recall[last - 1]]))
+        out.append(100.0 * float(np.trapezoid(y, x)) / t)
+    return out
+
+
+PAIR_HEADER = ("set", "method", "pairs", "placed", "within 5 deg", "within 10 deg",
+               "within 20 deg", "wrong (> 20 deg)", "AUC@5", "AUC@10", "AUC@20",
+               "median wall (s)")
+
+
+def pair_summary(rows: list[dict[str, Any]]) -> list[list[str]]:
+    """One line per (set, method) of the pair rows: counts within 5 / 10 / 20 deg (rotation
+    and signed direction), placed pairs beyond 20 deg (reported with a wrong pose), pose AUC."""
+    groups: dict[tuple[str, str], list[dict[str, Any]]] = {}
+    for r in rows:
+        groups.setdefault((r["pair_set"], r["method"]), []).append(r)
+    out = []
+    for (name, method), rs in groups.items():
+        err = [max(r["pair_rot_deg"], r["pair_tdir_deg"]) for r in rs]
+        placed = [r for r in rs if math.isfinite(r["pair_rot_deg"])]
+        within = [sum(e <= t for e in err) for t in PAIR_AUC_DEG]
+        wrong = sum(1 for r, e in zip(rs, err, strict=True)
+                    if math.isfinite(r["pair_rot_deg"]) and e > PAIR_AUC_DEG[-1])
+        walls = [r["wall_s"] for r in rs if r.get("wall_s") is not None]
+        out.append([name, method, str(len(rs)), str(len(placed)), *map(str, within),
+                    str(wrong), *(f"{a:.1f}" for a in pose_auc(err)),
+                    _cell(float(np.median(walls)) if walls else None, "{:.1f}")])
+    return out
+
+
+def run_pairs(sets: list[ImageSet], methods: list[Method], work: Path, threads: int,
+              timeout: float, seed: int) -> tuple[list[dict[str, Any]], list[str]]:
+    """Every method on every wide pair of ``sets`` (:func:`wide_pairs`): one row per pair and
+    method with its errors (:func:`pair_error`), and the lines listing the pairs."""
+    import cv2
+
+    rows, lines = [], []
+    for s in sets:
+        first = cv2.imread(str(s.images / s.keys[0]), cv2.IMREAD_UNCHANGED)
+        if first is None:
+            raise BenchError(f"{s.images / s.keys[0]}: not a readable image")
+        size = (first.shape[1], first.shape[0])
+        pairs = wide_pairs(s, size)
+        lines.append(f"- {s.name}: {len(pairs)} pairs, " + ", ".join(
+            f"{Path(a).stem}/{Path(b).stem} ({ang:.0f} deg, overlap {ov:.2f})"
+            for a, b, ang, ov in pairs))
+        for a, b, ang, ov in pairs:
+            ps = pair_set(s, a, b, work / "pairs")
+            for m in methods:
+                row = run_method(ps, m, work, threads, timeout, seed)
+                w2c = row.pop("_w2c", {})
+                rot, tdir = pair_error(s.c2w, w2c, a, b)
+                row.update(pair_set=s.name, pair=[a, b], gt_rotation_deg=ang, overlap=ov,
+                           pair_rot_deg=rot, pair_tdir_deg=tdir)
+                rows.append(row)
+    return rows, lines
 
 
 # ------------------------------------------------------------------------------------ output
@@ -954,6 +1125,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--trust", action="store_true",
                     help="the trust table: the sets of TRUST_SETS under benchmarks/data/real/, "
                          "no rendered scene; writes benchmarks/results/trust.md by default")
+    ap.add_argument("--pairs", action="store_true",
+                    help="the wide-baseline pairs mode: pairs at least 30 deg apart of the "
+                         "indoor sets of PAIR_SETS and PAIR_RENDERED, two images per run, pose "
+                         "AUC@5/10/20; writes benchmarks/results/pairs.md by default")
     ap.add_argument("--out", default=None,
                     help="results table (default benchmarks/results/real.md; real.json beside)")
     ap.add_argument("--colmap-worker", default=None, help=argparse.SUPPRESS)
@@ -968,11 +1143,15 @@ def main(argv: list[str] | None = None) -> int:
         raise BenchError(f"method labels repeat: {labels}; name variants posernet-LABEL")
     if args.trust and args.set:
         raise BenchError("--trust picks its own sets: give --trust or --set, not both")
+    if args.pairs and (args.trust or args.set):
+        raise BenchError("--pairs picks its own sets: give it without --trust and --set")
     if args.set:
         specs, notes = [parse_set(t) for t in args.set], []
         rendered = args.rendered
     elif args.trust:
         (specs, notes), rendered = discover(TRUST_SETS), args.rendered
+    elif args.pairs:
+        (specs, notes), rendered = discover(PAIR_SETS), args.rendered
     else:
         (specs, notes), rendered = discover(), True
     names = [n for n, _, _ in specs]
@@ -998,14 +1177,24 @@ def main(argv: list[str] | None = None) -> int:
         for name, scene, seed, frames, step, every in TRUST_RENDERED:
             sets.append(rendered_set(work / "render", scene, frames, 640, 480, seed=seed,
                                      step=step, textured_every=every, name=name))
+    if args.pairs:
+        for name, scene, seed, frames, step, every in PAIR_RENDERED:
+            sets.append(rendered_set(work / "render", scene, frames, 640, 480, seed=seed,
+                                     step=step, textured_every=every, name=name))
     sets = [subsample(s, max_images, work / "subsets") for s in sets]
     for m in methods:
         if m.kind != "posernet" and (why := colmap_status(m.kind)):
             notes.append(f"{m.label}: {why}")
 
     notes.append(compile_bytecode())
-    rows = [run_method(s, m, work, args.threads, args.timeout, args.seed,
-                       args.colmap_matching) for s in sets for m in methods]
+    pair_lines: list[str] = []
+    if args.pairs:
+        rows, pair_lines = run_pairs(sets, methods, work, args.threads, args.timeout, args.seed)
+    else:
+        rows = [run_method(s, m, work, args.threads, args.timeout, args.seed,
+                           args.colmap_matching) for s in sets for m in methods]
+    for r in rows:
+        r.pop("_w2c", None)
 
     if str(ROOT) not in sys.path:
         sys.path.insert(0, str(ROOT))  # benchmarks/_common.py
@@ -1040,12 +1229,37 @@ def main(argv: list[str] | None = None) -> int:
           + f"{' + dist' if s.dist is not None and np.any(s.dist) else ''} | "
           + "; ".join(x for x in (s.source, s.note) if x) + " |" for s in sets),
         "",
-        *table(HEADER, table_rows(rows)),
     ]
+    if args.pairs:
+        body += [
+            f"Wide-baseline pairs: every pair of a set at least {PAIR_MIN_DEG:g} deg apart in "
+            f"rotation whose views overlap by at least {PAIR_MIN_OVERLAP:g} (each camera's "
+            f"view on a plane {PAIR_DEPTH:g} m in front of it, the share inside the other "
+            f"image, the smaller of both ways), the {PAIR_LIMIT} widest per set; each pair "
+            "is its own two-image run. Error of a pair: the larger of the relative rotation "
+            "error and the signed translation-direction error (a backwards direction is 180 "
+            "deg off); a pair not placed has an infinite error. AUC: the area under the "
+            "recall curve up to each threshold, normalised, in percent (as SuperGlue reports "
+            "it). Wrong: placed, but more than 20 deg off.",
+            "",
+            *pair_lines,
+            "",
+            *table(PAIR_HEADER, pair_summary(rows)),
+            "",
+            *table(("set", "pair", "GT rotation (deg)", "overlap", "method", "rot. err (deg)",
+                    "dir. err (deg)", "wall (s)", "note"),
+                   [[r["pair_set"], " / ".join(Path(k).stem for k in r["pair"]),
+                     f"{r['gt_rotation_deg']:.0f}", f"{r['overlap']:.2f}", r["method"],
+                     _cell(r["pair_rot_deg"], "{:.1f}"), _cell(r["pair_tdir_deg"], "{:.1f}"),
+                     _cell(r.get("wall_s"), "{:.1f}"), r.get("note") or ""] for r in rows]),
+        ]
+    else:
+        body += table(HEADER, table_rows(rows))
     title = "posernet-reconstruct vs COLMAP on real image sets"
-    md = write_results("trust" if args.trust else "real",
-                       title + (": cameras placed right / wrong" if args.trust else ""), body,
-                       args.quick, "cpu", args.out)
+    kind = "pairs" if args.pairs else "trust" if args.trust else "real"
+    md = write_results(kind, title + {"trust": ": cameras placed right / wrong",
+                                      "pairs": ": wide-baseline image pairs"}.get(kind, ""),
+                       body, args.quick, "cpu", args.out)
     report = {
         "command": command(), "date": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
         "machine": {"cpu": _cpu(), "cores": os.cpu_count(), "threads_per_method": args.threads},

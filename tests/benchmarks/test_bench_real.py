@@ -151,3 +151,53 @@ def test_colmap_matching_option(bench):
     assert opts["matching"] == {"num_threads": 2}
     with pytest.raises(bench.BenchError, match="vocabtree"):
         bench.colmap_options("colmap-global", 2, 0, "vocabtree")
+
+
+# ----------------------------------------------------------------- the wide-baseline pairs mode
+
+
+def test_pose_auc_matches_the_recall_curve(bench) -> None:
+    # errors 1 and 3 deg of four pairs, two failed: the recall curve runs (0, 0), (1, 1/4),
+    # (3, 2/4), then flat; its area up to each threshold (trapezoids), normalised
+    auc5, auc10, auc20 = bench.pose_auc([1.0, 3.0, float("inf"), float("inf")])
+    below3 = 0.5 * 0.25 * 1 + 0.5 * (0.25 + 0.5) * 2
+    assert auc5 == pytest.approx(100 * (below3 + 0.5 * 2) / 5)
+    assert auc10 == pytest.approx(100 * (below3 + 0.5 * 7) / 10)
+    assert auc20 == pytest.approx(100 * (below3 + 0.5 * 17) / 20)
+    assert bench.pose_auc([0.0] * 3) == pytest.approx([100.0] * 3)
+    assert bench.pose_auc([float("inf")] * 2) == [0.0, 0.0, 0.0]
+
+
+def test_pair_error_is_signed_and_gauge_free(bench) -> None:
+    c2w = _cameras(2)
+    a, b = sorted(c2w)
+    est = _similar(c2w, 2.5, _rot([1, 2, 3], 40), np.array([1.0, -2.0, 0.5]))
+    rot, tdir = bench.pair_error(c2w, est, a, b)
+    assert rot == pytest.approx(0.0, abs=1e-6) and tdir == pytest.approx(0.0, abs=1e-5)
+    # the same pair with the baseline reversed: right rotation, direction 180 deg off
+    flipped = dict(est)
+    rel = est[b] @ np.linalg.inv(est[a])
+    rel[:3, 3] *= -1
+    flipped[b] = rel @ est[a]
+    rot, tdir = bench.pair_error(c2w, flipped, a, b)
+    assert rot == pytest.approx(0.0, abs=1e-6) and tdir == pytest.approx(180.0, abs=1e-4)
+    assert bench.pair_error(c2w, {a: est[a]}, a, b) == (float("inf"), float("inf"))
+
+
+def test_wide_pairs_keep_far_apart_views_that_overlap(bench) -> None:
+    K = np.array([[500.0, 0, 320], [0, 500.0, 240], [0, 0, 1]])
+
+    def cam(yaw: float, x: float) -> np.ndarray:
+        T = np.eye(4)
+        T[:3, :3] = _rot([0, 1, 0], yaw)
+        T[:3, 3] = [x, 0, 0]
+        return T
+
+    # a (yaw 0) and b (yaw 35, moved sideways) look at the same wall 2 m away; c turned away
+    c2w = {"a.png": cam(0, 0), "b.png": cam(-35, 1.3), "c.png": cam(150, 0)}
+    assert bench.view_overlap(K, (640, 480), c2w["a.png"], c2w["b.png"]) > 0.2
+    assert bench.view_overlap(K, (640, 480), c2w["a.png"], c2w["c.png"]) == 0.0
+    s = bench.ImageSet("toy", Path("."), sorted(c2w), "500,500,320,240", K, None, c2w)
+    pairs = bench.wide_pairs(s, (640, 480))
+    assert [(p[0], p[1]) for p in pairs] == [("a.png", "b.png")]
+    assert pairs[0][2] == pytest.approx(35.0)

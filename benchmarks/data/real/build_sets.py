@@ -15,7 +15,8 @@ full Strecha set (views 0, 3, 6, ...: a chain of far-apart views); ``dino_far8``
 ``herzjesu_far8`` keep 8 views chosen far apart by greedy farthest-point sampling on the
 viewing direction (:func:`farthest_views`, starting from the first view). The turntable
 squirrel: ``squirrel`` (all 36 views, 10 deg apart) and ``squirrel_far8``. ``trust`` builds
-all seven.
+all seven. ``7scenes_wide``: 100 frames equally spaced in path length over all 1000 frames, the
+pool of the wide-baseline pairs benchmark (``bench_real.py --pairs``).
 
     python benchmarks/data/real/build_sets.py dino herzjesu fountain entry 7scenes
     python benchmarks/data/real/build_sets.py trust
@@ -182,10 +183,10 @@ def arc_length_pick(pos: np.ndarray, n_keep: int) -> list[int]:
 
 
 def build_7scenes(raw: Path, first: int = 0, last: int = 500, n_keep: int = 20,
-                  K=(525.0, 525.0, 320.0, 240.0)) -> None:
+                  K=(525.0, 525.0, 320.0, 240.0), name: str = "7scenes_redkitchen") -> None:
     """7-Scenes frames (as shipped in andyzeng/tsdf-fusion-python/data): poses already c2w."""
     src = raw / "7s"
-    out = HERE / "7scenes_redkitchen"
+    out = HERE / name
     clean(out)
     ids = list(range(first, last))
     pos = np.array([np.loadtxt(src / f"frame-{i:06d}.pose.txt")[:3, 3] for i in ids])
@@ -276,6 +277,8 @@ if __name__ == "__main__":
             build_strecha(a.raw, "entry", "strecha_entry_p10", n_keep=10)
         elif s == "7scenes":
             build_7scenes(a.raw)
+        elif s == "7scenes_wide":  # the pairs benchmark's pool: 100 frames of the whole path
+            build_7scenes(a.raw, last=1000, n_keep=100, name="7scenes_redkitchen_wide")
         elif s == "cabinet":
             build_cabinet(a.raw)
         elif s == "herzjesu_every3":
