@@ -19,9 +19,9 @@ from posernet.frontend.features import (
     MatcherError,
     Matches,
     SiftMatcher,
-    draw_matches,
     make_matcher,
 )
+from posernet.match_pictures import draw_matches
 
 H_TRUE = np.array([[0.96, 0.07, 12.0], [-0.05, 0.98, 9.0], [2e-5, 3e-5, 1.0]])
 XFEAT_KW = {"top_k": 1024}  # fewer keypoints than the default: LighterGlue is quadratic in them

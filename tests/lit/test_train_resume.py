@@ -19,7 +19,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from posernet.cli.train import _relocation_callback, resume_overrides, run_dir_of_checkpoint
+from posernet.cli.resume import relocation_callback, resume_overrides, run_dir_of_checkpoint
 
 pytestmark = pytest.mark.filterwarnings("ignore::UserWarning", "ignore::DeprecationWarning")
 
@@ -71,7 +71,7 @@ def test_moved_run_folder_keeps_its_best_score(tmp_path: Path) -> None:
         checkpoint = {"callbacks": {cb.state_key: saved.state_dict()}}
         if relocate:
             trainer = types.SimpleNamespace(checkpoint_callbacks=[cb])
-            _relocation_callback(str(new_dir / "last.ckpt")).on_load_checkpoint(
+            relocation_callback(str(new_dir / "last.ckpt")).on_load_checkpoint(
                 trainer, None, checkpoint)
         cb.load_state_dict(checkpoint["callbacks"][cb.state_key])
         return cb

@@ -8,8 +8,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
+from posernet.pinhole import look_at
 from posernet.sfm import REASONS, project, triangulate_tracks, undistort_keypoints
-from posernet.sfm.synthetic import look_at_w2c, make_scene
+from posernet.sfm.synthetic import make_scene
 
 
 def _tri(scene, xy=None, w2c=None, **kw):
@@ -35,8 +36,9 @@ def test_noise_free_is_exact_and_noisy_is_accurate() -> None:
 def _two_cameras(baseline: float) -> tuple[np.ndarray, np.ndarray]:
     K = np.repeat(np.array([[500.0, 0, 320], [0, 500, 240], [0, 0, 1]])[None], 2, 0)
     up = np.array([0.0, -1.0, 0.0])
-    w2c = np.stack([look_at_w2c(np.array([x, 0.0, -5.0]), np.array([x, 0.0, 0.0]), up)
-                    for x in (0.0, baseline)])
+    x = np.array([0.0, baseline])
+    w2c = look_at(np.stack([x, [0.0, 0.0], [-5.0, -5.0]], 1),
+                  np.stack([x, [0.0, 0.0], [0.0, 0.0]], 1), up=up)
     return K, w2c
 
 

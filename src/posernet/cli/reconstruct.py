@@ -57,8 +57,8 @@ def _pictures(rec: Any, out: Path, k: int) -> list[Path]:
     matches), each drawn with the matches its verified pose explains (and its boxes)."""
     import numpy as np
 
-    from ..frontend.features import draw_matches
     from ..frontend.images import read_image
+    from ..match_pictures import draw_matches
 
     fe, g = rec.frontend, rec.graph
     if k <= 0 or g.num_edges == 0:
@@ -452,9 +452,9 @@ def _report_nothing_placed(err: Any, out: Path, info: dict[str, Any], pictures: 
     with its rejection reason), summary.json and pictures of the pairs with the most matches
     (to see why), then exits with :data:`EXIT_NOTHING_PLACED`."""
 
-    from ..frontend.features import draw_matches
     from ..frontend.images import read_image
     from ..io import atomic_write_json
+    from ..match_pictures import draw_matches
     from ..reconstruct import unplaced_json
 
     fe = err.frontend

@@ -22,7 +22,8 @@ folder's own ``checkpoints/last.ckpt`` when there is one and starts afresh other
 multirun that may have been interrupted wants): the best checkpoint keeps competing with the
 best model found before the interruption, ``metrics.json`` is rewritten there, the new epochs
 are appended to ``logs/metrics.csv`` and the resumed job's Hydra config goes to
-``RUN/.hydra/resume_<date>_<time>`` (the original ``.hydra`` files stay).
+``RUN/.hydra/resume_<date>_<time>`` (the original ``.hydra`` files stay). What Hydra and
+Lightning do not do for this themselves is in :mod:`posernet.cli.resume`.
 
 Fine-tuning (``init_from=PATH``, or ``init_from=shipped`` for the shipped checkpoint) starts a
 new run (epoch 0, a fresh optimiser and scheduler, the configured loss) from the network
@@ -32,10 +33,7 @@ naming the differing values). ``ckpt_path`` and ``init_from`` exclude each other
 
 from __future__ import annotations
 
-import csv
 import math
-import os
-import re
 import sys
 import time
 from pathlib import Path
@@ -46,121 +44,9 @@ from omegaconf import DictConfig
 
 from . import CONFIG_DIR
 from .common import check_config, quiet_lightning, run_app, run_task, set_threads
+from .resume import continues_run, kept_csv_log, relocation_callback, resume_overrides
 
-__all__ = ["init_weights", "main", "resume_overrides", "run_dir_of_checkpoint", "train"]
-
-_CKPT_ARG = re.compile(r"^\+{0,2}ckpt_path=(.*)$")
-_RUN_DIR_ARGS = re.compile(r"^\+{0,2}(hydra\.run\.dir|out_dir)=")
-
-
-def run_dir_of_checkpoint(ckpt_path: str | os.PathLike[str]) -> Path | None:
-    """The run folder of a checkpoint written by ``posernet-train`` (``RUN/checkpoints/x.ckpt``
-    -> ``RUN``, absolute), or ``None`` for a checkpoint stored elsewhere."""
-    p = Path(ckpt_path).expanduser().resolve()
-    return p.parent.parent if p.parent.name == "checkpoints" else None
-
-
-def resume_overrides(argv: list[str]) -> list[str]:
-    """Command-line overrides that make a resumed run continue in its own folder.
-
-    With ``ckpt_path=RUN/checkpoints/*.ckpt`` (an existing file) and neither ``hydra.run.dir``
-    nor ``out_dir`` given, appends ``hydra.run.dir=RUN`` and puts this job's Hydra config in
-    ``RUN/.hydra/resume_<date>_<time>``. Sweeps (``-m``) and other commands are left alone.
-    """
-    if any(a in ("-m", "--multirun") for a in argv) or any(_RUN_DIR_ARGS.match(a) for a in argv):
-        return list(argv)
-    values = [m.group(1) for m in map(_CKPT_ARG.match, argv) if m]
-    if not values:
-        return list(argv)
-    value = values[-1].strip()
-    if len(value) >= 2 and value[0] == value[-1] and value[0] in "'\"":
-        value = value[1:-1]
-    if value in ("", "null", "last") or not Path(value).expanduser().is_file():
-        return list(argv)  # nothing to continue (a missing file is reported by train())
-    run_dir = run_dir_of_checkpoint(value)
-    if run_dir is None or '"' in str(run_dir):
-        return list(argv)
-    stamp = time.strftime("%Y-%m-%d_%H-%M-%S")
-    own = run_settings(run_dir)
-    given = {a.split("=", 1)[0].lstrip("+~") for a in argv if "=" in a}
-    inherited = [o for o in own if o.split("=", 1)[0].lstrip("+~") not in given]
-    if inherited:
-        print(f"posernet-train: continuing {run_dir} with its own settings: "
-              + " ".join(inherited), file=sys.stderr)
-    return [*inherited, *argv, f'hydra.run.dir="{run_dir}"',
-            f"hydra.output_subdir=.hydra/resume_{stamp}"]
-
-
-def run_settings(run_dir: Path) -> list[str]:
-    """The command-line overrides a run was started with (``RUN/.hydra/overrides.yaml``),
-    without Hydra's own and ``ckpt_path``, and its ``data.root`` made absolute against the
-    folder it was started from (``RUN/.hydra/hydra.yaml``): what resuming it from any folder
-    needs to train on the same data with the same model. Empty when the files are absent."""
-    from omegaconf import OmegaConf
-
-    hydra_dir = run_dir / ".hydra"
-    try:
-        overrides = [str(o) for o in OmegaConf.load(hydra_dir / "overrides.yaml")]
-        config = OmegaConf.load(hydra_dir / "config.yaml")
-        cwd = Path(str(OmegaConf.load(hydra_dir / "hydra.yaml").hydra.runtime.cwd))
-    except Exception:  # no (or unreadable) Hydra record: nothing to inherit
-        return []
-    keep = [o for o in overrides if not o.lstrip("+~").startswith(("hydra.", "ckpt_path="))
-            and not o.lstrip("+~").startswith("data.root=")]
-    root = OmegaConf.select(config, "data.root", default=None)
-    if root is not None:
-        roots = list(root) if OmegaConf.is_list(root) else [root]
-        absolute = [str(p if Path(str(p)).is_absolute() else cwd / str(p)) for p in roots]
-        keep.insert(0, "data.root=" + (absolute[0] if len(absolute) == 1
-                                       else "[" + ",".join(absolute) + "]"))
-    return keep
-
-
-def _continues_run(ckpt_path: Any, out_dir: Path) -> bool:
-    """Whether ``ckpt_path`` is a checkpoint of the run folder ``out_dir`` (resume in place)."""
-    if ckpt_path in (None, "last"):
-        return False
-    run_dir = run_dir_of_checkpoint(ckpt_path)
-    return run_dir is not None and run_dir == out_dir.resolve()
-
-
-def _relocation_callback(ckpt_path: str) -> Any:
-    """A callback that lets the checkpoint callbacks of a run folder that was moved (or copied)
-    since ``ckpt_path`` was written keep their best-so-far state on resume.
-
-    Lightning restores ``best_model_score`` only when the saved ``dirpath`` equals the current
-    one; when the checkpoint lies in the current ``dirpath``, the saved paths are re-based."""
-    from lightning.pytorch.callbacks import Callback, ModelCheckpoint
-
-    ckpt_dir = os.path.realpath(Path(ckpt_path).expanduser().parent)
-
-    class _ContinueRun(Callback):
-        def on_load_checkpoint(self, trainer: Any, pl_module: Any,
-                               checkpoint: dict[str, Any]) -> None:
-            states = checkpoint.get("callbacks") or {}
-            for cb in trainer.checkpoint_callbacks:
-                state = states.get(cb.state_key) if isinstance(cb, ModelCheckpoint) else None
-                if not isinstance(state, dict) or not cb.dirpath or cb.dirpath != ckpt_dir:
-                    continue
-                old = state.get("dirpath")
-                if not isinstance(old, str) or old == cb.dirpath:
-                    continue
-
-                def move(path: Any, old: str = old, new: str = cb.dirpath) -> Any:
-                    if isinstance(path, str) and path and Path(path).parent == Path(old):
-                        return os.path.join(new, Path(path).name)
-                    return path
-
-                state["dirpath"] = cb.dirpath
-                for key in ("best_model_path", "kth_best_model_path", "last_model_path"):
-                    if key in state:
-                        state[key] = move(state[key])
-                if isinstance(state.get("best_k_models"), dict):
-                    state["best_k_models"] = {move(k): v for k, v in
-                                              state["best_k_models"].items()}
-
-    return _ContinueRun()
-
+__all__ = ["init_weights", "main", "train"]
 
 def _scalars(metrics: dict[str, Any]) -> dict[str, float]:
     """The finite one-element tensors of a Lightning metrics mapping, as floats."""
@@ -187,37 +73,6 @@ def _validation_history() -> Any:
                                        if k.startswith("val/")}})
 
     return _History()
-
-
-def _merge_csv_log(path: Path, history: Path, epoch: int, global_step: int) -> None:
-    """Rewrite ``path`` as the rows of ``history`` written before the resumed checkpoint (epoch
-    ``<= epoch``; rows without an epoch: ``step < global_step``) followed by ``path``'s rows."""
-
-    def rows(p: Path) -> tuple[list[str], list[dict[str, str]]]:
-        if not p.is_file():
-            return [], []
-        with p.open(newline="") as f:
-            reader = csv.DictReader(f)
-            return list(reader.fieldnames or []), list(reader)
-
-    def before(row: dict[str, str]) -> bool:
-        try:
-            if row.get("epoch"):
-                return float(row["epoch"]) <= epoch
-            return float(row.get("step") or "nan") < global_step
-        except ValueError:
-            return True
-
-    old_keys, old_rows = rows(history)
-    new_keys, new_rows = rows(path)
-    keys = sorted(set(old_keys) | set(new_keys))
-    tmp = path.with_name(path.name + ".tmp")
-    with tmp.open("w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=keys)
-        writer.writeheader()
-        writer.writerows([r for r in old_rows if before(r)] + new_rows)
-    os.replace(tmp, path)
-    history.unlink()
 
 
 def init_weights(module: Any, init_from: str) -> Path:
@@ -283,7 +138,6 @@ def train(cfg: DictConfig) -> float:
 
     import lightning as L
     from lightning.pytorch.callbacks import ModelCheckpoint
-    from lightning.pytorch.loggers import CSVLogger
 
     from ..checkpoints import CHECKPOINT_TAG, read_checkpoint
     from ..io import atomic_write_json
@@ -300,7 +154,7 @@ def train(cfg: DictConfig) -> float:
     if ckpt_path == "last":  # this run folder's own last checkpoint, when it has one
         found = out_dir / "checkpoints" / "last.ckpt"
         ckpt_path = str(found) if found.is_file() else None
-    in_place = _continues_run(ckpt_path, out_dir)
+    in_place = continues_run(ckpt_path, out_dir)
 
     datamodule = hydra.utils.instantiate(cfg.data)
     model: L.LightningModule = hydra.utils.instantiate(cfg.model)
@@ -318,10 +172,9 @@ def train(cfg: DictConfig) -> float:
     history_cb = _validation_history()
     callbacks.append(history_cb)
     if in_place:
-        callbacks.append(_relocation_callback(str(ckpt_path)))
+        callbacks.append(relocation_callback(str(ckpt_path)))
     logger = hydra.utils.instantiate(cfg.logger) if cfg.get("logger") else False
     trainer: L.Trainer = trainer_from_config(cfg.trainer, callbacks=callbacks, logger=logger)
-    history: Path | None = None
     if trainer.is_global_zero:
         print(f"{type(model).__name__}: {num_parameters} parameters; output folder {out_dir}")
         if in_place:
@@ -330,22 +183,13 @@ def train(cfg: DictConfig) -> float:
             print(f"Resuming from {ckpt_path} in a new folder {out_dir}")
         if init_from is not None:
             print(f"Fine-tuning the network of {init_path} (fresh optimiser, epoch 0)")
-        if in_place and isinstance(logger, CSVLogger):
-            # Lightning's CSV logger deletes an existing metrics.csv: keep the earlier epochs.
-            log_csv = Path(logger.log_dir) / "metrics.csv"
-            if log_csv.is_file():
-                history = log_csv.with_name("metrics.before_resume.csv")
-                os.replace(log_csv, history)
-                warnings.filterwarnings("ignore", message=r"Experiment logs directory .*")
         if in_place:  # expected when a run continues in its folder
             warnings.filterwarnings("ignore", message=r"Checkpoint directory .* not empty")
 
-    try:
+    keep_log = in_place and trainer.is_global_zero
+    with kept_csv_log(logger if keep_log else None, int(resumed.get("epoch", 0)),
+                      int(resumed.get("global_step", 0))):
         trainer.fit(model, datamodule=datamodule, ckpt_path=ckpt_path)
-    finally:
-        if history is not None:
-            _merge_csv_log(history.with_name("metrics.csv"), history,
-                           int(resumed.get("epoch", 0)), int(resumed.get("global_step", 0)))
 
     checkpoints = [c for c in trainer.callbacks if isinstance(c, ModelCheckpoint)]
     # the monitored one keeps the best model; one without a monitor keeps the latest epoch

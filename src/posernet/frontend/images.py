@@ -29,6 +29,9 @@ from typing import Any
 
 import cv2
 import numpy as np
+import torch
+
+from ..geometry import quaternion_to_rotation_matrix
 
 __all__ = [
     "FOCAL_PRIOR",
@@ -374,13 +377,10 @@ def read_pose_file(path: str | os.PathLike[str]) -> np.ndarray:
 
 
 def _quat_to_matrix(q_wxyz: np.ndarray) -> np.ndarray:
-    """``(N, 3, 3)`` rotations of unit quaternions ``(N, 4)`` (w, x, y, z; normalised here)."""
-    q = q_wxyz / np.linalg.norm(q_wxyz, axis=1, keepdims=True)
-    w, x, y, z = q.T
-    return np.stack([
-        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], 1),
-        np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], 1),
-        np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], 1)], 1)
+    """``(N, 3, 3)`` rotations of quaternions ``(N, 4)`` (w, x, y, z; normalised here), by
+    :func:`posernet.geometry.quaternion_to_rotation_matrix`."""
+    q = torch.from_numpy(np.asarray(q_wxyz, np.float64))
+    return quaternion_to_rotation_matrix(q).numpy()
 
 
 def read_tum_trajectory(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarray]:

@@ -6,10 +6,13 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import torch
 
+from ..geometry import axis_angle_to_rotation_matrix
+from ..pinhole import look_at
 from .triangulation import project
 
-__all__ = ["SyntheticScene", "look_at_w2c", "make_scene", "make_sparse_scene", "perturb_poses"]
+__all__ = ["SyntheticScene", "make_scene", "make_sparse_scene", "perturb_poses"]
 
 
 @dataclass
@@ -35,19 +38,6 @@ class SyntheticScene:
     image_size: tuple[int, int] = (640, 480)
 
 
-def look_at_w2c(centre: np.ndarray, target: np.ndarray, up: np.ndarray) -> np.ndarray:
-    """World-to-camera ``(4, 4)`` of a camera at ``centre`` looking at ``target`` (y down)."""
-    z = target - centre
-    z = z / np.linalg.norm(z)
-    x = np.cross(z, up)
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    R = np.stack((x, y, z))
-    T = np.eye(4)
-    T[:3, :3], T[:3, 3] = R, -R @ centre
-    return T
-
-
 def make_scene(num_cameras: int = 8, num_points: int = 400, noise_px: float = 0.5,
                visibility: float = 0.8, seed: int = 0, focal: float = 500.0,
                radius: float = 4.0) -> SyntheticScene:
@@ -59,13 +49,14 @@ def make_scene(num_cameras: int = 8, num_points: int = 400, noise_px: float = 0.
     K = np.array([[focal, 0, W / 2], [0, focal, H / 2], [0, 0, 1]])
     Ks = np.repeat(K[None], num_cameras, 0)
     pts = rng.uniform(-1, 1, (num_points, 3)) * np.array([1.5, 1.0, 1.5])
-    w2c = []
+    centres, targets = [], []
     for i in range(num_cameras):
         a = 2 * np.pi * i / num_cameras * 0.6 + rng.normal(0, 0.05)
         c = radius * np.array([np.sin(a), 0, -np.cos(a)]) + rng.normal(0, 0.3, 3)
         c[1] += rng.uniform(-1, 1)
-        w2c.append(look_at_w2c(c, rng.normal(0, 0.2, 3), np.array([0.0, -1.0, 0.0])))
-    w2c = np.stack(w2c)
+        centres.append(c)
+        targets.append(rng.normal(0, 0.2, 3))
+    w2c = look_at(np.stack(centres), np.stack(targets), up=np.array([0.0, -1.0, 0.0]))
     uv, kp_point = [], []
     oi, op, ok, oxy = [], [], [], []
     for i in range(num_cameras):
@@ -115,14 +106,16 @@ def make_sparse_scene(kind: str = "ring", num_cameras: int = 16, num_points: int
         normal = rng.normal(size=(num_points, 3)) * np.array([1.0, 0.3, 1.0])
         normal /= np.linalg.norm(normal, axis=1, keepdims=True)
         pts, cone = normal.copy(), 40.0
-        w2c = np.stack([look_at_w2c(4.0 * np.array([np.sin(a), 0.0, -np.cos(a)]), np.zeros(3),
-                                    up) for a in 2 * np.pi * np.arange(n) / n])
+        a = 2 * np.pi * np.arange(n) / n
+        w2c = look_at(4.0 * np.stack([np.sin(a), np.zeros(n), -np.cos(a)], 1), np.zeros((n, 3)),
+                      up=up)
     else:
         pts = np.stack([rng.uniform(-1, 1.2 * n, num_points), rng.uniform(-1, 1, num_points),
                         rng.uniform(-0.5, 0.5, num_points)], 1)
         normal, cone = np.tile([0.0, 0.0, -1.0], (num_points, 1)), 80.0
-        w2c = np.stack([look_at_w2c(np.array([1.2 * i, 0.0, -4.0]),
-                                    np.array([1.2 * i, 0.0, 0.0]), up) for i in range(n)])
+        x = 1.2 * np.arange(n)
+        w2c = look_at(np.stack([x, np.zeros(n), np.full(n, -4.0)], 1),
+                      np.stack([x, np.zeros(n), np.zeros(n)], 1), up=up)
     Ks = np.repeat(K[None], n, 0)
     uv, kp_point, oi, op, ok = [], [], [], [], []
     for i in range(n):
@@ -157,8 +150,6 @@ def perturb_poses(w2c: np.ndarray, rot_deg: float, trans_frac: float, seed: int 
                   keep: tuple[int, ...] = ()) -> np.ndarray:
     """Rotate each camera by ``rot_deg`` about a random axis and move its centre by
     ``trans_frac`` of its distance to the origin (random direction); ``keep``: untouched."""
-    from scipy.spatial.transform import Rotation
-
     rng = np.random.default_rng(seed)
     out = w2c.copy()
     for i in range(w2c.shape[0]):
@@ -166,7 +157,7 @@ def perturb_poses(w2c: np.ndarray, rot_deg: float, trans_frac: float, seed: int 
             continue
         axis = rng.normal(size=3)
         axis /= np.linalg.norm(axis)
-        dR = Rotation.from_rotvec(np.radians(rot_deg) * axis).as_matrix()
+        dR = axis_angle_to_rotation_matrix(torch.from_numpy(np.radians(rot_deg) * axis)).numpy()
         R, t = w2c[i, :3, :3], w2c[i, :3, 3]
         c = -R.T @ t
         d = rng.normal(size=3)

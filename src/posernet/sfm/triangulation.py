@@ -14,6 +14,8 @@ import cv2
 import numpy as np
 from scipy.sparse import csr_matrix
 
+from .. import pinhole
+
 __all__ = [
     "REASONS",
     "Triangulation",
@@ -64,13 +66,9 @@ def _segment_max(values: np.ndarray, group: np.ndarray, n: int, fill: float) -> 
 
 def project(points: np.ndarray, K: np.ndarray, w2c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Pixels and depths of matched rows: ``points (O, 3)``, ``K (O, 3, 3)``, ``w2c (O, 4, 4)``
-    -> ``uv (O, 2)``, ``z (O,)``."""
+    -> ``uv (O, 2)``, ``z (O,)`` (the pinhole of :func:`posernet.pinhole.project`)."""
     pc = np.einsum("oij,oj->oi", w2c[:, :3, :3], points) + w2c[:, :3, 3]
-    z = pc[:, 2]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        h = np.einsum("oij,oj->oi", K, pc)
-        uv = h[:, :2] / h[:, 2:3]
-    return uv, z
+    return pinhole.project(pc, K), pc[:, 2]
 
 
 def reprojection_errors(points: np.ndarray, xy: np.ndarray, obs_point: np.ndarray,

@@ -1,12 +1,15 @@
 """Pinhole camera (Kinect-like) in numpy: intrinsics, look-at poses, projection, cuboid boxes.
 
 Camera frame: OpenCV (x right, y down, z forward). Poses are world-to-camera
-``x_cam = R X + t``; the world has z up.
+``x_cam = R X + t``; the world has z up. :func:`look_at` and :func:`project` are
+:mod:`posernet.pinhole`'s (the one numpy camera geometry), named here for the simulator.
 """
 
 from __future__ import annotations
 
 import numpy as np
+
+from ...pinhole import look_at, project
 
 __all__ = [
     "CUBOID_EDGES",
@@ -41,44 +44,6 @@ def rotation_z(yaw: np.ndarray) -> np.ndarray:
     R[..., 0, 0], R[..., 0, 1], R[..., 1, 0], R[..., 1, 1] = c, -s, s, c
     R[..., 2, 2] = 1.0
     return R
-
-
-def look_at(centres: np.ndarray, targets: np.ndarray, roll: np.ndarray | None = None) -> np.ndarray:
-    """World-to-camera poses ``(F, 4, 4)`` of cameras at ``centres (F, 3)`` looking at ``targets``.
-
-    The image "up" follows world +z; ``roll (F,)`` (radians) turns the camera about its
-    optical axis. Raises ``ValueError`` when a camera looks straight up or down.
-    """
-    fwd = targets - centres
-    fwd = fwd / np.linalg.norm(fwd, axis=-1, keepdims=True)
-    right = np.cross(fwd, np.array([0.0, 0.0, 1.0]))
-    norm = np.linalg.norm(right, axis=-1, keepdims=True)
-    if np.any(norm < 1e-6):
-        raise ValueError("look_at: a camera looks straight up or down")
-    right = right / norm
-    down = np.cross(fwd, right)
-    if roll is not None:
-        c, s = np.cos(roll)[:, None], np.sin(roll)[:, None]
-        right, down = c * right + s * down, -s * right + c * down
-    R = np.stack((right, down, fwd), axis=-2)  # rows: camera axes in world coordinates
-    T = np.zeros((centres.shape[0], 4, 4))
-    T[:, :3, :3] = R
-    T[:, :3, 3] = -np.einsum("fij,fj->fi", R, centres)
-    T[:, 3, 3] = 1.0
-    return T
-
-
-def project(points_cam: np.ndarray, K: np.ndarray, k1: float = 0.0) -> np.ndarray:
-    """Pixels ``(*, 2)`` of camera-frame points ``(*, 3)`` (z > 0), with radial distortion k1.
-
-    ``x_d = x (1 + k1 r^2)`` on normalised coordinates; ``r^2`` is capped at 2 so that points
-    far outside the field of view stay monotonic (they only matter for clipped boxes).
-    """
-    xy = points_cam[..., :2] / points_cam[..., 2:3]
-    if k1:
-        r2 = np.minimum((xy * xy).sum(-1, keepdims=True), 2.0)
-        xy = xy * (1.0 + k1 * r2)
-    return xy * np.array([K[0, 0], K[1, 1]]) + np.array([K[0, 2], K[1, 2]])
 
 
 def cuboid_corners(centre: np.ndarray, half: np.ndarray, R: np.ndarray) -> np.ndarray:
