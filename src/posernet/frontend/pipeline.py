@@ -7,6 +7,12 @@ a sampled few for a large 7-Scenes sequence). It exposes the same ``pair(u, v)``
 synthetic generator's ``SceneWorld``, so graphs come from one assembly
 (:func:`~posernet.frontend.graphs.assemble_view_graph`).
 
+What leaves it is typed data (:mod:`posernet.frontend.results`), stage by stage:
+:meth:`ImageFrontend.extract` (per-image features), :meth:`ImageFrontend.select_pairs`,
+:meth:`ImageFrontend.match` (per-pair matches and verified geometry) and
+:meth:`ImageFrontend.view_graph` (the assembled view graph with all of the above); later stages
+need nothing else from it.
+
 Per-stage wall times and counts (images without proposals, pairs with too few keypoint
 matches, unmatched pairs, failed 5-point estimates) are kept for the run's summary.
 """
@@ -22,6 +28,7 @@ from collections.abc import Iterable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field, is_dataclass
 from pathlib import Path
+from types import MappingProxyType
 from typing import Any
 
 import cv2
@@ -35,7 +42,16 @@ from .cache import FrontendCache, file_digest
 from .features import Features, Matches
 from .graphs import GraphStats, PairResult, assemble_view_graph
 from .images import ImageRecord, read_image
+from .pairs import PairOptions, PairSelection, select_pairs
 from .relpose import PoseOptions, five_point
+from .results import (
+    FrontendResult,
+    ImageFeatures,
+    MatchResult,
+    PairMatches,
+    TwoViewGeometry,
+    assemble_frontend_result,
+)
 from .verify import (
     VerifyRules,
     epipolar_consistent,
@@ -337,6 +353,22 @@ class ImageFrontend:
         if i not in self._images:
             self.prepare([i], progress=False)
         return self._images[i]
+
+    def features(self, i: int) -> ImageFeatures:
+        """The image stage's result for image ``i`` (computed once)."""
+        d = self.image(i)
+        return ImageFeatures(d.features.uv, tuple(d.features.size), d.boxes)
+
+    def extract(self, progress: bool = True) -> tuple[ImageFeatures, ...]:
+        """The image stage on every image (:meth:`prepare`): their features, in image order."""
+        self.prepare(progress=progress)
+        return tuple(self.features(i) for i in range(len(self.records)))
+
+    def select_pairs(self, options: PairOptions | None = None) -> PairSelection:
+        """The image pairs to match (:func:`~posernet.frontend.pairs.select_pairs` on every
+        image's descriptors, which stay inside the front end)."""
+        return select_pairs([self.image(i).features for i in range(len(self.records))],
+                            options)
 
     def boxes(self, i: int) -> np.ndarray:
         """Proposals of image ``i`` as pixel xyxy ``(B, 4)``."""
@@ -673,6 +705,42 @@ class ImageFrontend:
                                        geo["dist1"], geo["dist2"],
                                        threshold=2.0 * self.pose.kp_threshold)
         return np.stack([m.idx_a[keep], m.idx_b[keep]], axis=1)
+
+    def two_view(self, i: int, j: int) -> TwoViewGeometry:
+        """The verified geometry of images ``i, j`` (evaluated once), as a frozen record."""
+        return TwoViewGeometry.from_pair(self.pair(i, j))
+
+    def match(self, pairs: Sequence[tuple[int, int]], progress: bool = True,
+              screen: bool = True) -> MatchResult:
+        """The pair stage: evaluate ``pairs`` (:meth:`evaluate_pairs`), then with ``screen``
+        reject the edges among them that crowd their inliers or break triangles
+        (:func:`~posernet.frontend.consistency.screen_edges`). Returns every evaluated pair's
+        matches and geometry with every image's features (whose keypoints they index)."""
+        self.evaluate_pairs(pairs, progress=progress)
+        if screen:
+            from .consistency import screen_edges
+
+            screen_edges(self, pairs)
+        return self.match_result()
+
+    def match_result(self) -> MatchResult:
+        """Every pair evaluated so far and every image's features, as typed data."""
+        self.prepare(progress=False)
+        return MatchResult(
+            images=tuple(self.features(i) for i in range(len(self.records))),
+            pairs=MappingProxyType({k: PairMatches(TwoViewGeometry.from_pair(p),
+                                                   self.matches.get(k))
+                                    for k, p in sorted(self._pairs.items())}))
+
+    def view_graph(self, selection: PairSelection, matches: MatchResult | None = None,
+                   meta: dict[str, Any] | None = None) -> FrontendResult:
+        """The graph stage: the view graph of every image over ``selection``'s pairs from the
+        pair stage's ``matches`` (default: :meth:`match_result`), with the run's counts
+        (:func:`~posernet.frontend.results.assemble_frontend_result`)."""
+        if matches is None:
+            matches = self.match_result()
+        return assemble_frontend_result(self.records, matches, selection, meta,
+                                        summary=self.summary, seed=self.seed)
 
     def verified_matches(self) -> dict[tuple[int, int], np.ndarray]:
         """Keypoint index pairs ``(M, 2)`` that each evaluated pair's verified pose explains
