@@ -159,7 +159,8 @@ class FrontendResult:
         selection: which image pairs were matched.
         graph: the assembled view graph; ``stats``: its book-keeping.
         summary: the front end's counts and timings
-            (:class:`~posernet.frontend.pipeline.FrontendSummary`, a copy).
+            (:class:`~posernet.frontend.pipeline.FrontendSummary`, a copy; the image and
+            pair counts of ``matches`` when None is given).
         seed: the front end's seed (RANSAC; bundle adjustment's sampling).
     """
 
@@ -170,6 +171,17 @@ class FrontendResult:
     stats: GraphStats
     summary: Any = None
     seed: int = 0
+
+    def __post_init__(self) -> None:
+        if self.summary is None:  # a result built by hand: count what it holds
+            from .pipeline import FrontendSummary
+
+            s = FrontendSummary(images=len(self.records),
+                                boxes=any(len(f.boxes) for f in self.matches.images))
+            for p in self.matches.pairs.values():
+                s.pairs[p.geometry.status] += 1
+                s.rotation_only += p.geometry.is_edge and p.geometry.rotation_only
+            object.__setattr__(self, "summary", s)
 
     @property
     def images(self) -> tuple[ImageFeatures, ...]:
@@ -225,4 +237,5 @@ def assemble_frontend_result(records: Sequence[ImageRecord], matches: MatchResul
                  dtype=np.float64),
         np.array([r.k1 for r in recs]), w2c, meta, selection.pairs)
     return FrontendResult(recs, matches, selection, graph, stats,
-                          summary=copy.deepcopy(summary), seed=int(seed))
+                          summary=None if summary is None else copy.deepcopy(summary),
+                          seed=int(seed))
