@@ -23,10 +23,9 @@ import hashlib
 import logging
 import threading
 import time
-from collections import Counter
 from collections.abc import Iterable, Sequence
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import asdict, dataclass, field, is_dataclass
+from dataclasses import asdict, dataclass, is_dataclass
 from pathlib import Path
 from types import MappingProxyType
 from typing import Any
@@ -46,6 +45,7 @@ from .pairs import PairOptions, PairSelection, select_pairs
 from .relpose import PoseOptions, five_point
 from .results import (
     FrontendResult,
+    FrontendSummary,
     ImageFeatures,
     MatchResult,
     PairMatches,
@@ -69,84 +69,6 @@ def pair_seed(seed: int, a: int, b: int) -> int:
     """A RANSAC seed for images ``a < b`` that does not depend on evaluation order."""
     h = hashlib.blake2b(f"{seed}:{a}:{b}".encode(), digest_size=4).digest()
     return int.from_bytes(h, "little") & 0x7FFFFFFF
-
-
-@dataclass
-class FrontendSummary:
-    """Counts and per-stage wall times (seconds) of a front-end run."""
-
-    images: int = 0
-    images_without_boxes: int = 0
-    pairs: Counter = field(default_factory=Counter)  # status -> count, plus "too_few_matches"
-    seconds: Counter = field(default_factory=Counter)  # stage -> wall time
-    rejected: Counter = field(default_factory=Counter)  # "kp:<reason>" / "bb:<reason>" -> count
-    rotation_only: int = 0  # edges whose translation direction is meaningless
-    flat_keypoints: int = 0  # keypoints dropped on uniform patches
-    reused: Counter = field(default_factory=Counter)  # "images" / "pairs" read from the cache
-    boxes: bool = True  # False: no proposals were made (keypoints only)
-    # matcher fallback: "images" with fallback features, pairs "tried" again, results "kept"
-    fallback: Counter = field(default_factory=Counter)
-
-    def lines(self) -> list[str]:
-        """Human-readable summary lines (counts, then time per image / per pair)."""
-        n_pairs = sum(v for k, v in self.pairs.items()
-                      if k not in ("too_few_matches", "edge_few_boxes"))
-        s = self.seconds
-        few_boxes = self.pairs["unmatched"] - self.pairs["too_few_matches"]
-        out = [
-            f"images: {self.images} " + (f"({self.images_without_boxes} without any proposal)"
-                                         if self.boxes else "(no boxes: no stage uses them)"),
-            f"pairs: {n_pairs} checked, {self.pairs['edge']} edges; skipped: "
-            f"{self.pairs['too_few_matches']} with too few keypoint matches, "
-            + (f"{few_boxes} with too few matched boxes, {self.pairs['kp_failed']} KP and "
-               f"{self.pairs['bb_failed']} BB two-view rejections"
-               + (f"; {self.pairs['edge_few_boxes']} edges with fewer matched boxes than the "
-                  "paper's rule" if self.pairs["edge_few_boxes"] else "")
-               if self.boxes else f"{few_boxes} rejected by two-view verification"),
-        ]
-        if self.rejected or self.rotation_only:
-            why = ", ".join(f"{k} {v}" for k, v in sorted(self.rejected.items()))
-            out.append(f"verification: {self.rotation_only} rotation-only edges"
-                       + (f"; rejected: {why}" if why else "")
-                       + f"; {self.flat_keypoints} keypoints on flat patches dropped")
-        if self.fallback:
-            f = self.fallback
-            out.append(f"fallback matcher: {f['images']} weakly textured images, "
-                       f"{f['tried']} pairs matched again, {f['kept']} of them kept "
-                       f"({s['fallback']:.1f} s)")
-        if self.reused:
-            out.append(f"reused from the cache: {self.reused['images']} images, "
-                       f"{self.reused['pairs']} pairs")
-        done = self.images - self.reused["images"]
-        if done > 0:
-            per = ", ".join(f"{k} {1000 * s[k] / done:.0f} ms"
-                            for k in ("read", "proposals", "features")
-                            if k in s and (self.boxes or k != "proposals"))
-            out.append(f"per image: {per}")
-        done = n_pairs - self.reused["pairs"]
-        if done > 0:
-            per = ", ".join(f"{k} {1000 * s[k] / done:.1f} ms"
-                            for k in ("matching", "box_matching", "five_point")
-                            if k in s and (self.boxes or k != "box_matching"))
-            out.append(f"per pair: {per}")
-        return out
-
-    def merge(self, other: FrontendSummary) -> None:
-        """Add ``other``'s pair counts, rejections and seconds (one pair's, evaluated on a
-        worker thread) to this summary."""
-        self.pairs.update(other.pairs)
-        self.rejected.update(other.rejected)
-        self.seconds.update(other.seconds)
-        self.rotation_only += other.rotation_only
-        self.reused.update(other.reused)
-        self.fallback.update(other.fallback)
-
-    def to_dict(self) -> dict[str, Any]:
-        return {"images": self.images, "images_without_boxes": self.images_without_boxes,
-                "pairs": dict(self.pairs), "rejected": dict(self.rejected),
-                "rotation_only": self.rotation_only, "flat_keypoints": self.flat_keypoints,
-                "reused": dict(self.reused), "fallback": dict(self.fallback),
-                "seconds": {k: round(v, 3) for k, v in self.seconds.items()}}
 
 
 @dataclass

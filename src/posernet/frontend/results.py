@@ -9,7 +9,8 @@ Each stage's result can be built by hand, cached, tested and consumed without th
   every image's keypoints the matches index (the fallback matcher may add keypoints while
   matching, so the pairs and the keypoints travel together);
 * the graph stage: a :class:`FrontendResult`, the view graph assembled from those
-  (:func:`assemble_frontend_result`) with the images, the pair selection and the run's counts.
+  (:func:`assemble_frontend_result`) with the images, the pair selection and the run's counts
+  (:class:`FrontendSummary`).
 
 Arrays are shared, not copied: treat them as read-only.
 """
@@ -18,6 +19,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+from collections import Counter
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from types import MappingProxyType
@@ -31,8 +33,86 @@ from .graphs import GraphStats, PairResult, assemble_view_graph
 from .images import ImageRecord
 from .pairs import PairSelection
 
-__all__ = ["FrontendResult", "ImageFeatures", "MatchResult", "PairMatches", "TwoViewGeometry",
-           "assemble_frontend_result"]
+__all__ = ["FrontendResult", "FrontendSummary", "ImageFeatures", "MatchResult", "PairMatches",
+           "TwoViewGeometry", "assemble_frontend_result"]
+
+@dataclass
+class FrontendSummary:
+    """Counts and per-stage wall times (seconds) of a front-end run."""
+
+    images: int = 0
+    images_without_boxes: int = 0
+    pairs: Counter = field(default_factory=Counter)  # status -> count, plus "too_few_matches"
+    seconds: Counter = field(default_factory=Counter)  # stage -> wall time
+    rejected: Counter = field(default_factory=Counter)  # "kp:<reason>" / "bb:<reason>" -> count
+    rotation_only: int = 0  # edges whose translation direction is meaningless
+    flat_keypoints: int = 0  # keypoints dropped on uniform patches
+    reused: Counter = field(default_factory=Counter)  # "images" / "pairs" read from the cache
+    boxes: bool = True  # False: no proposals were made (keypoints only)
+    # matcher fallback: "images" with fallback features, pairs "tried" again, results "kept"
+    fallback: Counter = field(default_factory=Counter)
+
+    def lines(self) -> list[str]:
+        """Human-readable summary lines (counts, then time per image / per pair)."""
+        n_pairs = sum(v for k, v in self.pairs.items()
+                      if k not in ("too_few_matches", "edge_few_boxes"))
+        s = self.seconds
+        few_boxes = self.pairs["unmatched"] - self.pairs["too_few_matches"]
+        out = [
+            f"images: {self.images} " + (f"({self.images_without_boxes} without any proposal)"
+                                         if self.boxes else "(no boxes: no stage uses them)"),
+            f"pairs: {n_pairs} checked, {self.pairs['edge']} edges; skipped: "
+            f"{self.pairs['too_few_matches']} with too few keypoint matches, "
+            + (f"{few_boxes} with too few matched boxes, {self.pairs['kp_failed']} KP and "
+               f"{self.pairs['bb_failed']} BB two-view rejections"
+               + (f"; {self.pairs['edge_few_boxes']} edges with fewer matched boxes than the "
+                  "paper's rule" if self.pairs["edge_few_boxes"] else "")
+               if self.boxes else f"{few_boxes} rejected by two-view verification"),
+        ]
+        if self.rejected or self.rotation_only:
+            why = ", ".join(f"{k} {v}" for k, v in sorted(self.rejected.items()))
+            out.append(f"verification: {self.rotation_only} rotation-only edges"
+                       + (f"; rejected: {why}" if why else "")
+                       + f"; {self.flat_keypoints} keypoints on flat patches dropped")
+        if self.fallback:
+            f = self.fallback
+            out.append(f"fallback matcher: {f['images']} weakly textured images, "
+                       f"{f['tried']} pairs matched again, {f['kept']} of them kept "
+                       f"({s['fallback']:.1f} s)")
+        if self.reused:
+            out.append(f"reused from the cache: {self.reused['images']} images, "
+                       f"{self.reused['pairs']} pairs")
+        done = self.images - self.reused["images"]
+        if done > 0:
+            per = ", ".join(f"{k} {1000 * s[k] / done:.0f} ms"
+                            for k in ("read", "proposals", "features")
+                            if k in s and (self.boxes or k != "proposals"))
+            out.append(f"per image: {per}")
+        done = n_pairs - self.reused["pairs"]
+        if done > 0:
+            per = ", ".join(f"{k} {1000 * s[k] / done:.1f} ms"
+                            for k in ("matching", "box_matching", "five_point")
+                            if k in s and (self.boxes or k != "box_matching"))
+            out.append(f"per pair: {per}")
+        return out
+
+    def merge(self, other: FrontendSummary) -> None:
+        """Add ``other``'s pair counts, rejections and seconds (one pair's, evaluated on a
+        worker thread) to this summary."""
+        self.pairs.update(other.pairs)
+        self.rejected.update(other.rejected)
+        self.seconds.update(other.seconds)
+        self.rotation_only += other.rotation_only
+        self.reused.update(other.reused)
+        self.fallback.update(other.fallback)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"images": self.images, "images_without_boxes": self.images_without_boxes,
+                "pairs": dict(self.pairs), "rejected": dict(self.rejected),
+                "rotation_only": self.rotation_only, "flat_keypoints": self.flat_keypoints,
+                "reused": dict(self.reused), "fallback": dict(self.fallback),
+                "seconds": {k: round(v, 3) for k, v in self.seconds.items()}}
+
 
 @dataclass(frozen=True)
 class ImageFeatures:
@@ -158,9 +238,8 @@ class FrontendResult:
         matches: the pair stage's result (features and every evaluated pair).
         selection: which image pairs were matched.
         graph: the assembled view graph; ``stats``: its book-keeping.
-        summary: the front end's counts and timings
-            (:class:`~posernet.frontend.pipeline.FrontendSummary`, a copy; the image and
-            pair counts of ``matches`` when None is given).
+        summary: the front end's counts and timings (:class:`FrontendSummary`, a copy; the
+            image and pair counts of ``matches`` when None is given).
         seed: the front end's seed (RANSAC; bundle adjustment's sampling).
     """
 
@@ -169,13 +248,11 @@ class FrontendResult:
     selection: PairSelection
     graph: ViewGraph
     stats: GraphStats
-    summary: Any = None
+    summary: FrontendSummary | None = None
     seed: int = 0
 
     def __post_init__(self) -> None:
         if self.summary is None:  # a result built by hand: count what it holds
-            from .pipeline import FrontendSummary
-
             s = FrontendSummary(images=len(self.records),
                                 boxes=any(len(f.boxes) for f in self.matches.images))
             for p in self.matches.pairs.values():
@@ -216,7 +293,8 @@ class FrontendResult:
 
 def assemble_frontend_result(records: Sequence[ImageRecord], matches: MatchResult,
                              selection: PairSelection, meta: Mapping[str, Any] | None = None,
-                             summary: Any = None, seed: int = 0) -> FrontendResult:
+                             summary: FrontendSummary | None = None,
+                             seed: int = 0) -> FrontendResult:
     """The graph stage: the view graph of all ``records`` from the pair stage's ``matches``
     over the selected pairs (each one must be in ``matches``), ground truth when every image
     has a pose. ``summary``: the counts to carry along (copied)."""
