@@ -8,6 +8,14 @@ Used by ``posernet-reconstruct``; usable directly::
     rec = reconstruct(fe, model=PoserNet.from_checkpoint(default_checkpoint()),
                       backend=get_backend("eig_se3"))
     write_poses_json("out/poses.json", rec)
+    write_colmap_models("out/sparse", rec)
+    write_camera_view("out/cameras.html", rec)
+
+The front end hands its stages on as typed data (:mod:`posernet.frontend.results`); the
+returned :class:`Reconstruction` holds its :class:`~posernet.frontend.results.FrontendResult`
+(images, features, matches, verified pairs, the view graph, counts), so every output is
+written from it alone. :func:`solve_view_graph` runs the stages after the front end on such a
+result built any other way.
 
 No ground truth is needed. Poses are world-to-camera up to the gauge of motion averaging: each
 connected component of the view graph is expressed in the frame of its first camera (identity),
@@ -28,7 +36,7 @@ import dataclasses
 import os
 import sys
 import time
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -38,8 +46,10 @@ import torch
 from torch import Tensor
 
 from .frontend.graphs import GraphStats
-from .frontend.pairs import PairOptions, PairSelection, select_pairs
+from .frontend.images import ImageRecord
+from .frontend.pairs import PairOptions, PairSelection
 from .frontend.pipeline import ImageFrontend
+from .frontend.results import FrontendResult
 from .geometry import invert_se3
 from .graph import ViewGraph
 from .io import atomic_write_json
@@ -47,21 +57,21 @@ from .refine import RefineResult, refine_graphs
 from .sfm import BundleOptions, SfmResult, anchored_cameras, bundle_adjust_reconstruction
 from .sfm.selfcheck import CheckOptions, PairEvidence, SelfCheck, check_reconstruction
 
-__all__ = ["Reconstruction", "edge_weights", "focal_mode", "gauge_fixed",
-           "largest_point_cloud", "main_first_line", "pair_evidence", "poses_json",
-           "reconstruct", "self_check", "write_colmap_models", "write_poses_json"]
+__all__ = ["NothingPlaced", "Reconstruction", "bundle_stage", "edge_weights", "focal_mode",
+           "gauge_fixed", "largest_point_cloud", "main_first_line", "pair_evidence",
+           "poses_json", "reconstruct", "self_check", "solve_view_graph", "trajectory_errors_table",
+           "unplaced_json", "write_camera_view", "write_colmap_models", "write_poses_json"]
 
 
 @dataclass
 class Reconstruction:
-    """The graph of all images, the refine/average result and the front end that made it."""
+    """Everything a run produced: the front end's result (images, features, verified pairs,
+    the view graph of all images, counts), the refine/average result, the bundle adjustment
+    and the self-check. Every output is written from it alone."""
 
-    frontend: ImageFrontend
-    graph: ViewGraph
-    stats: GraphStats
+    frontend: FrontendResult
     result: RefineResult
     sfm: dict[str, list[SfmResult]] = field(default_factory=dict)  # BA stage -> per component
-    pairs: PairSelection | None = None  # which image pairs were matched
     #: per stage (images, pair_selection, pairs, graph, averaging, bundle_adjustment): wall
     #: seconds, items, and the process's peak memory (MB) at its end
     stages: dict[str, dict[str, float]] = field(default_factory=dict)
@@ -74,6 +84,24 @@ class Reconstruction:
     main_first: dict[str, Any] | None = None
 
     @property
+    def graph(self) -> ViewGraph:
+        """The view graph of all images (node ``i`` is image ``i``)."""
+        return self.frontend.graph
+
+    @property
+    def stats(self) -> GraphStats:
+        return self.frontend.stats
+
+    @property
+    def pairs(self) -> PairSelection:
+        """Which image pairs were matched."""
+        return self.frontend.selection
+
+    @property
+    def records(self) -> tuple[ImageRecord, ...]:
+        return self.frontend.records
+
+    @property
     def stage(self) -> str:
         """The final stage: ``refined`` when PoserNet ran, else ``initial``; with ``+ba`` when
         bundle adjustment ran."""
@@ -81,10 +109,11 @@ class Reconstruction:
         return f"{s}+ba" if f"{s}+ba" in self.result.absolute else s
 
 
-def edge_weights(frontend: ImageFrontend, graph: ViewGraph) -> Tensor:
-    """``[E, 2]`` (rotation, translation) averaging weights of ``graph``'s edges: translation
-    weight 0 on rotation-only pairs (their direction says nothing), 1 elsewhere. Node ``i`` of
-    the graph is image ``i`` of the front end (the graph of all images)."""
+def edge_weights(frontend: FrontendResult, graph: ViewGraph | None = None) -> Tensor:
+    """``[E, 2]`` (rotation, translation) averaging weights of ``graph``'s edges (default: the
+    front end's graph): translation weight 0 on rotation-only pairs (their direction says
+    nothing), 1 elsewhere. Node ``i`` of the graph is image ``i`` (the graph of all images)."""
+    graph = frontend.graph if graph is None else graph
     w = torch.ones(graph.num_edges, 2, dtype=torch.float64)
     for e, (i, j) in enumerate(graph.edge_index.T.tolist()):
         if frontend.pair(i, j).rotation_only:
@@ -92,39 +121,46 @@ def edge_weights(frontend: ImageFrontend, graph: ViewGraph) -> Tensor:
     return w
 
 
-def focal_mode(frontend: ImageFrontend, requested: str = "auto") -> str:
+def focal_mode(records: Sequence[ImageRecord] | Any, requested: str = "auto") -> str:
     """The bundle adjustment's focal-length mode: ``requested`` unless it is ``"auto"``, which
     refines the focal length when any image's intrinsics were guessed (EXIF or prior): one
-    shared focal length when every image has the same guess, one per camera otherwise."""
+    shared focal length when every image has the same guess, one per camera otherwise.
+    ``records``: the images, or anything holding them as ``records`` (a front end, its
+    result)."""
     if requested != "auto":
         return requested
-    recs = frontend.records
+    recs = list(getattr(records, "records", records))
     if all(r.intrinsics_source == "given" for r in recs):
         return "none"
     same = all(np.array_equal(r.K, recs[0].K) for r in recs)
     return "shared" if same else "per_camera"
 
 
-def _bundle_stage(frontend: ImageFrontend, graph: ViewGraph, weights: Tensor,
-                  result: RefineResult, stage: str, options: BundleOptions) -> list[SfmResult]:
-    """Bundle-adjust the averaged poses of ``stage``, one connected component at a time, and
-    store them as stage ``<stage>+ba`` (unplaced cameras stay unplaced). Cameras that
-    ``graph``'s edges with a usable direction (``weights [E, 2]``, translation column) do not
-    pin are first re-placed from 3D points; those whose position nothing determines are not
-    placed in ``<stage>+ba``."""
-    n = len(frontend.records)
+def bundle_stage(frontend: FrontendResult, result: RefineResult, stage: str,
+                 options: BundleOptions | None = None,
+                 weights: Tensor | None = None) -> list[SfmResult]:
+    """Bundle-adjust the averaged poses of ``stage`` (in ``result``, of the front end's graph)
+    from the front end's keypoints and verified matches, one connected component at a time,
+    and store them as stage ``<stage>+ba`` (unplaced cameras stay unplaced). Cameras that the
+    graph's edges with a usable direction (``weights [E, 2]``, translation column; default
+    :func:`edge_weights`) do not pin are first re-placed from 3D points; those whose position
+    nothing determines are not placed in ``<stage>+ba``. Returns one run per component."""
+    graph = frontend.graph
+    weights = edge_weights(frontend) if weights is None else weights
+    options = options or BundleOptions(refine_focal="auto")
     poses = result.absolute[stage][0].double()
     solved = result.solved[stage][0].bool()
     comp = result.component[stage][0]
-    uv = [frontend.image(i).features.uv for i in range(n)]
+    uv = frontend.keypoints()
     matches = frontend.verified_matches()
-    K = np.stack([r.K for r in frontend.records]).astype(np.float64)
-    dist = [r.dist for r in frontend.records]
-    options = dataclasses.replace(options, refine_focal=focal_mode(frontend, options.refine_focal))
+    K = frontend.intrinsics()
+    dist = frontend.distortion()
+    options = dataclasses.replace(options, refine_focal=focal_mode(frontend.records,
+                                                                   options.refine_focal))
     # Which cameras the averaging pinned: the graph's edges with a usable direction.
     edges = graph.edge_index.T.numpy().astype(np.int64)
-    inliers = [frontend.pair(i, j).inliers for i, j in edges.tolist()]
-    strength = np.asarray([0 if m is None else len(m) for m in inliers], np.float64)
+    strength = np.asarray([frontend.pair(i, j).num_inliers for i, j in edges.tolist()],
+                          np.float64)
     out = poses.clone()
     solved_ba = solved.clone()
     runs = []
@@ -147,23 +183,23 @@ def _bundle_stage(frontend: ImageFrontend, graph: ViewGraph, weights: Tensor,
     return runs
 
 
-def pair_evidence(frontend: ImageFrontend, graph: ViewGraph,
+def pair_evidence(frontend: FrontendResult, graph: ViewGraph | None = None,
                   K: np.ndarray | None = None) -> PairEvidence:
-    """The verified two-view geometry of ``graph``'s edges (their initial relative poses,
-    rotation-only flags and inlier counts) as the self-check's evidence. ``K (N, 3, 3)``:
-    the intrinsics to normalise the inliers with (the front end's when None); pass the
-    bundle adjustment's when it refined the focal length, else right poses miss the lines."""
+    """The verified two-view geometry of ``graph``'s edges (default: the front end's graph;
+    their initial relative poses, rotation-only flags and inlier counts) as the self-check's
+    evidence. ``K (N, 3, 3)``: the intrinsics to normalise the inliers with (the front end's
+    when None); pass the bundle adjustment's when it refined the focal length, else right
+    poses miss the lines."""
     from .geometry import pose_vec_to_matrix
     from .sfm import undistort_keypoints
 
+    graph = frontend.graph if graph is None else graph
     T = pose_vec_to_matrix(graph.edge_pose.double()).numpy()
     edges = graph.edge_index.T.numpy().astype(np.int64)
     prs = [frontend.pair(i, j) for i, j in edges.tolist()]
-    recs = frontend.records
     if K is None:
-        K = np.stack([r.K for r in recs]).astype(np.float64)
-    und = undistort_keypoints([frontend.image(i).features.uv for i in range(len(recs))], K,
-                              [r.dist for r in recs])
+        K = frontend.intrinsics()
+    und = undistort_keypoints(frontend.keypoints(), K, frontend.distortion())
     norm = [(u - K[i, :2, 2]) / np.diag(K[i])[:2] for i, u in enumerate(und)]
     xa, xb, mp = [], [], []
     for e, ((i, j), p) in enumerate(zip(edges.tolist(), prs, strict=True)):
@@ -207,7 +243,7 @@ def self_check(rec: Reconstruction, options: CheckOptions | None = None) -> Self
     solved = res.solved[stage][0].bool()
     comp = res.component[stage][0]
     N = poses.shape[0]
-    evidence = pair_evidence(rec.frontend, rec.graph, np.stack(final_intrinsics(rec)))
+    evidence = pair_evidence(rec.frontend, K=np.stack(final_intrinsics(rec)))
     passed = np.zeros(N, bool)
     reason = [""] * N
     rot = np.full(evidence.pairs.shape[0], np.nan)
@@ -267,12 +303,18 @@ def reconstruct(
     (:func:`posernet.refine.refine_graphs`; needs a confidence head). With a confidence head
     the averaging starts from the model's per-edge confidence.
     ``check``: hold the final stage against its evidence (:func:`self_check`; options, or
-    ``True`` for the defaults, ``False`` to skip): cameras that fail are reported unsolved."""
+    ``True`` for the defaults, ``False`` to skip): cameras that fail are reported unsolved.
+
+    The front end's stages hand on typed results (:meth:`ImageFrontend.extract`,
+    :meth:`~ImageFrontend.select_pairs`, :meth:`~ImageFrontend.match`,
+    :meth:`~ImageFrontend.view_graph`); the rest runs on the assembled
+    :class:`~posernet.frontend.results.FrontendResult` alone (:func:`solve_view_graph`).
+    Raises :class:`NothingPlaced` when no pair became an edge."""
     n = len(frontend.records)
     clock = _StageClock()
-    frontend.prepare(progress=progress)
+    frontend.extract(progress=progress)
     clock.done("images", n)
-    selection = select_pairs([frontend.image(i).features for i in range(n)], pairs)
+    selection = frontend.select_pairs(pairs)
     clock.done("pair_selection", len(selection.pairs))
     args = (model, backend, device, name, estimate, progress, guard, bundle_adjust, bundle,
             check)
@@ -314,37 +356,58 @@ def _solve(frontend: ImageFrontend, selection: PairSelection, clock: _StageClock
            name: str, estimate: str, progress: bool, guard: bool, bundle_adjust: bool,
            bundle: BundleOptions | None, check: CheckOptions | bool | None
            ) -> Reconstruction:
-    """:func:`reconstruct` from the selected pairs on: evaluate and screen them, build the
-    graph, refine, average, bundle-adjust and check."""
-    n = len(frontend.records)
-    frontend.evaluate_pairs(selection.pairs, progress=progress)
-    from .frontend.consistency import screen_edges
-
-    screen_edges(frontend, selection.pairs)  # crowded inliers, rotations breaking triangles
+    """:func:`reconstruct` from the selected pairs on: the pair stage (matching, verification,
+    screening: crowded inliers, rotations breaking triangles), the graph stage, then
+    :func:`solve_view_graph`."""
+    matches = frontend.match(selection.pairs, progress=progress)
     clock.done("pairs", len(selection.pairs))
-    graph, stats = frontend.graph(range(n), meta={"name": name, "size": "all"},
-                                  pairs=selection.pairs)
-    graph = graph.with_estimate(estimate)
-    clock.done("graph", graph.num_edges)
-    if graph.num_edges == 0:
+    view = frontend.view_graph(selection, matches, meta={"name": name, "size": "all"})
+    view = dataclasses.replace(view, graph=view.graph.with_estimate(estimate))
+    clock.done("graph", view.graph.num_edges)
+    if view.graph.num_edges == 0:
         raise NothingPlaced(
             "no image pair passed matching and two-view verification, so no camera can be "
-            "placed (" + "; ".join(line for line in frontend.summary.lines()
+            "placed (" + "; ".join(line for line in view.summary.lines()
                                    if line.startswith(("pairs:", "verification:"))) + ")",
-            frontend, selection,
-            clock.stages)
-    weights = edge_weights(frontend, graph)
+            view, clock.stages)
+    return _solve_view(view, clock, model, backend, device, guard, bundle_adjust, bundle,
+                       check)
+
+
+def solve_view_graph(frontend: FrontendResult, model: torch.nn.Module | None, backend: Any,
+                     device: str | torch.device = "cpu", guard: bool = False,
+                     bundle_adjust: bool = True, bundle: BundleOptions | None = None,
+                     check: CheckOptions | bool | None = True) -> Reconstruction:
+    """The stages after the front end on its result alone (built by an
+    :class:`ImageFrontend` or by hand): refine the graph's edges with ``model`` (``None``:
+    no refinement), average them with ``backend``, bundle-adjust (:func:`bundle_stage`) and
+    check (:func:`self_check`); arguments as in :func:`reconstruct`. The graph needs an
+    edge."""
+    if frontend.graph.num_edges == 0:
+        raise ValueError("the view graph has no edge: no camera can be placed")
+    return _solve_view(frontend, _StageClock(), model, backend, device, guard, bundle_adjust,
+                       bundle, check)
+
+
+def _solve_view(view: FrontendResult, clock: _StageClock, model: torch.nn.Module | None,
+                backend: Any, device: str | torch.device, guard: bool, bundle_adjust: bool,
+                bundle: BundleOptions | None, check: CheckOptions | bool | None
+                ) -> Reconstruction:
+    """Refine, average, bundle-adjust and check ``view``'s graph (stage times into
+    ``clock``)."""
+    n = len(view.records)
+    graph = view.graph
+    weights = edge_weights(view)
     confidence = (model is not None and bool(getattr(model, "adaptive", False))
                   and bool(getattr(model, "confidence", False)))
     result = refine_graphs(model, [graph], backend=backend, batch_size=1, device=device,
                            progress=False, guard=guard, weighted=confidence,
                            edge_weight=[weights])
     clock.done("averaging", graph.num_edges)
-    rec = Reconstruction(frontend, graph, stats, result, pairs=selection, stages=clock.stages)
+    rec = Reconstruction(view, result, stages=clock.stages)
     if bundle_adjust and backend is not None:
         for s in list(result.absolute):
-            rec.sfm[f"{s}+ba"] = _bundle_stage(frontend, graph, weights, result, s,
-                                               bundle or BundleOptions(refine_focal="auto"))
+            rec.sfm[f"{s}+ba"] = bundle_stage(view, result, s, bundle, weights)
         clock.done("bundle_adjustment", n)
     if check is not False and result.absolute:
         self_check(rec, check if isinstance(check, CheckOptions) else None)
@@ -379,13 +442,18 @@ def _peak_mb() -> float:
 
 class NothingPlaced(ValueError):
     """No image pair became an edge, so no camera can be placed. Carries what the front end
-    found (``frontend``: its summary and every rejected pair; ``pairs``: the selection;
-    ``stages``: timings) so that the caller can still report it (:func:`unplaced_json`)."""
+    found (``frontend``: its result, with its summary, every evaluated pair and its matches;
+    ``pairs``: the selection; ``stages``: timings) so that the caller can still report it
+    (:func:`unplaced_json`)."""
 
-    def __init__(self, message: str, frontend: ImageFrontend, pairs: PairSelection,
+    def __init__(self, message: str, frontend: FrontendResult,
                  stages: dict[str, dict[str, float]]) -> None:
         super().__init__(message)
-        self.frontend, self.pairs, self.stages = frontend, pairs, stages
+        self.frontend, self.stages = frontend, stages
+
+    @property
+    def pairs(self) -> PairSelection:
+        return self.frontend.selection
 
 
 def unplaced_json(err: NothingPlaced, info: dict[str, Any] | None = None) -> dict[str, Any]:
@@ -396,7 +464,7 @@ def unplaced_json(err: NothingPlaced, info: dict[str, Any] | None = None) -> dic
     reason = "no image pair passed matching and two-view verification"
     cams = {r.key: {"solved": False, "component": None, "camera_to_world": None,
                     "world_to_camera": None, "q_wxyz": None, "t": None, "edges": 0,
-                    "boxes": int(fe.boxes(i).shape[0]) if fe.summary.boxes else 0,
+                    "boxes": len(fe.images[i].boxes) if fe.summary.boxes else 0,
                     "size": list(r.size) if r.size else None,
                     "K": [[round(float(v), 6) for v in row] for row in r.K],
                     "dist": None if r.dist is None else [float(v) for v in r.dist],
@@ -536,8 +604,7 @@ def _component_models(rec: Reconstruction) -> Iterator[tuple[Any, np.ndarray, np
 
 
 def _keypoints(rec: Reconstruction) -> list[np.ndarray]:
-    fe = rec.frontend
-    return [fe.image(i).features.uv for i in range(len(fe.records))]
+    return rec.frontend.keypoints()
 
 
 def write_colmap_models(folder: str | os.PathLike[str], rec: Reconstruction) -> list[Path]:
@@ -595,3 +662,56 @@ def write_poses_json(path: str | os.PathLike[str], rec: Reconstruction,
                      info: dict[str, Any] | None = None) -> Path:
     """Write :func:`poses_json` atomically."""
     return atomic_write_json(path, poses_json(rec, info), indent=1)
+
+
+def write_camera_view(path: str | os.PathLike[str], rec: Reconstruction,
+                      record: dict[str, Any] | None = None) -> Path | None:
+    """``cameras.html``: the largest component's cameras and points, interactive and offline
+    (:mod:`posernet.viewer`); with ground truth for each of its cameras (3 or more), moved onto
+    it by the similarity of the camera centres (:func:`posernet.ground_truth.align_cameras`)
+    and shown with it. ``record``: :func:`poses_json` of ``rec`` (made when None). None when no
+    camera is placed."""
+    from .export import largest_component
+    from .ground_truth import align_cameras
+    from .viewer import write_html_view
+
+    record = poses_json(rec) if record is None else record
+    names = largest_component(record["cameras"])
+    if not names:
+        return None
+    cams = {n: dict(record["cameras"][n]) for n in names}
+    cloud = largest_point_cloud(rec)
+    points = colours = None
+    keys = [r.key for r in rec.records]
+    if cloud is not None and {keys[i] for i in cloud[0]} <= set(names):
+        points, colours = cloud[1], cloud[2]
+    gt = {r.key: r.c2w for r in rec.records if r.c2w is not None and r.key in cams}
+    moved = align_cameras({n: cams[n]["camera_to_world"] for n in names}, gt, points)
+    units = "scale-free"
+    if moved is not None:
+        for n in names:
+            cams[n]["camera_to_world"] = moved.cameras[n]
+        points = moved.points
+        units = "ground-truth units (aligned by a similarity)"
+    title = (f"{len(names)} of {len(record['cameras'])} cameras (largest component)"
+             + (f", {len(points)} points" if points is not None else ""))
+    return write_html_view(path, cams, points, colours,
+                           ground_truth=gt if moved is not None else None, title=title,
+                           units=units)
+
+
+def trajectory_errors_table(rec: Reconstruction,
+                            record: dict[str, Any] | None = None) -> str | None:
+    """The evo-style APE / RPE table (markdown) of the largest component against the ground
+    truth, cameras in name order (:func:`posernet.ground_truth.trajectory_table`), from
+    ``record`` (:func:`poses_json` of ``rec``, made when None); None without ground truth for
+    each of them or with fewer than 3."""
+    from .export import largest_component
+    from .ground_truth import trajectory_table
+
+    record = poses_json(rec) if record is None else record
+    names = largest_component(record["cameras"])
+    gt = {r.key: r.c2w for r in rec.records}
+    if any(gt.get(n) is None for n in names):
+        return None
+    return trajectory_table({n: record["cameras"][n]["camera_to_world"] for n in names}, gt)

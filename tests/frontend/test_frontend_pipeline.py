@@ -177,3 +177,36 @@ def test_without_boxes_a_rejected_pair_names_the_verification_rule(scene) -> Non
     fe.evaluate_pairs(PAIRS, progress=False)
     reasons = {fe.pair(a, b).reason for a, b in PAIRS if fe.pair(a, b).status != "edge"}
     assert "low_inlier_ratio" in reasons and "too_few_matched_boxes" not in reasons, reasons
+
+
+def test_stages_hand_on_typed_snapshots(scene) -> None:
+    """extract -> select_pairs -> match -> view_graph: typed results that stay as they were
+    when the front end later forgets its pairs, and the graph of the front end's own
+    assembly."""
+    import dataclasses
+
+    from posernet.frontend.results import FrontendResult, ImageFeatures, MatchResult
+
+    fe = _frontend(scene)
+    feats = fe.extract(progress=False)
+    assert len(feats) == N and all(isinstance(f, ImageFeatures) for f in feats)
+    assert all(f.keypoints.shape[1] == 2 and f.size == (320, 240) for f in feats)
+    sel = fe.select_pairs()
+    assert sel.pairs == PAIRS
+    matches = fe.match(sel.pairs, progress=False)
+    assert isinstance(matches, MatchResult) and list(matches.pairs) == PAIRS
+    view = fe.view_graph(sel, matches, meta={"name": "seq"})
+    assert isinstance(view, FrontendResult)
+    graph, _ = fe.graph(range(N), pairs=sel.pairs)
+    assert view.graph.edge_index.tolist() == graph.edge_index.tolist()
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        view.matches.pairs[(0, 1)].geometry.status = "edge"  # type: ignore[misc]
+    before = [(p.geometry.status, p.geometry.num_inliers) for p in matches.pairs.values()]
+    counts = dict(view.summary.pairs)
+    fe.forget_pairs()
+    assert not fe.summary.pairs and dict(view.summary.pairs) == counts
+    assert [(p.geometry.status, p.geometry.num_inliers)
+            for p in matches.pairs.values()] == before
+    for p in matches.pairs.values():  # the drawn matches are the verified ones
+        v, inl = p.verified(), p.geometry.inliers
+        assert v is not None and len(v) == (len(p.matches) if inl is None else len(inl))

@@ -67,8 +67,7 @@ def _pictures(rec: Any, out: Path, k: int) -> list[Path]:
     if boxes:
         score = torch.bincount(g.pair_edge, minlength=g.num_edges)
     else:
-        score = torch.tensor([0 if (inl := fe.pair(int(i), int(j)).inliers) is None
-                              else len(inl) for i, j in g.edge_index.T.tolist()])
+        score = torch.tensor([fe.pair(i, j).num_inliers for i, j in g.edge_index.T.tolist()])
     order = torch.argsort(score, descending=True, stable=True)
     # spread over the ranking: the best-matched pairs are neighbours, the others show more
     picks = sorted({round(float(q)) for q in np.linspace(0, g.num_edges - 1, min(k, g.num_edges))})
@@ -76,20 +75,16 @@ def _pictures(rec: Any, out: Path, k: int) -> list[Path]:
     for n, e in enumerate(order[picks].tolist()):
         i, j = (int(v) for v in g.edge_index[:, e])
         a, b = (i, j) if i < j else (j, i)
-        pr = fe.pair(a, b)
+        pm = fe.matches.pairs[(a, b)]
+        pr, m, verified = pm.geometry, pm.matches, pm.verified()
         ra, rb = fe.records[a], fe.records[b]
-        m = fe.matches[(a, b)]
-        verified = m
-        if pr.inliers is not None and m.idx_a is not None and m.idx_b is not None:
-            code = m.idx_a.astype(np.int64) * (1 << 32) + m.idx_b
-            inl = pr.inliers[:, 0].astype(np.int64) * (1 << 32) + pr.inliers[:, 1]
-            verified = m.subset(np.isin(code, inl))
         what = f"{len(m)} matches, {len(verified)} verified (drawn)"
         if boxes:
             what += f", {pr.box_a.size} matched boxes"
         paths.append(draw_matches(
             read_image(ra.path), read_image(rb.path), verified, out / f"matches_{n}.png",
-            boxes_a=fe.boxes(a) if boxes else None, boxes_b=fe.boxes(b) if boxes else None,
+            boxes_a=fe.images[a].boxes if boxes else None,
+            boxes_b=fe.images[b].boxes if boxes else None,
             box_pairs=np.stack([pr.box_a, pr.box_b], axis=1) if boxes else None, max_lines=80,
             title=f"{ra.key} <-> {rb.key}: {what}"))
     return paths
@@ -127,50 +122,6 @@ def _camera_plot(rec: Any, out: Path) -> Path | None:
                         units="m" if has_gt else "scale-free")
 
 
-def _html_view(rec: Any, record: dict[str, Any], out: Path) -> Path | None:
-    """``cameras.html``: the largest component's cameras and points, interactive and offline
-    (:mod:`posernet.viewer`); with ground truth, moved onto it by the similarity of the camera
-    centres and shown with it."""
-    import numpy as np
-
-    from ..export import largest_component
-    from ..geometry import umeyama_alignment
-    from ..reconstruct import largest_point_cloud
-    from ..viewer import write_html_view
-
-    names = largest_component(record["cameras"])
-    if not names:
-        return None
-    cams = {n: dict(record["cameras"][n]) for n in names}
-    cloud = largest_point_cloud(rec)
-    points = colours = None
-    keys = [r.key for r in rec.frontend.records]
-    if cloud is not None and {keys[i] for i in cloud[0]} <= set(names):
-        points, colours = cloud[1], cloud[2]
-    gt = {r.key: r.c2w for r in rec.frontend.records if r.c2w is not None and r.key in cams}
-    units = "scale-free"
-    if len(gt) == len(cams) >= 3:
-        est_c = np.stack([np.asarray(cams[n]["camera_to_world"])[:3, 3] for n in names])
-        gt_c = np.stack([np.asarray(gt[n])[:3, 3] for n in names])
-        s, R, t = (x.numpy() for x in umeyama_alignment(torch.as_tensor(est_c),
-                                                        torch.as_tensor(gt_c)))
-        S = np.eye(4)
-        S[:3, :3], S[:3, 3] = R, t
-        for n in names:
-            m = np.array(cams[n]["camera_to_world"], np.float64)
-            m[:3, 3] *= s
-            cams[n]["camera_to_world"] = S @ m
-        if points is not None:
-            points = s * points @ R.T + t
-        units = "ground-truth units (aligned by a similarity)"
-    else:
-        gt = {}
-    title = (f"{len(names)} of {len(record['cameras'])} cameras (largest component)"
-             + (f", {len(points)} points" if points is not None else ""))
-    return write_html_view(out / "cameras.html", cams, points, colours, ground_truth=gt or None,
-                           title=title, units=units)
-
-
 def run(cfg: DictConfig) -> dict[str, Any]:
     """Run the reconstruct job described by ``cfg``; returns the written files and tables."""
     from hydra.utils import instantiate
@@ -180,12 +131,15 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     from ..frontend.images import records_for_images
     from ..frontend.pipeline import ImageFrontend
     from ..guard import load_refiner
-    from ..io import atomic_write_json
+    from ..io import atomic_write_json, atomic_write_text
     from ..reconstruct import (
         NothingPlaced,
+        focal_mode,
         main_first_line,
         poses_json,
         reconstruct,
+        trajectory_errors_table,
+        write_camera_view,
         write_colmap_models,
     )
     from .build import backend_from_config
@@ -226,9 +180,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     has_gt = all(r.c2w is not None for r in records)
     guessed = {s: sum(r.intrinsics_source == s for r in records) for s in ("exif", "prior")}
     if any(guessed.values()):
-        from ..reconstruct import focal_mode
-
-        mode = focal_mode(frontend, str(cfg.bundle.refine_focal)) if cfg.ba else "none"
+        mode = focal_mode(records, str(cfg.bundle.refine_focal)) if cfg.ba else "none"
         print(f"intrinsics: {guessed['exif']} image(s) from EXIF, {guessed['prior']} from the "
               "prior (focal length 1.2 x the longest side, principal point at the centre); "
               + ("bundle adjustment refines the focal length" if mode != "none" else
@@ -251,8 +203,10 @@ def run(cfg: DictConfig) -> dict[str, Any]:
         if replace:
             _clear_outputs(out)
         _report_nothing_placed(err, out, info, int(cfg.pictures), t0)
+    # from here on everything comes from rec (typed results), not from the front end
+    summary = rec.frontend.summary
     print("[2/3] front end: " + "\n      ".join(
-        [*(rec.pairs.lines() if rec.pairs else []), *frontend.summary.lines(),
+        [*rec.pairs.lines(), *summary.lines(),
          *([main_first_line(rec.main_first)] if rec.main_first else [])]))
     if checks is not None and bool(cfg.get("check_inputs", True)):
         line, info["input_check"] = checks.check([rec.graph], rec.result)
@@ -289,17 +243,18 @@ def run(cfg: DictConfig) -> dict[str, Any]:
             for k, v in rec.stages.items())
             + f"; peak memory {max(v['peak_mb'] for v in rec.stages.values()):.0f} MB")
         files["summary"] = atomic_write_json(out / "summary.json", {
-            **info, "frontend": frontend.summary.to_dict(),
+            **info, "frontend": summary.to_dict(),
             "pair_selection": record["pair_selection"], "stages": rec.stages,
             "cameras_placed": solved, "self_check": record["self_check"],
             "main_first": record["main_first"],
-            "edges": rec.graph.num_edges, "rotation_only_edges": frontend.summary.rotation_only,
-            "rejected_pairs": frontend.summary.rejected and dict(frontend.summary.rejected),
+            "edges": rec.graph.num_edges, "rotation_only_edges": summary.rotation_only,
+            "rejected_pairs": summary.rejected and dict(summary.rejected),
             "bundle_adjustment": record["bundle_adjustment"],
             "seconds_total": round(time.perf_counter() - t0, 2)})
         files["pictures"] = _pictures(rec, out, int(cfg.pictures))
         files["cameras_png"] = _camera_plot(rec, out) if int(cfg.pictures) > 0 else None
-        files["html"] = _html_view(rec, record, out) if int(cfg.pictures) > 0 else None
+        files["html"] = (write_camera_view(out / "cameras.html", rec, record)
+                         if int(cfg.pictures) > 0 else None)
         if has_gt:
             ev = evaluate_result(rec.result)
             tables = result_tables(ev, label=str(cfg.estimate).upper(),
@@ -311,9 +266,11 @@ def run(cfg: DictConfig) -> dict[str, Any]:
                     print(tables[key].to_markdown(int(cfg.digits)) + "\n")
             files["tables"] = tables
             files["evaluation"] = ev
-            traj = _trajectory_errors(record, records, out)
+            traj = trajectory_errors_table(rec, record)
             if traj is not None:
-                files["trajectory_errors"] = traj
+                print(traj)
+                files["trajectory_errors"] = atomic_write_text(out / "trajectory_errors.md",
+                                                               traj)
     binary = any((p / "images.bin").is_file() for p in files["colmap"])
     colmap = (f", COLMAP model{'s' if len(files['colmap']) > 1 else ''} in "
               + ", ".join(str(p) for p in files["colmap"])
@@ -327,37 +284,6 @@ def run(cfg: DictConfig) -> dict[str, Any]:
               file=sys.stderr)
         raise SystemExit(EXIT_UNVERIFIED)
     return files
-
-
-def _trajectory_errors(record: dict[str, Any], records: list[Any], out: Path) -> Path | None:
-    """evo-style APE / RPE of the largest component against the ground truth, in name order
-    (``trajectory_errors.md``); None with fewer than 3 cameras."""
-    import numpy as np
-
-    from ..export import largest_component
-    from ..io import atomic_write_text
-    from ..metrics import trajectory_errors
-
-    names = sorted(largest_component(record["cameras"]))
-    gt = {r.key: r.c2w for r in records}
-    if len(names) < 3:
-        return None
-    est = torch.as_tensor(np.stack([record["cameras"][n]["camera_to_world"] for n in names]))
-    ref = torch.as_tensor(np.stack([gt[n] for n in names]))
-    err = trajectory_errors(est, ref)
-    rows = [("APE translation (GT units)", err["ape_translation"]),
-            ("RPE translation (GT units)", err["rpe_translation"]),
-            ("RPE rotation (deg)", err["rpe_rotation_deg"])]
-    lines = [f"**Trajectory errors (evo style, Sim(3)-aligned; largest component, {len(names)} "
-             f"cameras in name order; scale {err['scale']['sim3']:.4g})**", "",
-             "| error | rmse | mean | median | std | min | max |",
-             "|---|---:|---:|---:|---:|---:|---:|"]
-    lines += [f"| {name} | " + " | ".join(f"{v[k]:.4f}" for k in
-                                          ("rmse", "mean", "median", "std", "min", "max")) + " |"
-              for name, v in rows]
-    text = "\n".join(lines) + "\n"
-    print(text)
-    return atomic_write_text(out / "trajectory_errors.md", text)
 
 
 #: what a run writes into out_dir (removed before a run replaces an earlier one there)
@@ -468,7 +394,10 @@ def _report_nothing_placed(err: Any, out: Path, info: dict[str, Any], pictures: 
             "pair_selection": record["pair_selection"], "stages": err.stages,
             "cameras_placed": 0, "edges": 0, "rejected_pairs": dict(fe.summary.rejected),
             "seconds_total": round(time.perf_counter() - t0, 2)})
-        best = sorted(fe.matches.items(), key=lambda kv: -len(kv[1]))[:max(pictures, 0)]
+        # the pairs with the most matches; ties in pair order
+        best = sorted(((k, p.matches) for k, p in fe.matches.pairs.items()
+                       if p.matches is not None),
+                      key=lambda kv: -len(kv[1]))[:max(pictures, 0)]
         for n, ((a, b), m) in enumerate(best):
             ra, rb, pr = fe.records[a], fe.records[b], fe.pair(a, b)
             draw_matches(read_image(ra.path), read_image(rb.path), m, out / f"matches_{n}.png",

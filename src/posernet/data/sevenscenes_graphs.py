@@ -381,7 +381,7 @@ class _Tracker:
         if status is None:
             self.prepare(key, block=2)
             n0 = sum(self.fe.summary.pairs.values())
-            r = self.fe.pair(*key)
+            r = self.fe.two_view(*key)
             computed = sum(self.fe.summary.pairs.values()) > n0
             self.computed_pairs += computed
             status = self.pairs[key] = r.status
@@ -486,7 +486,7 @@ def build_chunk(
     stats["pool_frames"] = int(pool.size)
     stats["frontend"] = {
         "images": len(tr.images),
-        "images_without_boxes": sum(int(fe.boxes(i).shape[0] == 0) for i in tr.images),
+        "images_without_boxes": sum(int(len(fe.features(i).boxes) == 0) for i in tr.images),
         "pairs": len(tr.pairs),
         "pair_status": {k: int(used_pairs[k]) for k in sorted(used_pairs)},
     }

@@ -6,8 +6,11 @@ in-box keypoints (KP) and box centres (BB) (:mod:`.relpose`), two-view verificat
 pair's pose (inlier counts, pure rotation / plane, cheirality, static matches; :mod:`.verify`),
 and view graphs of any set of
 images (:mod:`.graphs`), tied together by :class:`ImageFrontend` (:mod:`.pipeline`) over the
-images a user brings (:mod:`.images`). Each stage is swappable and has its own Hydra config
-group (``proposals/``, ``matcher/``, ``box_matching/``, ``relpose/``). The synthetic generator
+images a user brings (:mod:`.images`). What its stages hand on is typed data (:mod:`.results`):
+per-image :class:`ImageFeatures`, per-pair :class:`PairMatches` (matches and their verified
+:class:`TwoViewGeometry`) in a :class:`MatchResult`, and the assembled
+:class:`FrontendResult`. Each stage is swappable and has its own Hydra config group
+(``proposals/``, ``matcher/``, ``box_matching/``, ``relpose/``). The synthetic generator
 shares the box-matching rules, the 5-point step and the graph assembly.
 """
 
@@ -36,6 +39,14 @@ from .proposals import (
     filter_proposals,
 )
 from .relpose import PoseOptions, five_point
+from .results import (
+    FrontendResult,
+    ImageFeatures,
+    MatchResult,
+    PairMatches,
+    TwoViewGeometry,
+    assemble_frontend_result,
+)
 from .verify import TwoView, VerifyRules, epipolar_consistent, keypoint_contrast, verify_two_view
 
 __all__ = [
@@ -44,12 +55,16 @@ __all__ = [
     "Features",
     "FileProposals",
     "FrontendCache",
+    "FrontendResult",
     "FrontendSummary",
     "ImageError",
+    "ImageFeatures",
     "ImageFrontend",
     "ImageRecord",
+    "MatchResult",
     "MatcherError",
     "Matches",
+    "PairMatches",
     "PairOptions",
     "PairResult",
     "PairSelection",
@@ -59,8 +74,10 @@ __all__ = [
     "SelectiveSearch",
     "SiftMatcher",
     "TwoView",
+    "TwoViewGeometry",
     "VerifyRules",
     "XFeatMatcher",
+    "assemble_frontend_result",
     "assemble_view_graph",
     "epipolar_consistent",
     "filter_proposals",

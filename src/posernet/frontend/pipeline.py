@@ -7,6 +7,12 @@ a sampled few for a large 7-Scenes sequence). It exposes the same ``pair(u, v)``
 synthetic generator's ``SceneWorld``, so graphs come from one assembly
 (:func:`~posernet.frontend.graphs.assemble_view_graph`).
 
+What leaves it is typed data (:mod:`posernet.frontend.results`), stage by stage:
+:meth:`ImageFrontend.extract` (per-image features), :meth:`ImageFrontend.select_pairs`,
+:meth:`ImageFrontend.match` (per-pair matches and verified geometry) and
+:meth:`ImageFrontend.view_graph` (the assembled view graph with all of the above); later stages
+need nothing else from it.
+
 Per-stage wall times and counts (images without proposals, pairs with too few keypoint
 matches, unmatched pairs, failed 5-point estimates) are kept for the run's summary.
 """
@@ -17,11 +23,11 @@ import hashlib
 import logging
 import threading
 import time
-from collections import Counter
 from collections.abc import Iterable, Sequence
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import asdict, dataclass, field, is_dataclass
+from dataclasses import asdict, dataclass, is_dataclass
 from pathlib import Path
+from types import MappingProxyType
 from typing import Any
 
 import cv2
@@ -35,7 +41,17 @@ from .cache import FrontendCache, file_digest
 from .features import Features, Matches
 from .graphs import GraphStats, PairResult, assemble_view_graph
 from .images import ImageRecord, read_image
+from .pairs import PairOptions, PairSelection, select_pairs
 from .relpose import PoseOptions, five_point
+from .results import (
+    FrontendResult,
+    FrontendSummary,
+    ImageFeatures,
+    MatchResult,
+    PairMatches,
+    TwoViewGeometry,
+    assemble_frontend_result,
+)
 from .verify import (
     VerifyRules,
     epipolar_consistent,
@@ -53,84 +69,6 @@ def pair_seed(seed: int, a: int, b: int) -> int:
     """A RANSAC seed for images ``a < b`` that does not depend on evaluation order."""
     h = hashlib.blake2b(f"{seed}:{a}:{b}".encode(), digest_size=4).digest()
     return int.from_bytes(h, "little") & 0x7FFFFFFF
-
-
-@dataclass
-class FrontendSummary:
-    """Counts and per-stage wall times (seconds) of a front-end run."""
-
-    images: int = 0
-    images_without_boxes: int = 0
-    pairs: Counter = field(default_factory=Counter)  # status -> count, plus "too_few_matches"
-    seconds: Counter = field(default_factory=Counter)  # stage -> wall time
-    rejected: Counter = field(default_factory=Counter)  # "kp:<reason>" / "bb:<reason>" -> count
-    rotation_only: int = 0  # edges whose translation direction is meaningless
-    flat_keypoints: int = 0  # keypoints dropped on uniform patches
-    reused: Counter = field(default_factory=Counter)  # "images" / "pairs" read from the cache
-    boxes: bool = True  # False: no proposals were made (keypoints only)
-    # matcher fallback: "images" with fallback features, pairs "tried" again, results "kept"
-    fallback: Counter = field(default_factory=Counter)
-
-    def lines(self) -> list[str]:
-        """Human-readable summary lines (counts, then time per image / per pair)."""
-        n_pairs = sum(v for k, v in self.pairs.items()
-                      if k not in ("too_few_matches", "edge_few_boxes"))
-        s = self.seconds
-        few_boxes = self.pairs["unmatched"] - self.pairs["too_few_matches"]
-        out = [
-            f"images: {self.images} " + (f"({self.images_without_boxes} without any proposal)"
-                                         if self.boxes else "(no boxes: no stage uses them)"),
-            f"pairs: {n_pairs} checked, {self.pairs['edge']} edges; skipped: "
-            f"{self.pairs['too_few_matches']} with too few keypoint matches, "
-            + (f"{few_boxes} with too few matched boxes, {self.pairs['kp_failed']} KP and "
-               f"{self.pairs['bb_failed']} BB two-view rejections"
-               + (f"; {self.pairs['edge_few_boxes']} edges with fewer matched boxes than the "
-                  "paper's rule" if self.pairs["edge_few_boxes"] else "")
-               if self.boxes else f"{few_boxes} rejected by two-view verification"),
-        ]
-        if self.rejected or self.rotation_only:
-            why = ", ".join(f"{k} {v}" for k, v in sorted(self.rejected.items()))
-            out.append(f"verification: {self.rotation_only} rotation-only edges"
-                       + (f"; rejected: {why}" if why else "")
-                       + f"; {self.flat_keypoints} keypoints on flat patches dropped")
-        if self.fallback:
-            f = self.fallback
-            out.append(f"fallback matcher: {f['images']} weakly textured images, "
-                       f"{f['tried']} pairs matched again, {f['kept']} of them kept "
-                       f"({s['fallback']:.1f} s)")
-        if self.reused:
-            out.append(f"reused from the cache: {self.reused['images']} images, "
-                       f"{self.reused['pairs']} pairs")
-        done = self.images - self.reused["images"]
-        if done > 0:
-            per = ", ".join(f"{k} {1000 * s[k] / done:.0f} ms"
-                            for k in ("read", "proposals", "features")
-                            if k in s and (self.boxes or k != "proposals"))
-            out.append(f"per image: {per}")
-        done = n_pairs - self.reused["pairs"]
-        if done > 0:
-            per = ", ".join(f"{k} {1000 * s[k] / done:.1f} ms"
-                            for k in ("matching", "box_matching", "five_point")
-                            if k in s and (self.boxes or k != "box_matching"))
-            out.append(f"per pair: {per}")
-        return out
-
-    def merge(self, other: FrontendSummary) -> None:
-        """Add ``other``'s pair counts, rejections and seconds (one pair's, evaluated on a
-        worker thread) to this summary."""
-        self.pairs.update(other.pairs)
-        self.rejected.update(other.rejected)
-        self.seconds.update(other.seconds)
-        self.rotation_only += other.rotation_only
-        self.reused.update(other.reused)
-        self.fallback.update(other.fallback)
-
-    def to_dict(self) -> dict[str, Any]:
-        return {"images": self.images, "images_without_boxes": self.images_without_boxes,
-                "pairs": dict(self.pairs), "rejected": dict(self.rejected),
-                "rotation_only": self.rotation_only, "flat_keypoints": self.flat_keypoints,
-                "reused": dict(self.reused), "fallback": dict(self.fallback),
-                "seconds": {k: round(v, 3) for k, v in self.seconds.items()}}
 
 
 @dataclass
@@ -337,6 +275,22 @@ class ImageFrontend:
         if i not in self._images:
             self.prepare([i], progress=False)
         return self._images[i]
+
+    def features(self, i: int) -> ImageFeatures:
+        """The image stage's result for image ``i`` (computed once)."""
+        d = self.image(i)
+        return ImageFeatures(d.features.uv, tuple(d.features.size), d.boxes)
+
+    def extract(self, progress: bool = True) -> tuple[ImageFeatures, ...]:
+        """The image stage on every image (:meth:`prepare`): their features, in image order."""
+        self.prepare(progress=progress)
+        return tuple(self.features(i) for i in range(len(self.records)))
+
+    def select_pairs(self, options: PairOptions | None = None) -> PairSelection:
+        """The image pairs to match (:func:`~posernet.frontend.pairs.select_pairs` on every
+        image's descriptors, which stay inside the front end)."""
+        return select_pairs([self.image(i).features for i in range(len(self.records))],
+                            options)
 
     def boxes(self, i: int) -> np.ndarray:
         """Proposals of image ``i`` as pixel xyxy ``(B, 4)``."""
@@ -673,6 +627,42 @@ class ImageFrontend:
                                        geo["dist1"], geo["dist2"],
                                        threshold=2.0 * self.pose.kp_threshold)
         return np.stack([m.idx_a[keep], m.idx_b[keep]], axis=1)
+
+    def two_view(self, i: int, j: int) -> TwoViewGeometry:
+        """The verified geometry of images ``i, j`` (evaluated once), as a frozen record."""
+        return TwoViewGeometry.from_pair(self.pair(i, j))
+
+    def match(self, pairs: Sequence[tuple[int, int]], progress: bool = True,
+              screen: bool = True) -> MatchResult:
+        """The pair stage: evaluate ``pairs`` (:meth:`evaluate_pairs`), then with ``screen``
+        reject the edges among them that crowd their inliers or break triangles
+        (:func:`~posernet.frontend.consistency.screen_edges`). Returns every evaluated pair's
+        matches and geometry with every image's features (whose keypoints they index)."""
+        self.evaluate_pairs(pairs, progress=progress)
+        if screen:
+            from .consistency import screen_edges
+
+            screen_edges(self, pairs)
+        return self.match_result()
+
+    def match_result(self) -> MatchResult:
+        """Every pair evaluated so far and every image's features, as typed data."""
+        self.prepare(progress=False)
+        return MatchResult(
+            images=tuple(self.features(i) for i in range(len(self.records))),
+            pairs=MappingProxyType({k: PairMatches(TwoViewGeometry.from_pair(p),
+                                                   self.matches.get(k))
+                                    for k, p in sorted(self._pairs.items())}))
+
+    def view_graph(self, selection: PairSelection, matches: MatchResult | None = None,
+                   meta: dict[str, Any] | None = None) -> FrontendResult:
+        """The graph stage: the view graph of every image over ``selection``'s pairs from the
+        pair stage's ``matches`` (default: :meth:`match_result`), with the run's counts
+        (:func:`~posernet.frontend.results.assemble_frontend_result`)."""
+        if matches is None:
+            matches = self.match_result()
+        return assemble_frontend_result(self.records, matches, selection, meta,
+                                        summary=self.summary, seed=self.seed)
 
     def verified_matches(self) -> dict[tuple[int, int], np.ndarray]:
         """Keypoint index pairs ``(M, 2)`` that each evaluated pair's verified pose explains
