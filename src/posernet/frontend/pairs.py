@@ -24,7 +24,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Iterator, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from typing import Any
 
 import numpy as np
@@ -32,6 +32,7 @@ import torch
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
+from ..options import check_options
 from .features import Features
 
 __all__ = ["PAIR_MODES", "PairOptions", "PairSelection", "global_descriptors", "select_pairs"]
@@ -80,30 +81,10 @@ class PairOptions:
         return "exhaustive" if n <= self.auto_max else "retrieval"
 
     def __post_init__(self) -> None:
-        if self.mode not in PAIR_MODES:
-            raise ValueError(
-                f"PairOptions.mode must be one of {', '.join(PAIR_MODES)}, got {self.mode!r}"
-            )
-        for name, minimum in (
-            ("window", 1),
-            ("loop_k", 0),
-            ("k", 1),
-            ("words", 1),
-            ("sample", 1),
-            ("seed", 0),
-            ("auto_max", 1),
-            ("repair_links", 1),
-        ):
-            value = getattr(self, name)
-            if (
-                isinstance(value, bool)
-                or not isinstance(value, (int, np.integer))
-                or value < minimum
-            ):
-                raise ValueError(
-                    f"PairOptions.{name} must be an integer >= {minimum}, got {value!r}"
-                )
-            setattr(self, name, int(value))
+        check_options(self)
+        for f in fields(self):  # numpy integers as plain ones (cache keys, JSON)
+            if f.type == "int":
+                setattr(self, f.name, int(getattr(self, f.name)))
 
 
 @dataclass
