@@ -176,9 +176,9 @@ def test_large_components_are_not_registered_incrementally(long_lens) -> None:
 
 
 def test_start_options_are_checked() -> None:
-    with pytest.raises(ValueError, match="start='global'; choose one of"):
+    with pytest.raises(ValueError, match="start: 'global' is not one of auto, averaged"):
         BundleOptions(start="global")
-    with pytest.raises(ValueError, match="incremental_max_cameras must be >= 2"):
+    with pytest.raises(ValueError, match="incremental_max_cameras: 1 is not an integer >= 2"):
         BundleOptions(incremental_max_cameras=1)
-    with pytest.raises(ValueError, match="explained_min must be in"):
+    with pytest.raises(ValueError, match=r"explained_min: 1.5 is not a number in \[0, 1\]"):
         BundleOptions(explained_min=1.5)

@@ -1,7 +1,10 @@
 """``--help`` of a command, written from its own config: what it does (the config file's header
 comments), the required keys, each config group with its choices, and every option of the
-composed config (the groups' defaults included) with its default and its one-line meaning (the
-comment beside it, or the comment block right above it, in whichever file sets it). Hydra's own
+composed config (the groups' defaults included) with its default and its one-line meaning: for
+an option declared on a dataclass field (``bundle``, ``verify``, ``check``, ``pairs``,
+``relpose``, ``box_matching``, the sync backends' options) its declared help and choices
+(:func:`posernet.options.option`), else the comment beside it, or the comment block right above
+it, in whichever file sets it. Hydra's own
 help (every group in the config folder, comments stripped, required keys as ``???``) stays at
 ``--hydra-help``.
 """
@@ -61,6 +64,40 @@ def _meanings(path: Path, prefix: str) -> dict[str, str]:
         if m["value"].strip() == "":
             stack.append((indent, m["key"]))
         above, last = [], f"{prefix}{key}" if m["c"] else None
+    return out
+
+
+def options_owner(target: Any) -> Any:
+    """The dataclass declaring the options of a group built from ``target`` (a dotted name):
+    the target itself when it is a dataclass, a sync backend's ``Options``; ``None`` for a
+    constructor or a target that does not import."""
+    import dataclasses
+
+    from hydra.utils import get_object
+
+    try:
+        owner = get_object(str(target))
+    except Exception:  # a bad target: the config check reports it
+        return None
+    owner = getattr(owner, "Options", owner)
+    return owner if isinstance(owner, type) and dataclasses.is_dataclass(owner) else None
+
+
+def declared_meanings(cfg: Any) -> dict[str, str]:
+    """The meaning of every option of a group built from a dataclass (``bundle``, ``sync``,
+    ...): its :func:`posernet.options.option` help and choices."""
+    from omegaconf import OmegaConf
+
+    from ..options import option_help
+
+    out: dict[str, str] = {}
+    for group in cfg.keys():
+        node = cfg._get_node(group)
+        if not OmegaConf.is_dict(node) or "_target_" not in node:
+            continue
+        owner = options_owner(node._get_node("_target_")._value())
+        if owner is not None:
+            out.update({f"{group}.{k}": v for k, v in option_help(owner).items()})
     return out
 
 
@@ -139,6 +176,7 @@ def command_help(prog: str, config_dir: str | Path, config_name: str, width: int
     meanings: dict[str, str] = {}
     for path, prefix in files:  # a later file's comment wins, as its value does
         meanings.update(_meanings(path, prefix))
+    meanings.update(declared_meanings(cfg))  # an option's own declaration wins over both
     grouped = {prefix.split(".")[0] for _, prefix in files if prefix}
     options = [(k, _text(v), meanings.get(k, "")) for k, v in _leaves(cfg)]
     options.sort(key=lambda o: o[0].split(".")[0] in grouped)  # the command's own keys first

@@ -4,13 +4,16 @@
 
 1. every plain value of the command's top-level keys and of its groups (``model``, ``data``,
    ``trainer``, ``sync``, the front end's ``proposals``/``matcher``/``box_matching``/
-   ``relpose``, the demo's ``images``) against a small schema: type, range or choices, and that
-   a required value (``???``) was given. Groups backed by a dataclass or a constructor
-   (``bundle``, ``verify``, ``pairs``, ``relpose``, ``box_matching``, ``model.net``) take their
-   keys and types from it (:func:`typed`), and groups Hydra builds from a ``_target_``
-   (``sync``, ``matcher``, ``proposals``, ``data``) from that target's arguments or options
-   dataclass (:func:`targeted`), so the schema cannot drift from the code; only the ranges
-   and choices are written here;
+   ``relpose``, reconstruct's ``pairs``/``verify``/``bundle``/``check``, the demo's
+   ``images``): type, range or choices, and that a required value (``???``) was given. A group
+   built from a dataclass (``bundle``, ``verify``, ``check``, ``pairs``, ``relpose``,
+   ``box_matching``, the sync backends' ``Options``) takes each key's rule from the field that
+   declares it (:func:`posernet.options.option`), so nothing about those options is written
+   here; a group built from a constructor (``matcher``, ``proposals``, ``data``,
+   ``model.net``) takes its keys and types from the signature (:func:`typed`,
+   :func:`targeted`) and its ranges from the tables below. Only the commands' own top-level
+   keys and the training sections (``model.loss``, ``trainer``, ...), which no dataclass
+   owns, are a schema of their own here;
 2. what a group's own constructor checks across fields (the sync backend: its scale policy,
    gtsam installed; the demo's synthetic dataset options), by building it early;
 3. the machine: ``device=cuda`` (``trainer.accelerator=gpu``) needs CUDA;
@@ -25,7 +28,6 @@ the loaders.
 
 from __future__ import annotations
 
-import math
 import os
 import re
 import tempfile
@@ -34,91 +36,32 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from ..options import (
+    DEVICE,
+    ConfigValueError,
+    Rule,
+    anything,
+    boolean,
+    choice,
+    field_rules,
+    integer,
+    is_int,
+    number,
+    path,
+    positive,
+    rule_for,
+    text,
+)
+
 __all__ = ["COMMANDS", "ConfigValueError", "check_config", "writable_dir", "writable_file"]
-
-
-class ConfigValueError(ValueError):
-    """A config value of the wrong type, out of range, not a valid choice or not usable here."""
 
 
 # --------------------------------------------------------------------------- rules
 
 
-@dataclass(frozen=True)
-class Rule:
-    """What one key accepts: ``expected`` says it in words, ``test`` checks a value."""
-
-    expected: str
-    test: Callable[[Any], bool]
-    null: bool = False  # None accepted
-
-    def ok(self, value: Any) -> bool:
-        return (value is None and self.null) or (value is not None and self.test(value))
-
-    def describe(self) -> str:
-        return f"{self.expected} or null" if self.null else self.expected
-
-
-def _is_int(v: Any) -> bool:
-    return isinstance(v, int) and not isinstance(v, bool)
-
-
-def _is_number(v: Any) -> bool:
-    return (isinstance(v, int | float) and not isinstance(v, bool)) and math.isfinite(v)
-
-
-def _bounds(lo: float | None, hi: float | None, lo_open: bool, hi_open: bool) -> str:
-    if lo is not None and hi is not None:
-        return f" in {'(' if lo_open else '['}{lo:g}, {hi:g}{')' if hi_open else ']'}"
-    if lo is not None:
-        return f" {'>' if lo_open else '>='} {lo:g}"
-    if hi is not None:
-        return f" {'<' if hi_open else '<='} {hi:g}"
-    return ""
-
-
-def _within(v: float, lo: float | None, hi: float | None, lo_open: bool, hi_open: bool) -> bool:
-    if lo is not None and (v <= lo if lo_open else v < lo):
-        return False
-    return not (hi is not None and (v >= hi if hi_open else v > hi))
-
-
-def integer(lo: int | None = None, hi: int | None = None, *, null: bool = False) -> Rule:
-    return Rule(f"an integer{_bounds(lo, hi, False, False)}",
-                lambda v: _is_int(v) and _within(v, lo, hi, False, False), null)
-
-
-def number(lo: float | None = None, hi: float | None = None, *, lo_open: bool = False,
-           hi_open: bool = False, null: bool = False) -> Rule:
-    return Rule(f"a number{_bounds(lo, hi, lo_open, hi_open)}",
-                lambda v: _is_number(v) and _within(v, lo, hi, lo_open, hi_open), null)
-
-
-def positive(*, null: bool = False) -> Rule:
-    return number(0, lo_open=True, null=null)
-
-
-def boolean(*, null: bool = False) -> Rule:
-    return Rule("true or false", lambda v: isinstance(v, bool), null)
-
-
-def choice(*options: str, null: bool = False) -> Rule:
-    return Rule(f"one of {', '.join(options)}", lambda v: isinstance(v, str) and v in options,
-                null)
-
-
 def auto_or_bool() -> Rule:
     return Rule("auto, true or false",
                 lambda v: isinstance(v, bool) or (isinstance(v, str) and v == "auto"), False)
-
-
-def text(*, null: bool = False) -> Rule:
-    return Rule("a string", lambda v: isinstance(v, str) and v != "", null)
-
-
-def path(*, null: bool = False) -> Rule:
-    """A file or folder name (a number is a valid name too: ``out_dir=2024``)."""
-    return Rule("a path", lambda v: (isinstance(v, str) and v != "") or _is_int(v), null)
 
 
 def paths() -> Rule:
@@ -129,11 +72,6 @@ def paths() -> Rule:
                                         and all(one.ok(x) for x in v)))
 
 
-def anything(expected: str = "a value") -> Rule:
-    """Checked by the command itself (e.g. intrinsics: a string, a list or a file)."""
-    return Rule(expected, lambda v: True, True)
-
-
 def one_of(*rules: Rule, expected: str | None = None) -> Rule:
     """A value any of ``rules`` accepts."""
     null = any(r.null for r in rules)
@@ -142,39 +80,25 @@ def one_of(*rules: Rule, expected: str | None = None) -> Rule:
 
 
 def typed(owner: Any, prefix: str = "", **specific: Rule) -> dict[str, Rule]:
-    """A rule for every argument of ``owner`` (a dataclass or a class's constructor), from its
-    type annotation (``int``, ``float``, ``bool``, ``str``, ``... | None``); ``specific`` rules
-    (ranges, choices; keys without ``prefix``) take precedence. The schema thus follows the
-    code: an option added there is checked here (by type at least), and the owner's own range
-    checks run when the command builds it."""
+    """A rule for every argument of ``owner`` (a dataclass or a class's constructor): a
+    dataclass field's own rule (its :func:`posernet.options.option` metadata, else its type),
+    a constructor argument's type annotation (``int``, ``float``, ``bool``, ``str``,
+    ``... | None``); ``specific`` rules (ranges, choices; keys without ``prefix``) take
+    precedence. The schema thus follows the code: an option added there is checked here."""
     import dataclasses
     import inspect
     import typing
 
     if dataclasses.is_dataclass(owner):
-        names = [f.name for f in dataclasses.fields(owner)]
-        hints = typing.get_type_hints(owner)
+        own = field_rules(owner)
     else:
-        names = _parameters(owner)
         hints = typing.get_type_hints(owner if inspect.isfunction(owner) else owner.__init__)
-    out: dict[str, Rule] = {}
-    for name in names:
-        if name in specific:
-            out[prefix + name] = specific[name]
-            continue
-        hint = hints.get(name, Any)
-        args = set(typing.get_args(hint)) if typing.get_origin(hint) in (
-            typing.Union, __import__("types").UnionType) else {hint}
-        null = type(None) in args
-        args.discard(type(None))
-        base = args.pop() if len(args) == 1 else None
-        out[prefix + name] = ({bool: boolean, int: integer, float: number, str: text}
-                              .get(base, lambda null=False: anything())(null=null))
-    unknown = set(specific) - set(names)
+        own = {n: rule_for(hints.get(n, Any)) for n in _parameters(owner)}
+    unknown = set(specific) - set(own)
     if unknown:
         raise TypeError(f"typed({getattr(owner, '__name__', owner)}): no such argument(s) "
                         f"{sorted(unknown)}")
-    return out
+    return {prefix + name: specific.get(name, rule) for name, rule in own.items()}
 
 
 def _parameters(owner: Any) -> list[str]:
@@ -191,19 +115,24 @@ def _takes_any_keyword(owner: Any) -> bool:
     return any(p.kind == p.VAR_KEYWORD for p in inspect.signature(owner).parameters.values())
 
 
-def targeted(group: str, ranges: Schema) -> Callable[[Any], Schema]:
-    """Schema of a group that Hydra builds from its ``_target_`` (sync backends, matchers,
-    proposals, the datamodule): a rule for every argument of that target (:func:`typed`, so
-    the keys and types follow the code), the ranges and choices of ``ranges`` where they
-    apply (every one for a target taking ``**kwargs``), and ``_target_`` / ``name`` (a label).
-    A target with an ``Options`` dataclass (the sync backends) is checked against its fields.
+def targeted(group: str, ranges: Schema | None = None,
+             default: str | None = None) -> Callable[[Any], Schema]:
+    """Schema of a group that Hydra builds from its ``_target_`` (``default`` when the config
+    names none): a rule for every argument of that target (:func:`typed`, so the keys and
+    types follow the code), the ranges and choices of ``ranges`` where they apply (every one
+    for a target taking ``**kwargs``), and ``_target_`` / ``name`` (a label). A dataclass
+    target (``bundle``, ``verify``, ...) or a target with an ``Options`` dataclass (the sync
+    backends) is checked against its fields' own rules, so such a group needs no ``ranges``.
     Without a target it can import, the group gets ``ranges`` as they are (building it then
     reports the bad target)."""
+    ranges = dict(ranges or {})
 
     def schema(cfg: Any) -> Schema:
         from hydra.utils import get_object
 
         target = None if cfg is None else _value(cfg, f"{group}._target_")
+        if not isinstance(target, str):
+            target = default
         try:
             owner = get_object(target) if isinstance(target, str) else None
         except Exception:  # a bad target: instantiating it says so
@@ -227,8 +156,6 @@ def targeted(group: str, ranges: Schema) -> Callable[[Any], Schema]:
     return schema
 
 
-DEVICE = Rule("one of cpu, cuda, cuda:N, auto",
-              lambda v: isinstance(v, str) and bool(re.fullmatch(r"cpu|cuda|cuda:\d+|auto", v)))
 THREADS = integer(1, null=True)
 DIGITS = integer(0, 12)
 SEED = integer(0)
@@ -291,18 +218,18 @@ def _mixture_ok(v: Any) -> bool:
 #: the Lightning Trainer arguments of posernet/conf/trainer/*.yaml (others pass through unchecked)
 TRAINER: Schema = {
     "accelerator": choice("auto", "cpu", "gpu", "cuda", "mps"),
-    "devices": one_of(Rule("", lambda v: _is_int(v) and (v == -1 or v >= 1)), choice("auto"),
+    "devices": one_of(Rule("", lambda v: is_int(v) and (v == -1 or v >= 1)), choice("auto"),
                       Rule("a list of integers", lambda v: isinstance(v, list) and bool(v)
-                           and all(_is_int(x) for x in v)),
+                           and all(is_int(x) for x in v)),
                       expected="an integer >= 1 (or -1: all), a list of integers or auto"),
     "precision": one_of(choice("64", "32", "16", "bf16", "64-true", "32-true", "16-true",
                                "bf16-true", "16-mixed", "bf16-mixed"),
-                        Rule("", lambda v: _is_int(v) and v in (16, 32, 64)),
+                        Rule("", lambda v: is_int(v) and v in (16, 32, 64)),
                         expected="one of 64, 32, 16, bf16, 64-true, 32-true, 16-true, bf16-true, "
                                  "16-mixed, bf16-mixed"),
     "strategy": text(),
     "max_epochs": Rule("an integer >= 1 (or -1: no limit)",
-                       lambda v: _is_int(v) and (v == -1 or v >= 1), True),
+                       lambda v: is_int(v) and (v == -1 or v >= 1), True),
     "min_epochs": integer(0, null=True),
     "max_steps": integer(-1), "fast_dev_run": one_of(boolean(), integer(0)),
     "gradient_clip_val": number(0, null=True),
@@ -314,23 +241,10 @@ TRAINER: Schema = {
     "default_root_dir": path(null=True),
 }
 
-#: ``sync``: the backend's arguments (:func:`targeted`), with these ranges and choices;
+#: ``sync``: the backend's options dataclass (:func:`targeted`), each field with its own rule;
 #: cross-field rules (the scale policies a backend supports, p_min <= p_max) are the backend's
 #: own, checked by building it
-SYNC = targeted("sync", {
-    "scale": choice("unit", "given", "oracle", "free"),
-    "disconnected": choice("components", "error"),
-    "max_iters": integer(1), "tol": positive(), "theta": positive(),
-    "solver": choice("auto", "dense", "krylov"), "dense_max_nodes": integer(1),
-    "krylov_tol": positive(), "krylov_max_cycles": integer(1), "seed": integer(),
-    "refine_iters": integer(0), "translation_iters": integer(1),
-    "weight_mode": choice("start", "prior"), "translation": choice("bata", "lud", "linear"),
-    "max_rotation_residual_deg": number(0, null=True),
-    "max_direction_residual_deg": number(0, null=True), "outlier_mad": positive(),
-    "rotation_sigma": positive(), "direction_sigma": positive(), "p_min": integer(3),
-    "p_max": integer(3), "lm_tol": positive(), "max_iterations": integer(1),
-    "ckpt_path": path(), "device": DEVICE,  # the learned backend's
-})
+SYNC = targeted("sync")
 
 #: ``proposals``: the proposal source's arguments (:func:`targeted`), with these ranges
 PROPOSALS = targeted("proposals", {
@@ -339,21 +253,6 @@ PROPOSALS = targeted("proposals", {
     "strategy": choice("single", "fast", "quality"), "resize": integer(32, null=True),
 })
 
-
-def _pairs(cfg: Any) -> Schema:
-    """``pairs``: every option of :class:`posernet.frontend.PairOptions`
-    (:func:`typed`), with its ranges."""
-    from ..frontend.pairs import PairOptions
-
-    return {**typed(PairOptions,
-                  mode=choice("auto", "exhaustive", "sequential", "retrieval"),
-                  auto_max=integer(1),
-                  k=integer(1),
-                  window=integer(1),
-                  loop_k=integer(0),
-                  words=integer(1),
-                  sample=integer(1),
-                  seed=SEED, repair_links=integer(0))}
 
 #: ``matcher``: the matcher's arguments (:func:`targeted`), with these ranges and choices
 MATCHER = targeted("matcher", {
@@ -364,98 +263,18 @@ MATCHER = targeted("matcher", {
 })
 
 
-def _box_matching(cfg: Any) -> Schema:
-    """``box_matching``: every option of :class:`posernet.frontend.BoxMatchRules`
-    (:func:`typed`), with its ranges."""
-    from ..frontend.boxmatch import BoxMatchRules
+#: the image front end's groups; those built from a dataclass (``box_matching``, ``relpose``)
+#: take every rule from its fields
+FRONTEND = {"proposals": PROPOSALS, "matcher": MATCHER,
+            "box_matching": targeted("box_matching",
+                                     default="posernet.frontend.boxmatch.BoxMatchRules"),
+            "relpose": targeted("relpose", default="posernet.frontend.relpose.PoseOptions")}
 
-    return {**typed(BoxMatchRules,
-                  min_keypoints=integer(1),
-                  min_span=number(0, 1),
-                  min_boxes=integer(1),
-                  one_to_one=boolean())}
-
-
-def _relpose(cfg: Any) -> Schema:
-    """``relpose``: every option of :class:`posernet.frontend.PoseOptions`
-    (:func:`typed`), with its ranges."""
-    from ..frontend.relpose import PoseOptions
-
-    return {**typed(PoseOptions,
-                  method=choice("usac", "ransac"),
-                  ransac_prob=number(0, 1, lo_open=True, hi_open=True),
-                  kp_threshold=positive(),
-                  bb_threshold=positive(),
-                  max_iters=integer(1))}
-
-FRONTEND = {"proposals": PROPOSALS, "matcher": MATCHER, "box_matching": _box_matching,
-            "relpose": _relpose}
-
-
-def _verify(cfg: Any) -> Schema:
-    """``verify``: every option of :class:`posernet.frontend.VerifyRules`
-    (:func:`typed`), with its ranges."""
-    from ..frontend.verify import VerifyRules
-
-    return {**typed(VerifyRules,
-                  min_inliers=integer(5),
-                  min_inlier_ratio=number(0, 1),
-                  min_front=number(0, 1),
-                  max_rotation_ratio=number(0, 1),
-                  min_tri_angle=number(0),
-                  static_px=number(0),
-                  max_static_ratio=number(0, 1),
-                  min_contrast=number(0),
-                  contrast_radius=integer(1),
-                  min_spread=number(0, 1),
-                  max_loop_deg=number(0, 180),
-                  max_loop_share=number(0, 1)), "_target_": text()}
-
-
-def _bundle(cfg: Any) -> Schema:
-    """``bundle``: every option of :class:`posernet.sfm.BundleOptions`
-    (:func:`typed`), with its ranges."""
-    from ..sfm.bundle import BundleOptions
-
-    return {**typed(BundleOptions,
-                  loss=choice("cauchy", "huber", "soft_l1", "linear", "arctan"),
-                  f_scale=positive(),
-                  max_nfev=integer(1),
-                  ftol=positive(),
-                  xtol=positive(),
-                  gtol=positive(),
-                  refine_focal=choice("auto", "none", "shared", "per_camera"),
-                  gauge=choice("max_degree", "first"),
-                  accept_unconverged=boolean(),
-                  anneal_factor=number(0),
-                  anneal_step=number(1, lo_open=True),
-                  robust=choice("lm", "irls", "scipy"),
-                  max_outer=integer(1),
-                  inner_nfev=integer(1),
-                  irls_tol=positive(),
-                  max_reproj_px=positive(),
-                  initial_reproj_factor=positive(),
-                  min_angle_deg=number(0),
-                  rounds=integer(1),
-                  min_points_per_camera=integer(0),
-                  start=choice("auto", "averaged", "positioning", "incremental"),
-                  incremental_max_cameras=integer(2), explained_min=number(0, 1)),
-            "_target_": text()}
-
-
-def _check(cfg: Any) -> Schema:
-    """``check``: every option of :class:`posernet.sfm.selfcheck.CheckOptions`, with its
-    ranges."""
-    from ..sfm.selfcheck import CheckOptions
-
-    return {**typed(CheckOptions, max_epipolar_px=positive(), min_inlier_share=number(0, 1),
-                    max_rotation_deg=number(0, 180, lo_open=True),
-                    max_direction_deg=number(0, 180, lo_open=True),
-                    min_agreeing_share=number(0, 1), min_points=integer(0),
-                    min_single_pair_inliers=integer(0), min_single_pair_kept=number(0, 1),
-                    min_triangulation_deg=number(0, 90, hi_open=True),
-                    coincide_ratio=number(0, 1, hi_open=True)),
-            "_target_": text()}
+#: reconstruct's option blocks, each a dataclass whose fields hold their rules
+PAIRS = targeted("pairs", default="posernet.frontend.pairs.PairOptions")
+VERIFY = targeted("verify", default="posernet.frontend.verify.VerifyRules")
+BUNDLE = targeted("bundle", default="posernet.sfm.BundleOptions")
+CHECK = targeted("check", default="posernet.sfm.selfcheck.CheckOptions")
 
 
 def _matcher_configs() -> tuple[str, ...]:
@@ -582,8 +401,8 @@ COMMANDS: dict[str, Command] = {
               "edge_rule": choice("verified", "boxes"),
               "seed": SEED, "workers": integer(0), "pictures": integer(0), "device": DEVICE,
               "num_threads": THREADS, "progress": boolean(), "digits": DIGITS},
-        groups={**FRONTEND, "verify": _verify, "bundle": _bundle, "sync": SYNC, "pairs": _pairs,
-                "check": _check},
+        groups={**FRONTEND, "verify": VERIFY, "bundle": BUNDLE, "sync": SYNC, "pairs": PAIRS,
+                "check": CHECK},
         outputs=_outputs(("out_dir", "dir")),
         devices=("device", "matcher.device"), checks=(_check_sync,)),
     "make_data": Command(

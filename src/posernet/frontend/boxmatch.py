@@ -22,6 +22,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..options import check_options, option
+
 __all__ = [
     "BoxMatchRules",
     "box_centres",
@@ -35,18 +37,17 @@ __all__ = [
 class BoxMatchRules:
     """Thresholds of the matching rules (paper defaults)."""
 
-    min_keypoints: int = 15  # shared matched keypoints for a box pair
-    min_span: float = 0.3  # fraction of each box's area the shared keypoints must span
-    min_boxes: int = 5  # matched box pairs for an edge between two images
-    one_to_one: bool = True  # each box in at most one pair
+    min_keypoints: int = option(15, ge=1, help="a box pair shares at least this many matched "
+                                "keypoints ...")
+    min_span: float = option(0.3, ge=0, le=1, help="... spanning at least this fraction of each "
+                             "box's area")
+    min_boxes: int = option(5, ge=1, help="an edge between two images needs this many matched "
+                            "box pairs")
+    one_to_one: bool = option(True, help="each box in at most one pair (proposals nest and "
+                              "overlap)")
 
     def __post_init__(self) -> None:
-        if int(self.min_keypoints) < 1:
-            raise ValueError(f"min_keypoints must be >= 1, got {self.min_keypoints}")
-        if not 0.0 <= float(self.min_span) <= 1.0:
-            raise ValueError(f"min_span must be in [0, 1], got {self.min_span}")
-        if int(self.min_boxes) < 1:
-            raise ValueError(f"min_boxes must be >= 1, got {self.min_boxes}")
+        check_options(self)
 
 
 def boxes_contain(boxes: np.ndarray, uv: np.ndarray) -> np.ndarray:

@@ -24,7 +24,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Iterator, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from typing import Any
 
 import numpy as np
@@ -32,6 +32,7 @@ import torch
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
+from ..options import check_options, option
 from .features import Features
 
 __all__ = ["PAIR_MODES", "PairOptions", "PairSelection", "global_descriptors", "select_pairs"]
@@ -63,15 +64,18 @@ class PairOptions:
             neighbours left apart (several, so that averaging can fix their relative scale).
     """
 
-    mode: str = "exhaustive"
-    window: int = 5
-    loop_k: int = 3
-    k: int = 20
-    words: int = 64
-    sample: int = 20000
-    seed: int = 0
-    auto_max: int = 40
-    repair_links: int = 5
+    mode: str = option("exhaustive", choices=PAIR_MODES,
+                       help="which pairs are matched; auto: exhaustive up to auto_max images, "
+                            "else retrieval")
+    window: int = option(5, ge=1, help="sequential: the next images in file order")
+    loop_k: int = option(3, ge=0, help="sequential: loop-closure candidates per image")
+    k: int = option(20, ge=1, help="retrieval: nearest images per image")
+    words: int = option(64, ge=1, help="visual words of the per-run VLAD codebook")
+    sample: int = option(20000, ge=1, help="descriptors sampled to learn it")
+    seed: int = option(0, ge=0, help="seed of the sampling and of the k-means++ seeding")
+    auto_max: int = option(40, ge=1, help="the largest image count auto matches exhaustively")
+    repair_links: int = option(5, ge=1, help="retrieval: pairs added between two components "
+                               "the k nearest neighbours left apart")
 
     def resolved(self, n: int) -> str:
         """The mode used for ``n`` images (``auto`` resolved)."""
@@ -80,30 +84,10 @@ class PairOptions:
         return "exhaustive" if n <= self.auto_max else "retrieval"
 
     def __post_init__(self) -> None:
-        if self.mode not in PAIR_MODES:
-            raise ValueError(
-                f"PairOptions.mode must be one of {', '.join(PAIR_MODES)}, got {self.mode!r}"
-            )
-        for name, minimum in (
-            ("window", 1),
-            ("loop_k", 0),
-            ("k", 1),
-            ("words", 1),
-            ("sample", 1),
-            ("seed", 0),
-            ("auto_max", 1),
-            ("repair_links", 1),
-        ):
-            value = getattr(self, name)
-            if (
-                isinstance(value, bool)
-                or not isinstance(value, (int, np.integer))
-                or value < minimum
-            ):
-                raise ValueError(
-                    f"PairOptions.{name} must be an integer >= {minimum}, got {value!r}"
-                )
-            setattr(self, name, int(value))
+        check_options(self)
+        for f in fields(self):  # numpy integers as plain ones (cache keys, JSON)
+            if f.type == "int":
+                setattr(self, f.name, int(getattr(self, f.name)))
 
 
 @dataclass

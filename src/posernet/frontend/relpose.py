@@ -18,6 +18,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from ..options import check_options, option
+
 __all__ = ["METHODS", "PoseOptions", "five_point", "normalised_points"]
 
 
@@ -28,11 +30,15 @@ METHODS = {"usac": cv2.USAC_DEFAULT, "ransac": cv2.RANSAC}
 class PoseOptions:
     """OpenCV 5-point + RANSAC (``findEssentialMat`` / ``recoverPose``)."""
 
-    method: str = "usac"  # "usac" (USAC_DEFAULT, fast) or "ransac" (classic, as in the paper)
-    ransac_prob: float = 0.999
-    kp_threshold: float = 1.0  # RANSAC threshold (px) on keypoints
-    bb_threshold: float = 1.0  # RANSAC threshold (px) on box centres
-    max_iters: int = 1000
+    method: str = option("usac", choices=tuple(METHODS),
+                         help="usac: USAC_DEFAULT (fast); ransac: classic, as in the paper")
+    ransac_prob: float = option(0.999, gt=0, lt=1, help="RANSAC confidence")
+    kp_threshold: float = option(1.0, gt=0, help="RANSAC threshold (px) on keypoints")
+    bb_threshold: float = option(1.0, gt=0, help="RANSAC threshold (px) on box centres")
+    max_iters: int = option(1000, ge=1, help="most RANSAC iterations")
+
+    def __post_init__(self) -> None:
+        check_options(self)
 
 
 def normalised_points(p: np.ndarray, K: np.ndarray, dist: np.ndarray | None) -> np.ndarray:

@@ -45,6 +45,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from ..options import check_options, option
 from .relpose import METHODS, normalised_points
 
 __all__ = ["TwoView", "VerifyRules", "epipolar_consistent", "inlier_spread", "keypoint_contrast",
@@ -55,35 +56,32 @@ __all__ = ["TwoView", "VerifyRules", "epipolar_consistent", "inlier_spread", "ke
 class VerifyRules:
     """Thresholds of two-view verification (see the module docstring)."""
 
-    min_inliers: int = 15  # pose inliers (COLMAP's default minimum as well)
-    min_inlier_ratio: float = 0.2  # pose inliers / correspondences
-    min_front: float = 0.9  # share of essential-matrix inliers in front of both cameras
-    max_rotation_ratio: float = 0.9  # pure rotation (or homography) explains this share
-    min_tri_angle: float = 1.0  # degrees: median triangulation angle of a full edge
-    static_px: float = 1.0  # a match moving less than this (pixels) is static ...
-    max_static_ratio: float = 0.5  # ... and a pair with more static matches is rejected
-    min_contrast: float = 3.0  # grey levels: keypoints on flatter patches are dropped
-    contrast_radius: int = 4  # patch half-size (pixels) of the contrast measure
+    min_inliers: int = option(15, ge=5, help="pose inliers (5: the 5-point minimum; 15 is "
+                              "COLMAP's default minimum as well)")
+    min_inlier_ratio: float = option(0.2, ge=0, le=1, help="pose inliers / matches in matched "
+                                     "boxes")
+    min_front: float = option(0.9, ge=0, le=1, help="share of inliers triangulated in front of "
+                              "both cameras")
+    max_rotation_ratio: float = option(0.9, ge=0, le=1, help="a pure rotation explaining this "
+                                       "share -> rotation-only edge")
+    min_tri_angle: float = option(1.0, ge=0, help="degrees: median triangulation angle below "
+                                  "this -> rotation-only edge")
+    static_px: float = option(1.0, ge=0, help="matches moving less than this (px) are static ...")
+    max_static_ratio: float = option(0.5, ge=0, le=1, help="... and a pair with more static "
+                                     "matches is rejected")
+    min_contrast: float = option(3.0, ge=0, help="grey levels: keypoints on flatter patches "
+                                 "(uniform background) dropped")
+    contrast_radius: int = option(4, ge=1, help="patch half-size of that contrast (px)")
     # checks of the verified pairs against each other (posernet.frontend.consistency)
-    min_spread: float = 0.015  # share of each image the inliers' hull must cover (0: off)
-    max_loop_deg: float = 6.0  # degrees: rotation error around a consistent triangle (0: off)
-    max_loop_share: float = 0.5  # an edge breaking more of its triangles (weighted) goes
+    min_spread: float = option(0.015, ge=0, le=1, help="share of each image the inliers' hull "
+                               "must cover (0: off)")
+    max_loop_deg: float = option(6.0, ge=0, le=180, help="degrees: a triangle of edges whose "
+                                 "rotations do not close within this is inconsistent (0: off)")
+    max_loop_share: float = option(0.5, ge=0, le=1, help="an edge inconsistent in more than this "
+                                   "share of its triangles (inlier-weighted) is rejected")
 
     def __post_init__(self) -> None:
-        if int(self.min_inliers) < 5:
-            raise ValueError(f"min_inliers must be >= 5 (the 5-point minimum), got "
-                             f"{self.min_inliers}")
-        for name in ("min_inlier_ratio", "min_front", "max_rotation_ratio", "max_static_ratio",
-                     "min_spread", "max_loop_share"):
-            v = float(getattr(self, name))
-            if not 0.0 <= v <= 1.0:
-                raise ValueError(f"{name} must be in [0, 1], got {v}")
-        for name in ("min_tri_angle", "static_px", "min_contrast", "max_loop_deg"):
-            v = float(getattr(self, name))
-            if not (np.isfinite(v) and v >= 0):
-                raise ValueError(f"{name} must be a finite number >= 0, got {v}")
-        if int(self.contrast_radius) < 1:
-            raise ValueError(f"contrast_radius must be >= 1, got {self.contrast_radius}")
+        check_options(self)
 
 
 @dataclass

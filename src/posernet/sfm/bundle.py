@@ -28,6 +28,7 @@ from scipy.sparse import bsr_matrix, coo_matrix, csr_matrix
 from scipy.sparse.csgraph import connected_components
 
 from ..geometry import axis_angle_to_rotation_matrix
+from ..options import check_options, option
 
 __all__ = ["LOSSES", "BundleOptions", "BundleResult", "bundle_adjust", "gauge_cameras"]
 
@@ -46,6 +47,8 @@ GAUGES: tuple[str, ...] = ("max_degree", "first")
 #: is still in doubt; kept: the most refined cameras seeing their points at a useful angle,
 #: then the most observations explained)
 STARTS: tuple[str, ...] = ("auto", "averaged", "positioning", "incremental")
+#: the solvers of ``robust``
+ROBUST_SOLVERS: tuple[str, ...] = ("lm", "irls", "scipy")
 
 
 @dataclass
@@ -80,56 +83,47 @@ class BundleOptions:
     ``incremental_max_cameras`` (larger components start from the averaged poses only).
     """
 
-    loss: str = "cauchy"
-    f_scale: float = 2.0
-    max_nfev: int = 1000
-    ftol: float = 1e-6
-    xtol: float = 1e-10
-    gtol: float = 1e-10
-    refine_focal: str = "none"
-    gauge: str = "max_degree"
-    accept_unconverged: bool = False
-    anneal_factor: float = 3.0
-    anneal_step: float = 4.0
-    robust: str = "lm"
-    max_outer: int = 100
-    irls_tol: float = 1e-5
-    inner_nfev: int = 10
-    max_reproj_px: float = 4.0
-    initial_reproj_factor: float = 3.0
-    min_angle_deg: float = 1.0
-    rounds: int = 2
-    min_points_per_camera: int = 15
-    start: str = "auto"
-    incremental_max_cameras: int = 40
-    explained_min: float = 0.75
+    loss: str = option("cauchy", choices=LOSSES,
+                       help="robust kernel on reprojection errors")
+    f_scale: float = option(2.0, gt=0, help="px: errors beyond this are down-weighted")
+    max_nfev: int = option(1000, ge=1, help="solver evaluations per adjustment; reaching it = "
+                           "not converged")
+    ftol: float = option(1e-6, gt=0, help="scipy: relative cost change to stop at")
+    xtol: float = option(1e-10, gt=0, help="scipy: relative step size to stop at")
+    gtol: float = option(1e-10, gt=0, help="scipy: gradient norm to stop at")
+    refine_focal: str = option("none", choices=FOCAL_MODES,
+                               help="focal lengths refined with the poses; auto: refine "
+                                    "guessed intrinsics, keep given ones")
+    gauge: str = option("max_degree", choices=GAUGES,
+                        help="the camera per component that keeps its pose")
+    accept_unconverged: bool = option(False, help="keep an improved but unconverged result")
+    anneal_factor: float = option(3.0, ge=0, help="robust losses start at this many times the "
+                                  "median error (0: off)")
+    anneal_step: float = option(4.0, gt=1, help="... and divide f_scale by this per stage")
+    robust: str = option("lm", choices=ROBUST_SOLVERS,
+                         help="solver: lm (Schur LM), irls (around scipy's trf), scipy")
+    max_outer: int = option(100, ge=1, help="irls: reweighting passes")
+    irls_tol: float = option(1e-5, gt=0, help="converged when a step lowers the robust cost by "
+                             "less than this share")
+    inner_nfev: int = option(10, ge=1, help="irls: trf evaluations per pass")
+    max_reproj_px: float = option(4.0, gt=0, help="observations still above this after an "
+                                  "adjustment are dropped")
+    initial_reproj_factor: float = option(3.0, gt=0, help="first triangulation: tracks kept "
+                                          "below this x the median track error")
+    min_angle_deg: float = option(1.0, ge=0, help="smallest triangulation angle of a point")
+    rounds: int = option(2, ge=1, help="adjust, drop outliers, adjust again")
+    min_points_per_camera: int = option(15, ge=0, help="fewer points: the camera keeps its "
+                                        "averaged pose (reported)")
+    start: str = option("auto", choices=STARTS, help="poses BA starts from (auto: averaged, "
+                        "then positioning and incremental when that one is in doubt)")
+    incremental_max_cameras: int = option(40, ge=2, help="larger components are not "
+                                          "registered incrementally")
+    explained_min: float = option(0.75, ge=0, le=1, help="auto: other starts tried when the "
+                                  "averaged one explains less than this share of the track "
+                                  "observations")
 
     def __post_init__(self) -> None:
-        if self.start not in STARTS:
-            raise ValueError(f"start={self.start!r}; choose one of {list(STARTS)}")
-        if not 0.0 <= float(self.explained_min) <= 1.0:
-            raise ValueError(f"explained_min must be in [0, 1], got {self.explained_min}")
-        if self.incremental_max_cameras < 2:
-            raise ValueError(f"incremental_max_cameras must be >= 2, got "
-                             f"{self.incremental_max_cameras}")
-        if self.loss not in LOSSES:
-            raise ValueError(f"loss={self.loss!r}; choose one of {list(LOSSES)}")
-        if self.refine_focal not in FOCAL_MODES:
-            raise ValueError(f"refine_focal={self.refine_focal!r}; choose one of "
-                             f"{list(FOCAL_MODES)}")
-        if self.robust not in ("lm", "irls", "scipy"):
-            raise ValueError(f"robust={self.robust!r}; choose 'lm', 'irls' or 'scipy'")
-        if self.gauge not in GAUGES:
-            raise ValueError(f"gauge={self.gauge!r}; choose one of {list(GAUGES)}")
-        if not self.anneal_factor >= 0:
-            raise ValueError(f"anneal_factor must be >= 0, got {self.anneal_factor}")
-        if not self.anneal_step > 1:
-            raise ValueError(f"anneal_step must be > 1, got {self.anneal_step}")
-        for name in ("f_scale", "max_reproj_px", "initial_reproj_factor"):
-            if not float(getattr(self, name)) > 0:
-                raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
-        if self.max_nfev < 1 or self.rounds < 1 or self.min_points_per_camera < 0:
-            raise ValueError("max_nfev and rounds must be >= 1, min_points_per_camera >= 0")
+        check_options(self)
 
 
 @dataclass

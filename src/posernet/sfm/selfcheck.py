@@ -40,6 +40,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..options import check_options, option
+
 __all__ = ["CheckOptions", "PairEvidence", "SelfCheck", "check_reconstruction"]
 
 
@@ -55,49 +57,40 @@ class CheckOptions:
     agree; ``min_points``: 3D points a camera must see (with bundle adjustment);
     ``min_single_pair_inliers`` / ``min_single_pair_kept``: a camera that rests on one
     agreeing pair needs that many inliers in it and (with bundle adjustment) must see at
-    least this share of them as 3D points; ``single_planar_fails``: nor may that pair be
-    planar (two relative poses fit a plane's matches) (a wrong two-view geometry, e.g. a mirrored
-    match, agrees with the pose it produced but its matches do not join the other cameras'
-    points); ``min_triangulation_deg``: the median angle between a camera's rays and the
+    least this share of them as 3D points (a wrong two-view geometry, e.g. a mirrored match,
+    agrees with the pose it produced but its matches do not join the other cameras' points);
+    ``single_planar_fails``: nor may that pair be planar (two relative poses fit a plane's
+    matches); ``min_triangulation_deg``: the median angle between a camera's rays and the
     other views' rays to the same points must reach it; ``coincide_ratio``: two cameras
     whose pair has a baseline count as collapsed when their centres are closer than this
     times the median distance between verified pairs' centres.
     """
 
-    max_epipolar_px: float = 2.0
-    min_inlier_share: float = 0.5
-    max_rotation_deg: float = 5.0
-    max_direction_deg: float = 15.0
-    min_agreeing_share: float = 0.5
-    min_single_pair_inliers: int = 50
-    min_single_pair_kept: float = 0.75
-    single_planar_fails: bool = True
-    min_points: int = 15
-    min_triangulation_deg: float = 1.0
-    coincide_ratio: float = 0.02
+    max_epipolar_px: float = option(2.0, gt=0, help="a verified pair agrees when the final "
+                                    "poses put min_inlier_share of its inlier matches within "
+                                    "this many px of their epipolar lines")
+    min_inlier_share: float = option(0.5, ge=0, le=1, help="... that share")
+    max_rotation_deg: float = option(5.0, gt=0, le=180, help="pairs without matches (box "
+                                     "centres): the two-view rotation this close")
+    max_direction_deg: float = option(15.0, gt=0, le=180, help="... and the translation "
+                                      "direction (pairs with a baseline) this close")
+    min_agreeing_share: float = option(0.5, ge=0, le=1, help="inlier-weighted share of a "
+                                       "camera's pairs that must agree")
+    min_single_pair_inliers: int = option(50, ge=0, help="a camera with one agreeing pair: "
+                                          "that pair needs this many inliers")
+    min_single_pair_kept: float = option(0.75, ge=0, le=1, help="... and this share of them "
+                                         "must join the 3D points")
+    single_planar_fails: bool = option(True, help="... and it may not be planar (a plane fits "
+                                       "two relative poses)")
+    min_points: int = option(15, ge=0, help="a camera in the bundle adjustment must see this "
+                             "many 3D points")
+    min_triangulation_deg: float = option(1.0, ge=0, lt=90, help="median angle between its rays "
+                                          "and the other views' rays")
+    coincide_ratio: float = option(0.02, ge=0, lt=1, help="centres closer than this x the median "
+                                   "pair baseline: collapsed")
 
     def __post_init__(self) -> None:
-        for name in ("max_rotation_deg", "max_direction_deg"):
-            v = float(getattr(self, name))
-            if not 0.0 < v <= 180.0:
-                raise ValueError(f"{name} must be in (0, 180], got {v}")
-        if not float(self.max_epipolar_px) > 0.0:
-            raise ValueError(f"max_epipolar_px must be > 0, got {self.max_epipolar_px}")
-        if not 0.0 <= float(self.min_inlier_share) <= 1.0:
-            raise ValueError(f"min_inlier_share must be in [0, 1], got {self.min_inlier_share}")
-        if not 0.0 <= float(self.min_single_pair_kept) <= 1.0:
-            raise ValueError(f"min_single_pair_kept must be in [0, 1], got "
-                             f"{self.min_single_pair_kept}")
-        if not 0.0 <= float(self.min_agreeing_share) <= 1.0:
-            raise ValueError(f"min_agreeing_share must be in [0, 1], got "
-                             f"{self.min_agreeing_share}")
-        if self.min_points < 0 or self.min_single_pair_inliers < 0:
-            raise ValueError("min_points and min_single_pair_inliers must be >= 0")
-        if not 0.0 <= float(self.min_triangulation_deg) < 90.0:
-            raise ValueError(f"min_triangulation_deg must be in [0, 90), got "
-                             f"{self.min_triangulation_deg}")
-        if not 0.0 <= float(self.coincide_ratio) < 1.0:
-            raise ValueError(f"coincide_ratio must be in [0, 1), got {self.coincide_ratio}")
+        check_options(self)
 
 
 @dataclass

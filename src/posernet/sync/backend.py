@@ -37,6 +37,7 @@ import torch
 from torch import Tensor
 
 from ..graph import GraphBatch, ViewGraph, check_edge_index
+from ..options import check_options, option
 from ..scatter import scatter_count
 from .components import Components, connected_components
 
@@ -51,6 +52,7 @@ __all__ = [
     "check_edge_weight",
     "check_positive",
     "graph_structure",
+    "scale_option",
     "validate_sync_input",
 ]
 
@@ -85,20 +87,27 @@ class SyncResult:
     info: dict[str, Any] = field(default_factory=dict)
 
 
+def scale_option(default: str) -> Any:
+    """The ``scale`` field of a backend's options, with that backend's default (the policies
+    it supports are its ``scales``)."""
+    return option(default, choices=SCALE_POLICIES,
+                  help="relative-translation scale fed to the solver: unit (rescaled to unit "
+                       "norm), given (as they are, metric), oracle (ground-truth norms; "
+                       "benchmark only), free (scale-free, from directions)")
+
+
 @dataclass(frozen=True)
 class SyncOptions:
     """Options shared by every backend; subclasses add their own fields."""
 
-    scale: str = "unit"
-    disconnected: str = "components"
+    scale: str = scale_option("unit")
+    disconnected: str = option("components", choices=DISCONNECTED_POLICIES,
+                               help="components: solve each on its own; error: stop")
 
     def check(self) -> None:
-        if self.scale not in SCALE_POLICIES:
-            raise ValueError(f"scale={self.scale!r} is not a scale policy; choose one of "
-                             f"{list(SCALE_POLICIES)}")
-        if self.disconnected not in DISCONNECTED_POLICIES:
-            raise ValueError(f"disconnected={self.disconnected!r}; choose one of "
-                             f"{list(DISCONNECTED_POLICIES)}")
+        """Every field against its rule (:func:`posernet.options.check_options`); subclasses
+        add their checks across fields after ``super().check()``."""
+        check_options(self)
 
 
 class SyncBackend(ABC):

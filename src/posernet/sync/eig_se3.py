@@ -67,7 +67,8 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from .backend import SyncBackend, SyncResult, apply_scale_policy, check_positive
+from ..options import option
+from .backend import SyncBackend, SyncResult, apply_scale_policy, scale_option
 from .components import Components
 from .irls import rotation_irls
 from .padding import PaddedProblem, assemble, build_padded, edge_rotations
@@ -81,7 +82,7 @@ from .spectral import (
     sparse_N,
     split_by_size,
 )
-from .weighted import WEIGHT_MODES, padded_weights, weighted_rotation_irls
+from .weighted import padded_weights, weight_mode_option, weighted_rotation_irls
 
 __all__ = ["EigSE3", "EigSE3Options", "eig_translations", "solve_padded"]
 
@@ -91,18 +92,10 @@ class EigSE3Options(SpectralOptions):
     """:class:`SpectralOptions` plus ``krylov_tol`` (eigen-residual tolerance) and
     ``krylov_max_cycles`` (restarts per solve); default scale ``unit``."""
 
-    scale: str = "unit"
-    krylov_tol: float = 1e-12
-    krylov_max_cycles: int = 500
-    weight_mode: str = "start"  # per-edge weights given to solve(): start | prior (weighted.py)
-
-    def check(self) -> None:
-        super().check()
-        if self.weight_mode not in WEIGHT_MODES:
-            raise ValueError(f"weight_mode={self.weight_mode!r}; choose one of "
-                             f"{list(WEIGHT_MODES)}")
-        check_positive("krylov_tol", self.krylov_tol)
-        check_positive("krylov_max_cycles", self.krylov_max_cycles, integer=True)
+    scale: str = scale_option("unit")
+    krylov_tol: float = option(1e-12, gt=0, help="Krylov: eigen-residual tolerance")
+    krylov_max_cycles: int = option(500, ge=1, help="Krylov: restarts per solve")
+    weight_mode: str = weight_mode_option()
 
 
 # --------------------------------------------------------------------------- translations

@@ -25,7 +25,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .backend import SyncBackend, SyncOptions, SyncResult, check_positive
+from ..options import option
+from .backend import SyncBackend, SyncOptions, SyncResult, scale_option
 from .components import Components
 from .padding import assemble, build_padded, edge_rotations
 
@@ -44,28 +45,20 @@ class GtsamOptions(SyncOptions):
     robust (Huber) cost; ``lm_tol``: relative/absolute error tolerance of the LM solves;
     ``max_iterations``: LM iterations."""
 
-    scale: str = "free"
-    rotation_sigma: float = 0.1
-    direction_sigma: float = 0.01
-    p_min: int = 3
-    p_max: int = 10
-    huber: bool = False
-    lm_tol: float = 1e-14
-    max_iterations: int = 1000
+    scale: str = scale_option("free")
+    rotation_sigma: float = option(0.1, gt=0, help="isotropic noise of relative rotations (rad)")
+    direction_sigma: float = option(0.01, gt=0, help="isotropic noise of translation directions")
+    p_min: int = option(3, ge=3, help="Shonan Riemannian staircase: lowest level")
+    p_max: int = option(10, ge=3, help="... highest level (>= p_min)")
+    huber: bool = option(False, help="Shonan's robust (Huber) cost")
+    lm_tol: float = option(1e-14, gt=0, help="relative/absolute error tolerance of the LM solves")
+    max_iterations: int = option(1000, ge=1, help="LM iterations")
 
     def check(self) -> None:
         super().check()
-        check_positive("rotation_sigma", self.rotation_sigma)
-        check_positive("direction_sigma", self.direction_sigma)
-        check_positive("p_min", self.p_min, integer=True)
-        check_positive("p_max", self.p_max, integer=True)
-        check_positive("lm_tol", self.lm_tol)
-        check_positive("max_iterations", self.max_iterations, integer=True)
-        if self.p_min < 3 or self.p_max < self.p_min:
+        if self.p_max < self.p_min:
             raise ValueError(f"need 3 <= p_min <= p_max, got p_min={self.p_min}, "
                              f"p_max={self.p_max}")
-        if not isinstance(self.huber, bool):
-            raise ValueError(f"huber must be true/false, got {self.huber!r}")
 
 
 class GtsamBackend(SyncBackend):

@@ -44,7 +44,6 @@ round ``k`` of ``K`` weighted ``gamma^(K-1-k)`` (normalised), so later rounds co
 from __future__ import annotations
 
 import copy
-import re
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -57,6 +56,7 @@ from ..checkpoints import CHECKPOINT_TAG, CheckpointError, read_checkpoint
 from ..geometry import invert_se3, pose_vec_to_matrix, rotation_angle, se3_exp, se3_log
 from ..graph import GraphBatch, ViewGraph
 from ..nn.mlp import MLP
+from ..options import DEVICE, option, path
 from ..scatter import scatter_count, scatter_mean, scatter_sum
 from .backend import SyncBackend, SyncOptions, SyncResult
 from .components import Components
@@ -377,24 +377,21 @@ def load_learned_sync(path: str | Path) -> tuple[LearnedSyncNet, dict[str, Any]]
 
 # --------------------------------------------------------------------------- backend
 
-_DEVICE = re.compile(r"cpu|cuda|cuda:\d+|auto")
-
 
 @dataclass(frozen=True)
 class LearnedSyncOptions(SyncOptions):
     """``ckpt_path``: a ``LearnedSyncModule`` checkpoint (required); ``device``: where the
     network runs (``cpu``, ``cuda``, ``cuda:N`` or ``auto``)."""
 
-    ckpt_path: str | None = None
-    device: str = "cpu"
+    ckpt_path: str | None = option(None, rule=path(), help="a checkpoint written by "
+                                   "`posernet-train model=learned_sync`")
+    device: str = option("cpu", rule=DEVICE, help="where the network runs")
 
     def check(self) -> None:
-        super().check()
         if self.ckpt_path in (None, ""):
             raise ValueError("sync backend 'learned' needs ckpt_path=<a checkpoint written by "
                              "`posernet-train model=learned_sync`>")
-        if not isinstance(self.device, str) or not _DEVICE.fullmatch(self.device):
-            raise ValueError(f"device={self.device!r}; choose cpu, cuda, cuda:N or auto")
+        super().check()
         if self.device.startswith("cuda") and not torch.cuda.is_available():
             raise ValueError(f"device={self.device!r} but CUDA is not available here")
 

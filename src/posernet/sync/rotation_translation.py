@@ -55,8 +55,9 @@ import torch
 from torch import Tensor
 
 from ..geometry import axis_angle_to_rotation_matrix, rotation_matrix_to_axis_angle
+from ..options import option
 from ..scatter import scatter_all, scatter_any
-from .backend import SyncBackend, SyncResult, apply_scale_policy, check_positive
+from .backend import SyncBackend, SyncResult, apply_scale_policy, scale_option
 from .components import Components
 from .irls import rotation_irls
 from .padding import PaddedProblem, assemble, build_padded, edge_rotations
@@ -77,7 +78,7 @@ from .translation import (
     triangle_weights,
     use_sparse,
 )
-from .weighted import WEIGHT_MODES, padded_weights, weighted_rotation_irls
+from .weighted import padded_weights, weight_mode_option, weighted_rotation_irls
 
 __all__ = ["TRANSLATION_METHODS", "RotationTranslation", "RotationTranslationOptions",
            "TranslationStage", "refine_rotations", "translation_stage",
@@ -117,40 +118,28 @@ class RotationTranslationOptions(SpectralOptions):
     parallel rigidity (the positions would no longer be determined).
     """
 
-    scale: str = "free"
-    refine_iters: int = 20
-    translation_iters: int = 20
-    weight_mode: str = "start"  # per-edge weights given to solve(): start | prior (weighted.py)
-    translation: str = "bata"
-    max_rotation_residual_deg: float | None = 5.0
-    max_direction_residual_deg: float | None = 30.0
-    outlier_mad: float = 3.0
-    triangle_weights: bool = True
-    linear_fallback: bool = True
-
-    def check(self) -> None:
-        super().check()
-        if self.weight_mode not in WEIGHT_MODES:
-            raise ValueError(f"weight_mode={self.weight_mode!r}; choose one of "
-                             f"{list(WEIGHT_MODES)}")
-        check_positive("translation_iters", self.translation_iters, integer=True)
-        if not isinstance(self.refine_iters, int) or self.refine_iters < 0:
-            raise ValueError(f"refine_iters must be an integer >= 0, got {self.refine_iters!r}")
-        if self.translation not in TRANSLATION_METHODS:
-            raise ValueError(f"translation={self.translation!r}; choose one of "
-                             f"{list(TRANSLATION_METHODS)}")
-        for name in ("max_rotation_residual_deg", "max_direction_residual_deg"):
-            v = getattr(self, name)
-            if v is not None and (isinstance(v, bool) or not isinstance(v, (int, float))
-                                  or not 0 <= v <= 180):
-                raise ValueError(f"{name} must be null or a number of degrees in [0, 180], "
-                                 f"got {v!r}")
-        for name in ("triangle_weights", "linear_fallback"):
-            if not isinstance(getattr(self, name), bool):
-                raise ValueError(f"{name} must be true/false, got {getattr(self, name)!r}")
-        if isinstance(self.outlier_mad, bool) or not isinstance(self.outlier_mad, (int, float)) \
-                or not self.outlier_mad >= 0:
-            raise ValueError(f"outlier_mad must be a number >= 0, got {self.outlier_mad!r}")
+    scale: str = scale_option("free")
+    refine_iters: int = option(20, ge=0, help="Lie-algebraic IRLS steps after the spectral "
+                               "solution (0 = off)")
+    translation_iters: int = option(20, ge=1, help="IRLS steps of the translation stage (lud: "
+                                    "5x)")
+    weight_mode: str = weight_mode_option()
+    translation: str = option("bata", choices=TRANSLATION_METHODS,
+                              help="scale: free only -- position solver: bata "
+                                   "(baseline-desensitised), lud (least unsquared deviations), "
+                                   "linear (bearing least squares with Huber IRLS)")
+    max_rotation_residual_deg: float | None = option(
+        5.0, ge=0, le=180, help="edges with |log(R_j^T R_ij R_i)| above this after rotation "
+        "averaging are left out of the translation stage (null: off)")
+    max_direction_residual_deg: float | None = option(
+        30.0, ge=0, le=180, help="edges with angle(c_j - c_i, direction) above this after the "
+        "first position solve are dropped (null: off)")
+    outlier_mad: float = option(3.0, ge=0, help="both thresholds are raised to median + this x "
+                                "1.4826 x MAD on noisy graphs")
+    triangle_weights: bool = option(True, help="start from triangle-consistency weights "
+                                    "(components <= 96 cameras)")
+    linear_fallback: bool = option(True, help="per component keep the linear solution where its "
+                                   "summed angle is lower")
 
 
 # Robust weights are floored at this value on real edges: a Cauchy weight can underflow to 0

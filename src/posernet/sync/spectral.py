@@ -22,8 +22,9 @@ import torch
 from torch import Tensor
 
 from ..geometry import det3, project_to_so3
+from ..options import option
 from ..scatter import scatter_count
-from .backend import SyncOptions, check_positive
+from .backend import SyncOptions
 from .padding import PaddedProblem
 from .robust import mad_cauchy_weights
 
@@ -58,26 +59,17 @@ class SpectralOptions(SyncOptions):
     ``dense_max_nodes`` nodes per component, block Krylov above), ``dense`` or ``krylov``;
     ``seed``: Krylov start vectors."""
 
-    robust: bool = True
-    max_iters: int = 50
-    tol: float = 1e-5
-    theta: float = 2.0
-    solver: str = "auto"
-    dense_max_nodes: int = 64
-    seed: int = 0
-
-    def check(self) -> None:
-        super().check()
-        if not isinstance(self.robust, bool):
-            raise ValueError(f"robust must be true/false, got {self.robust!r}")
-        check_positive("max_iters", self.max_iters, integer=True)
-        check_positive("tol", self.tol)
-        check_positive("theta", self.theta)
-        check_positive("dense_max_nodes", self.dense_max_nodes, integer=True)
-        if self.solver not in SOLVERS:
-            raise ValueError(f"solver={self.solver!r}; choose one of {list(SOLVERS)}")
-        if not isinstance(self.seed, int):
-            raise ValueError(f"seed must be an integer, got {self.seed!r}")
+    robust: bool = option(True, help="IRLS with Cauchy weights and a MAD threshold")
+    max_iters: int = option(50, ge=1, help="most eigen-solves (published: 50)")
+    tol: float = option(1e-5, gt=0, help="stop when |W_old - W|_F / (|W|_F n) <= tol "
+                        "(published: 1e-5)")
+    theta: float = option(2.0, gt=0, help="threshold = theta / 0.6745 * MAD (published SIIMS "
+                          "value: 2)")
+    solver: str = option("auto", choices=SOLVERS, help="eigen-solver; auto: dense up to "
+                         "dense_max_nodes nodes per component, Krylov above")
+    dense_max_nodes: int = option(64, ge=1, help="auto: dense eigh up to this many nodes per "
+                                  "component")
+    seed: int = option(0, help="Krylov start vectors")
 
 
 # --------------------------------------------------------------------------- the operator

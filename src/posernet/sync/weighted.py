@@ -32,16 +32,28 @@ matter, and the smallest positive one is floored at :data:`MIN_PRIOR` times the 
 
 from __future__ import annotations
 
+from typing import Any
+
 import torch
 from torch import Tensor
 
+from ..options import option
 from .irls import rotation_irls
 from .padding import PaddedProblem
 from .spectral import RotationSolution
 
-__all__ = ["WEIGHT_MODES", "padded_weights", "weighted_rotation_irls"]
+__all__ = ["WEIGHT_MODES", "padded_weights", "weight_mode_option", "weighted_rotation_irls"]
 
 WEIGHT_MODES = ("start", "prior")
+
+
+def weight_mode_option() -> Any:
+    """The ``weight_mode`` field of the backends that take per-edge weights."""
+    return option("start", choices=WEIGHT_MODES,
+                  help="per-edge confidence weights (posernet-refine with an adaptive "
+                       "checkpoint): start = the first solve uses them, then the published "
+                       "Cauchy IRLS; prior = they multiply every Cauchy weight")
+
 #: smallest prior weight relative to the graph's largest: an edge is never switched off (a
 #: zero weight on a bridge would disconnect the graph)
 MIN_PRIOR = 1e-3

@@ -16,6 +16,7 @@ from typing import TYPE_CHECKING, Any
 
 from ...conf import config_root
 from ...frontend.relpose import PoseOptions
+from ...options import ConfigValueError, check_options
 from ..layout import LARGE_SCENES, SCENES, SIZES, SPLITS
 
 if TYPE_CHECKING:
@@ -38,10 +39,9 @@ __all__ = [
     "resolve_options",
 ]
 
-
-
-class ConfigError(ValueError):
-    """A dataset option is unknown or out of range; the message names the field."""
+#: a dataset option is unknown or out of range (the message names the field): the one config
+#: error type of every posernet option, :class:`posernet.options.ConfigValueError`
+ConfigError = ConfigValueError
 
 
 @dataclass
@@ -288,15 +288,7 @@ def _validate(o: DatasetOptions) -> None:
         _fail(f"{p}.matching.kp_source", f"must be 'matched' or 'boxes', got {m.kp_source!r}")
     _check_float(f"{p}.matching.wrong_match_rate", m.wrong_match_rate, lo=0.0, hi=1.0)
     _check_int(f"{p}.matching.kp_boxes", m.kp_boxes, lo=0)
-    q = o.pose
-    if q.method not in ("usac", "ransac"):
-        _fail(f"{p}.pose.method", f"must be 'usac' or 'ransac', got {q.method!r}")
-    _check_float(f"{p}.pose.ransac_prob", q.ransac_prob, lo=0.0, hi=1.0, lo_open=True)
-    if q.ransac_prob >= 1.0:
-        _fail(f"{p}.pose.ransac_prob", f"must be < 1, got {q.ransac_prob}")
-    _check_float(f"{p}.pose.kp_threshold", q.kp_threshold, lo=0.0, lo_open=True)
-    _check_float(f"{p}.pose.bb_threshold", q.bb_threshold, lo=0.0, lo_open=True)
-    _check_int(f"{p}.pose.max_iters", q.max_iters, lo=1)
+    check_options(o.pose, f"{p}.pose")  # the two-view options declare their own rules
     _check_float(f"{p}.sampling.locality", o.sampling.locality, lo=0.0, hi=1.0)
     _check_float(f"{p}.sampling.window_s", o.sampling.window_s, lo=0.0)
     _check_int(f"{p}.max_tries_per_node", o.max_tries_per_node, lo=1)
@@ -330,7 +322,13 @@ def _build(cls: type, data: Any, path: str) -> Any:
             kwargs[name] = list(value)
         else:
             kwargs[name] = value
-    return cls(**kwargs)
+    try:
+        return cls(**kwargs)
+    except ConfigValueError as exc:  # a dataclass checking its own options: name the field
+        label = f"{cls.__name__}."
+        msg = str(exc)
+        raise ConfigError(f"{path}.{msg[len(label):]}" if msg.startswith(label) else msg) \
+            from None
 
 
 def options_from_dict(data: Mapping[str, Any] | None) -> DatasetOptions:

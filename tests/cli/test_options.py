@@ -1,0 +1,182 @@
+"""Options declared once (posernet.options): the field rules, the checks built from them, and the
+shipped YAML files and ``--help`` agreeing with the declarations."""
+
+from __future__ import annotations
+
+import dataclasses
+import re
+from pathlib import Path
+
+import pytest
+from omegaconf import OmegaConf
+
+from posernet.cli import CONFIG_DIR
+from posernet.cli.help import _meanings, command_help, options_owner
+from posernet.options import (
+    ConfigValueError,
+    check_options,
+    field_rules,
+    option,
+    option_help,
+)
+
+# --------------------------------------------------------------------------- the helper
+
+
+@dataclasses.dataclass(frozen=True)
+class _Opts:
+    n: int = option(1, ge=1, help="how many")
+    ratio: float = option(0.5, gt=0, le=1)
+    limit: float | None = option(None, ge=0, lt=180)
+    mode: str = option("a", choices=("a", "b"), help="the mode")
+    flag: bool = option(True)
+    plain: int = 3  # no metadata: its type alone
+
+    def __post_init__(self) -> None:
+        check_options(self)
+
+
+def test_field_rules_follow_the_declaration():
+    rules = {k: r.describe() for k, r in field_rules(_Opts).items()}
+    assert rules == {"n": "an integer >= 1", "ratio": "a number in (0, 1]",
+                     "limit": "a number in [0, 180) or null", "mode": "one of a, b",
+                     "flag": "true or false", "plain": "an integer"}
+
+
+@pytest.mark.parametrize(("kwargs", "message"), [
+    ({"n": 0}, "_Opts.n: 0 is not an integer >= 1"),
+    ({"n": 1.5}, "_Opts.n: 1.5 is not an integer >= 1"),
+    ({"ratio": 0}, r"_Opts.ratio: 0 is not a number in \(0, 1\]"),
+    ({"ratio": float("nan")}, "_Opts.ratio: nan is not"),
+    ({"limit": 180}, r"_Opts.limit: 180 is not a number in \[0, 180\) or null"),
+    ({"mode": "c"}, "_Opts.mode: 'c' is not one of a, b"),
+    ({"flag": 1}, "_Opts.flag: 1 is not true or false"),
+    ({"plain": "x"}, "_Opts.plain: 'x' is not an integer"),
+])
+def test_check_options_names_the_field_value_and_rule(kwargs, message):
+    with pytest.raises(ConfigValueError, match=f"^{message}"):
+        _Opts(**kwargs)
+
+
+def test_numpy_numbers_and_null_pass():
+    np = pytest.importorskip("numpy")
+    _Opts(n=np.int64(3), ratio=np.float32(0.25), limit=None)
+    _Opts(limit=10)
+
+
+def test_help_lists_the_choices():
+    assert option_help(_Opts) == {"n": "how many", "mode": "the mode [a | b]"}
+
+
+def test_one_error_type():
+    from posernet.cli.validation import ConfigValueError as cli_error
+    from posernet.data.synthetic import ConfigError
+
+    assert ConfigError is ConfigValueError is cli_error
+    assert issubclass(ConfigValueError, ValueError)
+
+
+# --------------------------------------------------------------------------- the shipped YAML
+
+#: where a shipped file deliberately sets another value than the field's default (the library
+#: default suits a caller in Python; the command's file picks what suits that command)
+COMMAND_DEFAULTS = {
+    ("reconstruct.yaml", "pairs.mode"): "auto: retrieval for large image sets",
+    ("reconstruct.yaml", "bundle.refine_focal"): "auto: the command knows whether the "
+                                                  "intrinsics were guessed",
+    ("relpose/ransac.yaml", "method"): "the classic-RANSAC choice of the group",
+}
+
+
+def _dataclass_blocks():
+    """``(file, prefix, owner, node)`` for every block of a shipped YAML file built from a
+    dataclass (its ``_target_``): a whole group file or a block of a command's file."""
+    root = Path(CONFIG_DIR)
+    for path in sorted(root.rglob("*.yaml")):
+        node = OmegaConf.load(path)
+        if not OmegaConf.is_dict(node):
+            continue
+        blocks = [("", node)] if "_target_" in node else []
+        blocks += [(f"{k}.", node[k]) for k in node
+                   if OmegaConf.is_dict(node._get_node(k)) and "_target_" in node[k]]
+        for prefix, block in blocks:
+            owner = options_owner(block._get_node("_target_")._value())
+            if owner is not None:
+                yield path.relative_to(root).as_posix(), prefix, owner, block
+
+
+BLOCKS = list(_dataclass_blocks())
+
+
+def test_the_dataclass_backed_blocks_are_found():
+    found = {(f, p) for f, p, _, _ in BLOCKS}
+    for block in [("reconstruct.yaml", "bundle."), ("reconstruct.yaml", "verify."),
+                  ("reconstruct.yaml", "check."), ("reconstruct.yaml", "pairs."),
+                  ("relpose/usac.yaml", ""), ("box_matching/paper.yaml", ""),
+                  ("sync/eig_se3.yaml", ""), ("sync/rotation_translation.yaml", "")]:
+        assert block in found, block
+
+
+def _default(f: dataclasses.Field):
+    return f.default_factory() if f.default_factory is not dataclasses.MISSING else f.default
+
+
+@pytest.mark.parametrize(("file", "prefix", "owner", "node"), BLOCKS,
+                         ids=[f"{f}:{p}" for f, p, _, _ in BLOCKS])
+def test_yaml_defaults_are_the_fields_defaults(file, prefix, owner, node):
+    fields = {f.name: f for f in dataclasses.fields(owner)}
+    differ = []
+    for key in node:
+        if key in ("_target_", "name") or OmegaConf.is_missing(node, key):
+            continue
+        assert key in fields, f"{file}: {prefix}{key} is no option of {owner.__name__}"
+        value = node._get_node(key)._value()
+        if (file, f"{prefix}{key}") in COMMAND_DEFAULTS:
+            assert value != _default(fields[key]), f"{file}: {prefix}{key} is the default now"
+            continue
+        if value != _default(fields[key]):
+            differ.append(f"{prefix}{key}: {value!r} in the file, {_default(fields[key])!r} "
+                          f"on {owner.__name__}")
+    assert not differ, f"{file}: {differ}"
+
+
+def _listed_choices(comment: str) -> set[str] | None:
+    """The choices a comment lists as ``a | b (why) | c``, or None without such a list."""
+    if "|" not in comment:
+        return None
+    flat = comment
+    while re.search(r"\([^()]*\)", flat):
+        flat = re.sub(r"\([^()]*\)", "", flat)
+    parts = [p.strip() for p in flat.split("|")]
+    words = [re.findall(r"[\w+-]+", p) for p in parts]
+    return {*words[0][-1:], *(w[0] for w in words[1:] if w)}
+
+
+@pytest.mark.parametrize(("file", "prefix", "owner", "node"), BLOCKS,
+                         ids=[f"{f}:{p}" for f, p, _, _ in BLOCKS])
+def test_yaml_comments_list_the_fields_choices(file, prefix, owner, node):
+    from posernet.options import options_of
+
+    comments = _meanings(Path(CONFIG_DIR) / file, "")
+    wrong = []
+    for name, meta in options_of(owner).items():
+        comment = comments.get(f"{prefix}{name}")
+        if meta.choices is None or comment is None:
+            continue
+        listed = _listed_choices(comment)
+        if listed is not None and listed != set(meta.choices):
+            wrong.append(f"{prefix}{name}: {sorted(listed)} in the comment, "
+                         f"{sorted(meta.choices)} on {owner.__name__}")
+    assert not wrong, f"{file}: {wrong}"
+
+
+def test_help_shows_the_declared_help_and_choices():
+    from posernet.sfm import BundleOptions
+
+    text = command_help("posernet-reconstruct", CONFIG_DIR, "reconstruct")
+    lines = {ln.split()[0]: ln for ln in text.splitlines() if ln.startswith("  ")}
+    for key, owner in (("bundle.loss", BundleOptions),):
+        assert option_help(owner)[key.split(".")[1]] in lines[key]
+    assert "arctan" in lines["bundle.loss"]
+    assert "[auto | exhaustive | sequential | retrieval]" in lines["pairs.mode"]
+    assert "[unit | given | oracle | free]" in lines["sync.scale"]
