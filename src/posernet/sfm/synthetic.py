@@ -7,7 +7,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-
 __all__ = ["SyntheticScene", "look_at_w2c", "make_scene", "make_sparse_scene", "perturb_poses"]
 
 
