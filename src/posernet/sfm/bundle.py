@@ -108,7 +108,7 @@ class BundleOptions:
     start: str = "auto"
     incremental_max_cameras: int = 40
     explained_min: float = 0.75
-    pcg_min_cameras: int = 150
+    pcg_min_cameras: int = 400
 
     def __post_init__(self) -> None:
         if self.start not in STARTS:
