@@ -81,6 +81,11 @@ class BundleOptions:
     ``start="auto"``, the share of track observations an adjustment from the averaged poses
     must explain, every camera refined, for the incremental start not to be tried) and
     ``incremental_max_cameras`` (larger components start from the averaged poses only).
+
+    ``pcg_min_cameras``: ``robust="lm"`` solves the reduced camera system of problems with at
+    least this many variable cameras by conjugate gradients on the implicit Schur complement
+    (block-Jacobi preconditioner) instead of a dense Cholesky factorisation, whose cost grows
+    with the cube of the cameras (0: always, a huge value: never).
     """
 
     loss: str = option("cauchy", choices=LOSSES,
@@ -121,6 +126,8 @@ class BundleOptions:
     explained_min: float = option(0.75, ge=0, le=1, help="auto: other starts tried when the "
                                   "averaged one explains less than this share of the track "
                                   "observations")
+    pcg_min_cameras: int = option(400, ge=0, help="lm: problems with this many variable "
+                                  "cameras solve the reduced system by conjugate gradients")
 
     def __post_init__(self) -> None:
         check_options(self)
@@ -416,12 +423,23 @@ class _Schur:
     parameters, dense), ``V`` (one 3x3 block per point), ``W`` (one 6x3 camera-point block per
     observation), so that the reduced system ``S = U - W V^-1 W^T`` costs one block-sparse
     product (scipy BSR) instead of generic sparse ones.
+
+    ``iterative``: never form ``S``; :meth:`step` solves it by preconditioned conjugate
+    gradients (:meth:`_step_pcg`), for problems with many cameras, where the dense ``S`` and
+    its Cholesky factorisation (``(6 nc)^3 / 3`` flops) dominate.
     """
 
+    #: conjugate gradients stop at this relative residual ``|S x - b| / |b|`` (the step then
+    #: agrees with the direct solve to about this relative precision)
+    pcg_rtol: float = 1e-8
+    pcg_maxiter: int = 1000
+
     def __init__(self, prob: _Problem, d_cam: np.ndarray, d_pt: np.ndarray, d_f: np.ndarray,
-                 r: np.ndarray) -> None:
+                 r: np.ndarray, iterative: bool = False) -> None:
         nc, npt, nf = prob.var_cam.size, prob.var_pt.size, prob.n_focal
         self.nc, self.npt, self.nf = nc, npt, nf
+        self.iterative = bool(iterative) and nc > 0
+        self.pcg_iterations: list[int] = []
         O = d_pt.shape[0]
         r = r.reshape(O, 2)
         pj = (prob.pt_col[prob.pt] - 6 * nc) // 3  # point index among the variable points
@@ -431,8 +449,10 @@ class _Schur:
         self.gp = np.asarray(agg @ _gram(d_pt, r[:, :, None]).reshape(O, 3))
         # cameras: observations are sorted by camera, so per-camera sums are segment sums
         nP = 6 * nc + nf
-        U = np.zeros((nP, nP))
+        U = np.zeros((0, 0) if self.iterative else (nP, nP))
         g = np.zeros(nP)
+        self.Ucc = np.zeros((nc, 6, 6))  # the cameras' diagonal blocks of U
+        self.Uf = csr_matrix((nP, nP))  # iterative: U's focal rows and columns
         cv = prob.cam_col[prob.cam] >= 0  # observations of a variable camera
         self.ci = prob.cam_col[prob.cam[cv]] // 6  # ascending: index among variable cameras
         self.pj_c = pj[cv]
@@ -441,8 +461,9 @@ class _Schur:
             A = d_cam[cv]
             starts = np.flatnonzero(np.r_[True, self.ci[1:] != self.ci[:-1]])
             blocks = np.add.reduceat(_gram(A, A), starts, axis=0)
-            for k, c in enumerate(self.ci[starts]):  # one dense 6x6 block per camera
-                U[6 * c:6 * c + 6, 6 * c:6 * c + 6] = blocks[k]
+            self.Ucc[self.ci[starts]] = blocks
+            for k, c in enumerate([] if self.iterative else self.ci[starts]):
+                U[6 * c:6 * c + 6, 6 * c:6 * c + 6] = blocks[k]  # one dense 6x6 per camera
             g[:6 * nc] = np.add.reduceat(_gram(A, r[cv][:, :, None])[..., 0], starts,
                                          axis=0).ravel()
             self.Wc = _gram(A, d_pt[cv])
@@ -451,7 +472,8 @@ class _Schur:
             # (whose cost grows with the observations per point squared, not with cameras).
             pair_blocks = float((np.bincount(self.pj_c, minlength=npt) ** 2).sum())
             dense_flops = 2.0 * (6 * nc) ** 2 * 3 * npt
-            self.dense = (36.0 * nc * npt * 8 < 256e6) and dense_flops < 2e3 * pair_blocks
+            self.dense = (not self.iterative and (36.0 * nc * npt * 8 < 256e6)
+                          and dense_flops < 2e3 * pair_blocks)
             if self.dense:
                 self.rows = (6 * self.ci)[:, None, None] + np.arange(6)[None, :, None]
                 self.cols = (3 * self.pj_c)[:, None, None] + np.arange(3)[None, None, :]
@@ -462,16 +484,25 @@ class _Schur:
             fo = prob.f_group[prob.cam] >= 0
             fg = prob.f_group[prob.cam[fo]]
             f = d_f[fo]  # (n, 2)
-            U[6 * nc:, 6 * nc:] = np.diag(np.bincount(fg, (f * f).sum(1), minlength=nf))
+            ff = np.bincount(fg, (f * f).sum(1), minlength=nf)
+            if self.iterative:
+                self.Uf = csr_matrix((ff, (6 * nc + np.arange(nf), 6 * nc + np.arange(nf))),
+                                     shape=(nP, nP))
+            else:
+                U[6 * nc:, 6 * nc:] = np.diag(ff)
             g[6 * nc:] = np.bincount(fg, (f * r[fo]).sum(1), minlength=nf)
             both = fo & cv
             if both.any():
                 cf = _gram(d_cam[both], d_f[both][:, :, None])[..., 0]  # (n, 6)
                 rows = (6 * (prob.cam_col[prob.cam[both]] // 6))[:, None] + np.arange(6)
                 cols = 6 * nc + prob.f_group[prob.cam[both]]
-                M = csr_matrix((cf.ravel(), (rows.ravel(), np.repeat(cols, 6))),
-                               shape=(nP, nP)).toarray()
-                U += M + M.T
+                Ms = csr_matrix((cf.ravel(), (rows.ravel(), np.repeat(cols, 6))),
+                                shape=(nP, nP))
+                if self.iterative:
+                    self.Uf = (self.Uf + Ms + Ms.T).tocsr()
+                else:
+                    M = Ms.toarray()
+                    U += M + M.T
             wf = _gram(f[:, :, None], d_pt[fo])[:, 0]  # (n, 3)
             self.Wf = csr_matrix((wf.ravel(), (np.repeat(fg, 3),
                                                ((3 * pj[fo])[:, None] + np.arange(3)).ravel())),
@@ -481,6 +512,8 @@ class _Schur:
     def step(self, lam: float) -> tuple[np.ndarray, np.ndarray]:
         """Camera-side and point steps ``(6 nc + nf,)``, ``(npt, 3)`` of the system damped by
         Marquardt's ``lam * diag`` (with a floor, so that gauge directions stay bounded)."""
+        if self.iterative:
+            return self._step_pcg(lam)
         nc, npt, nf = self.nc, self.npt, self.nf
         S = self.U.copy()
         S[np.diag_indices_from(S)] += lam * np.maximum(np.diag(self.U), 1e-9)
@@ -525,6 +558,91 @@ class _Schur:
             wtd += Wc_bsr.T @ dc[:6 * nc]
         if nf:
             wtd += self.Wf.T @ dc[6 * nc:]
+        dp = -Vg - np.einsum("pij,pj->pi", Vinv, wtd.reshape(npt, 3))
+        return dc, dp
+
+    def _damped_v(self, lam: float) -> np.ndarray:
+        """``(npt, 3, 3)`` inverses of the damped point blocks."""
+        V = self.V.copy()
+        V[:, np.arange(3), np.arange(3)] += lam * np.maximum(
+            np.diagonal(self.V, axis1=1, axis2=2), 1e-9)
+        return np.linalg.inv(V)
+
+    def _step_pcg(self, lam: float) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`step` by conjugate gradients (scipy's ``cg``) on the reduced system
+        ``S dc = b`` without forming ``S``: each product ``S x = U x - W (V^-1 (W^T x))`` costs
+        a pass over the observations. Preconditioner: the inverse of ``S``'s 6x6 diagonal
+        block per camera (and of its diagonal entry per focal parameter), as Ceres's
+        ``ITERATIVE_SCHUR`` with ``SCHUR_JACOBI``. Stops at :attr:`pcg_rtol`."""
+        from scipy.sparse.linalg import LinearOperator, cg
+
+        nc, npt, nf = self.nc, self.npt, self.nf
+        Vinv = self._damped_v(lam)
+        Vg = np.einsum("pij,pj->pi", Vinv, self.gp)
+        shape = (6 * nc, 3 * npt)
+        Wc = csr_matrix(bsr_matrix((self.Wc, self.pj_c, self.indptr), shape=shape))
+        WcT = Wc.T.tocsr()
+        Vb = csr_matrix(bsr_matrix((Vinv, np.arange(npt), np.arange(npt + 1)),
+                                   shape=(3 * npt, 3 * npt)))
+        idx = np.arange(6)
+        Ucc = self.Ucc.copy()
+        Ucc[:, idx, idx] += lam * np.maximum(np.diagonal(self.Ucc, axis1=1, axis2=2), 1e-9)
+        Ub = csr_matrix(bsr_matrix((Ucc, np.arange(nc), np.arange(nc + 1)),
+                                   shape=(6 * nc, 6 * nc)))
+        # S's diagonal blocks: U_ii - sum over camera i's observations of W_o V^-1 W_o^T
+        WV = np.matmul(self.Wc, Vinv[self.pj_c])
+        starts = self.indptr[:-1]
+        P = Ucc - np.add.reduceat(np.matmul(WV, self.Wc.transpose(0, 2, 1)), starts, axis=0)
+        try:
+            Pinv = np.linalg.inv(P)
+        except np.linalg.LinAlgError:
+            Pinv = np.linalg.pinv(P)
+        b = -self.g.copy()
+        b[:6 * nc] += Wc @ Vg.ravel()
+        if nf:
+            Uff = self.Uf[6 * nc:, 6 * nc:].diagonal()
+            fdamp = lam * np.maximum(Uff, 1e-9)
+            Wf, WfT = self.Wf, self.Wf.T.tocsr()
+            Ufc = self.Uf[:6 * nc, 6 * nc:]
+            Ucf = self.Uf[6 * nc:, :6 * nc]
+            b[6 * nc:] += Wf @ Vg.ravel()
+            pf = Uff + fdamp - np.asarray((Wf @ Vb).multiply(Wf).sum(1)).ravel()
+            pf = np.where(pf > 0, 1.0 / np.where(pf > 0, pf, 1.0), 0.0)
+
+        def matvec(x: np.ndarray) -> np.ndarray:
+            xc = x[:6 * nc]
+            wt = WcT @ xc
+            out = np.empty_like(x)
+            if nf:
+                xf = x[6 * nc:]
+                wt += WfT @ xf
+                vw = Vb @ wt
+                out[:6 * nc] = Ub @ xc + Ufc @ xf - Wc @ vw
+                out[6 * nc:] = Ucf @ xc + (Uff + fdamp) * xf - Wf @ vw
+            else:
+                out[:] = Ub @ xc - Wc @ (Vb @ wt)
+            return out
+
+        def precond(x: np.ndarray) -> np.ndarray:
+            out = np.empty_like(x)
+            out[:6 * nc] = np.matmul(Pinv, x[:6 * nc].reshape(nc, 6, 1)).ravel()
+            if nf:
+                out[6 * nc:] = pf * x[6 * nc:]
+            return out
+
+        n = 6 * nc + nf
+        count = [0]
+
+        def tick(_: np.ndarray) -> None:
+            count[0] += 1
+
+        dc, _ = cg(LinearOperator((n, n), matvec=matvec), b, rtol=self.pcg_rtol,
+                   maxiter=self.pcg_maxiter, M=LinearOperator((n, n), matvec=precond),
+                   callback=tick)
+        self.pcg_iterations.append(count[0])
+        wtd = WcT @ dc[:6 * nc]
+        if nf:
+            wtd += WfT @ dc[6 * nc:]
         dp = -Vg - np.einsum("pij,pj->pi", Vinv, wtd.reshape(npt, 3))
         return dc, dp
 
@@ -641,7 +759,8 @@ def _solve_lm(prob: _Problem, x0: np.ndarray, med0: float, opt: BundleOptions
         d_cam, d_pt, d_f = prob.blocks(x)
         w_obs = sw[::2, None]  # one weight per observation (both rows)
         system = _Schur(prob, d_cam * w_obs[:, :, None], d_pt * w_obs[:, :, None],
-                        d_f * w_obs, sw * r)
+                        d_f * w_obs, sw * r,
+                        iterative=prob.var_cam.size >= opt.pcg_min_cameras)
         while nfev < opt.max_nfev:
             dc, dp = system.step(lam)
             dx = np.zeros_like(x)

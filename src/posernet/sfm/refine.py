@@ -366,11 +366,15 @@ def _restart(uv: Sequence[np.ndarray], pair_matches: Mapping[tuple[int, int], np
     return res
 
 
-def _doubts(r: SfmResult, members: np.ndarray, opt: BundleOptions) -> list[str]:
+def _doubts(r: SfmResult, members: np.ndarray, opt: BundleOptions,
+            pairs: np.ndarray) -> list[str]:
     """Why an adjustment of the ``members`` may have kept a wrong start (empty: no doubt):
     cameras left unrefined, too few track observations explained, a camera whose points are
     seen only under tiny angles (explained by rotation alone), or two centres on one spot
-    (a collapse that bundle adjustment keeps)."""
+    (a collapse that bundle adjustment keeps): two refined cameras of a matched image pair
+    ``pairs (E, 2)`` closer than 2% of the median distance over those pairs. The scale is
+    that of matched pairs, not of all camera pairs: along a long sequence the next frame is
+    always within 2% of the median distance between any two frames."""
     from .selfcheck import triangulation_angles
 
     out = []
@@ -386,8 +390,9 @@ def _doubts(r: SfmResult, members: np.ndarray, opt: BundleOptions) -> list[str]:
         low = int((tri[ref] < opt.min_angle_deg).sum())
         if low:
             out.append(f"{low} camera(s) see their points at under {opt.min_angle_deg:g} deg")
-        c = -np.einsum("nji,nj->ni", r.w2c[ref, :3, :3], r.w2c[ref, :3, 3])
-        d = np.linalg.norm(c[:, None] - c[None], axis=2)[np.triu_indices(ref.size, 1)]
+        c = -np.einsum("nji,nj->ni", r.w2c[:, :3, :3], r.w2c[:, :3, 3])
+        linked = pairs[r.refined[pairs[:, 0]] & r.refined[pairs[:, 1]]]
+        d = np.linalg.norm(c[linked[:, 0]] - c[linked[:, 1]], axis=1)
         if d.size and np.median(d) > 0 and (d < 0.02 * np.median(d)).any():
             out.append("camera centres coincide")
     return out
@@ -420,6 +425,8 @@ def _best_start(uv: Sequence[np.ndarray], pair_matches: Mapping[tuple[int, int],
     members = np.asarray(placed, bool).reshape(-1) & np.isfinite(w2c).all((1, 2))
     _check_inputs(uv, K, dist, w2c, members)
     small = int(members.sum()) <= opt.incremental_max_cameras
+    pairs = np.array([(int(a), int(b)) for (a, b), m in pair_matches.items() if len(m)],
+                     np.int64).reshape(-1, 2)
 
     def averaged() -> SfmResult:
         return bundle_adjust_reconstruction(uv, pair_matches, K, dist, w2c, placed,
@@ -460,7 +467,7 @@ def _best_start(uv: Sequence[np.ndarray], pair_matches: Mapping[tuple[int, int],
     why = ""
     if opt.start == "auto" or not small:
         tried["averaged"] = averaged()
-        doubts = _doubts(tried["averaged"], members, opt)
+        doubts = _doubts(tried["averaged"], members, opt, pairs)
         if not doubts:
             tried["averaged"].stats["start"] = {
                 "kept": "averaged", "why": "every camera refined, explaining "
@@ -474,7 +481,7 @@ def _best_start(uv: Sequence[np.ndarray], pair_matches: Mapping[tuple[int, int],
                 tried["positioning"] = res
     if small:
         best = max(tried.values(), key=_score) if tried else None
-        if best is None or _doubts(best, members, opt):
+        if best is None or _doubts(best, members, opt, pairs):
             res = incremental()
             if res is not None:
                 tried["incremental"] = res
@@ -483,6 +490,9 @@ def _best_start(uv: Sequence[np.ndarray], pair_matches: Mapping[tuple[int, int],
     order = list(tried)
     kept = max(order, key=lambda k: (_score(tried[k]), -order.index(k)))
     out = tried[kept]
+    for k, r in tried.items():  # the starts tried and not kept took time too
+        if k != kept:
+            out.stats["seconds"][f"{k}_start_discarded"] = r.stats["seconds"]["total"]
     obs = {k: _support(r) for k, r in tried.items()}
     out.stats["start"] = {"kept": kept, "why": why or f"start={opt.start}",
                           "observations": obs,

@@ -10,7 +10,7 @@ import torch
 
 from ..geometry import axis_angle_to_rotation_matrix
 from ..pinhole import look_at
-from .triangulation import project
+from ..pinhole import project as pinhole_project
 
 __all__ = ["SyntheticScene", "make_scene", "make_sparse_scene", "perturb_poses"]
 
@@ -38,6 +38,40 @@ class SyntheticScene:
     image_size: tuple[int, int] = (640, 480)
 
 
+def _project_one(points: np.ndarray, K: np.ndarray, w2c: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """Pixels ``(P, 2)`` and depths ``(P,)`` of ``points (P, 3)`` in one camera ``K (3, 3)``,
+    ``w2c (4, 4)`` (two small matrix products, not a per-point batch of 4x4 matrices)."""
+    pc = points @ w2c[:3, :3].T + w2c[:3, 3]
+    return pinhole_project(pc, K), pc[:, 2]
+
+
+def _pair_matches(kp_point: list[np.ndarray], num_points: int, min_matches: int
+                  ) -> dict[tuple[int, int], np.ndarray]:
+    """True matches ``(M, 2)`` (keypoint in a, keypoint in b) of every pair ``a < b`` whose
+    images share at least ``min_matches`` points, in ``(a, b)`` order; ``kp_point[i] (K_i,)``.
+    Only pairs that share a point are visited (a sparse visibility product finds them), so a
+    long sequence costs its overlapping pairs, not all ``N^2 / 2``."""
+    from scipy.sparse import csr_matrix
+
+    n = len(kp_point)
+    rows = np.repeat(np.arange(n), [k.size for k in kp_point])
+    cols = np.concatenate(kp_point) if n else np.zeros(0, np.int64)
+    vis = csr_matrix((np.ones(rows.size), (rows, cols)), shape=(n, num_points))
+    shared = (vis @ vis.T).tocoo()
+    keep = (shared.row < shared.col) & (shared.data >= min_matches)
+    pairs = sorted(zip(shared.row[keep].tolist(), shared.col[keep].tolist(), strict=True))
+    matches: dict[tuple[int, int], np.ndarray] = {}
+    inv = np.full(num_points, -1)
+    for a, b in pairs:
+        inv[kp_point[a]] = np.arange(kp_point[a].size)
+        ka = inv[kp_point[b]]
+        both = ka >= 0
+        matches[(a, b)] = np.stack((ka[both], np.flatnonzero(both)), 1)
+        inv[kp_point[a]] = -1
+    return matches
+
+
 def make_scene(num_cameras: int = 8, num_points: int = 400, noise_px: float = 0.5,
                visibility: float = 0.8, seed: int = 0, focal: float = 500.0,
                radius: float = 4.0) -> SyntheticScene:
@@ -60,8 +94,7 @@ def make_scene(num_cameras: int = 8, num_points: int = 400, noise_px: float = 0.
     uv, kp_point = [], []
     oi, op, ok, oxy = [], [], [], []
     for i in range(num_cameras):
-        pix, z = project(pts, Ks[i : i + 1].repeat(num_points, 0),
-                         w2c[i : i + 1].repeat(num_points, 0))
+        pix, z = _project_one(pts, Ks[i], w2c[i])
         inside = (z > 0.1) & (pix[:, 0] >= 0) & (pix[:, 0] < W) & (pix[:, 1] >= 0) & \
             (pix[:, 1] < H) & (rng.uniform(size=num_points) < visibility)
         ids = rng.permutation(np.flatnonzero(inside))
@@ -72,15 +105,7 @@ def make_scene(num_cameras: int = 8, num_points: int = 400, noise_px: float = 0.
         op.append(ids)
         ok.append(np.arange(ids.size))
         oxy.append(obs)
-    matches: dict[tuple[int, int], np.ndarray] = {}
-    for a in range(num_cameras):
-        inv_a = np.full(num_points, -1)
-        inv_a[kp_point[a]] = np.arange(kp_point[a].size)
-        for b in range(a + 1, num_cameras):
-            ka = inv_a[kp_point[b]]
-            both = ka >= 0
-            if both.sum() >= 8:
-                matches[(a, b)] = np.stack((ka[both], np.flatnonzero(both)), 1)
+    matches = _pair_matches(kp_point, num_points, 8)
     return SyntheticScene(K=Ks, w2c=w2c, points=pts, uv=uv, kp_point=kp_point,
                           pair_matches=matches, obs_image=np.concatenate(oi),
                           obs_point=np.concatenate(op), obs_kp=np.concatenate(ok),
@@ -117,29 +142,32 @@ def make_sparse_scene(kind: str = "ring", num_cameras: int = 16, num_points: int
         w2c = look_at(np.stack([x, np.zeros(n), np.full(n, -4.0)], 1),
                       np.stack([x, np.zeros(n), np.zeros(n)], 1), up=up)
     Ks = np.repeat(K[None], n, 0)
+    # chain: a camera sees the wall within (depth <= 4.5) * (W / 2) / focal of its x; only
+    # the points in a slightly wider stretch are tested (a long chain then costs O(N), not
+    # O(N^2)); the ring tests every point
+    by_x = np.argsort(pts[:, 0], kind="stable")
+    x_sorted = pts[by_x, 0]
+    reach = 4.5 * W / (2 * focal) + 0.5
     uv, kp_point, oi, op, ok = [], [], [], [], []
     for i in range(n):
-        pix, z = project(pts, Ks[:1].repeat(num_points, 0), w2c[i:i + 1].repeat(num_points, 0))
         c = -w2c[i, :3, :3].T @ w2c[i, :3, 3]
-        view = c - pts
+        cand = np.arange(num_points)
+        if kind == "chain":
+            lo, hi = np.searchsorted(x_sorted, (c[0] - reach, c[0] + reach))
+            cand = np.sort(by_x[lo:hi])
+        pix, z = _project_one(pts[cand], K, w2c[i])
+        view = c - pts[cand]
         view /= np.linalg.norm(view, axis=1, keepdims=True)
         seen = (z > 0.1) & (pix[:, 0] >= 0) & (pix[:, 0] < W) & (pix[:, 1] >= 0) & \
-            (pix[:, 1] < H) & ((view * normal).sum(1) > np.cos(np.radians(cone)))
-        ids = rng.permutation(np.flatnonzero(seen))
-        uv.append(pix[ids] + rng.normal(0, noise_px, (ids.size, 2)))
+            (pix[:, 1] < H) & ((view * normal[cand]).sum(1) > np.cos(np.radians(cone)))
+        sel = rng.permutation(np.flatnonzero(seen))
+        ids = cand[sel]
+        uv.append(pix[sel] + rng.normal(0, noise_px, (ids.size, 2)))
         kp_point.append(ids)
         oi.append(np.full(ids.size, i))
         op.append(ids)
         ok.append(np.arange(ids.size))
-    matches: dict[tuple[int, int], np.ndarray] = {}
-    for a in range(n):
-        inv_a = np.full(num_points, -1)
-        inv_a[kp_point[a]] = np.arange(kp_point[a].size)
-        for b in range(a + 1, n):
-            ka = inv_a[kp_point[b]]
-            both = ka >= 0
-            if both.sum() >= min_matches:
-                matches[(a, b)] = np.stack((ka[both], np.flatnonzero(both)), 1)
+    matches = _pair_matches(kp_point, num_points, min_matches)
     return SyntheticScene(K=Ks, w2c=w2c, points=pts, uv=uv, kp_point=kp_point,
                           pair_matches=matches, obs_image=np.concatenate(oi),
                           obs_point=np.concatenate(op), obs_kp=np.concatenate(ok),
