@@ -40,7 +40,7 @@ from posernet.frontend.proposals import FileProposals, SelectiveSearch, box_iou
 from posernet.io import atomic_write_text
 from posernet.metrics import absolute_pose_errors_per_camera, relative_pose_errors
 from posernet.nn import PoserNet
-from posernet.refine import refine_graphs
+from posernet.refinement import refine_graphs
 from posernet.sync import get_backend
 
 RESULTS = Path(__file__).resolve().parent / "results" / "frontend.md"

@@ -79,7 +79,7 @@ def edge_errors_for(model: torch.nn.Module | None, graphs: Sequence[ViewGraph],
     """Per-edge errors (degrees) of the input and of the refined poses, with each edge's graph:
     ``rot_init, rot_ref, tdir_init, tdir_ref [E]``, ``graph [E]``; plus ``sigma [E, 4]``
     (degrees) when the model has a confidence head."""
-    from posernet.refine import refine_graphs
+    from posernet.refinement import refine_graphs
 
     res = refine_graphs(model, graphs, progress=False, guard=guard)
     gt = torch.cat([g.edge_pose_gt for g in graphs]).double()
@@ -180,7 +180,7 @@ def absolute_rows(model: torch.nn.Module, graphs: Sequence[ViewGraph],
     uniform vs confidence-weighted IRLS start (modes ``start`` and ``prior``) and the guard;
     median absolute errors."""
     from posernet.evaluation import evaluate_result
-    from posernet.refine import refine_graphs
+    from posernet.refinement import refine_graphs
     from posernet.sync import get_backend
 
     rows = []
@@ -444,7 +444,7 @@ def guard_report(models: dict[str, str], sets: dict[str, Sequence[ViewGraph]],
     from posernet.graph import GraphBatch
     from posernet.guard import check_inputs, cycle_inconsistency, warning_line
     from posernet.nn import PoserNet
-    from posernet.refine import refine_graphs
+    from posernet.refinement import refine_graphs
 
     rows = []
     for name, ckpt in models.items():
@@ -498,7 +498,7 @@ def paper_tables(ckpt: str | Path, data: str | Path, out: str | Path, label: str
     from posernet.data.inputs import load_input_graphs
     from posernet.evaluation import evaluate_result, result_tables
     from posernet.nn import PoserNet
-    from posernet.refine import refine_graphs
+    from posernet.refinement import refine_graphs
     from posernet.report import ABSOLUTE_GROUPS, ResultTable, TableRow
     from posernet.sync import get_backend
 

@@ -53,7 +53,7 @@ def net_graphs(n: int = 3, dtype: torch.dtype = torch.float32) -> list[ViewGraph
 def save_learned_sync(path: Path) -> Path:
     """A small untrained learned-synchronisation checkpoint at ``path`` (what the loader
     reads; Lightning's own file has more)."""
-    from posernet.lit.sync import LearnedSyncModule
+    from posernet.lit.learned_sync_module import LearnedSyncModule
 
     torch.manual_seed(0)
     m = LearnedSyncModule(net={"hidden": 8, "rounds": 2})

@@ -131,7 +131,7 @@ def test_sync_backend_on_cuda_matches_cpu(name: str, learned_ckpt: Path) -> None
 @pytest.mark.parametrize("case", ["posernet-eig_se3", "adaptive-rotation_translation-guard"])
 def test_refine_pipeline_on_cuda_matches_cpu(case: str, deterministic: None) -> None:
     from posernet.evaluation import evaluate_result
-    from posernet.refine import refine_graphs
+    from posernet.refinement import refine_graphs
 
     torch.manual_seed(0)
     kind, backend, *rest = case.split("-")

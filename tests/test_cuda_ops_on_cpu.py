@@ -197,7 +197,7 @@ def test_every_sync_backend(name: str, learned_ckpt: Path, cuda_semantics: None)
 def test_refine_and_evaluate(input_stats: dict[str, Any], cuda_semantics: None) -> None:
     from posernet.evaluation import evaluate_result, result_tables
     from posernet.guard import refinement_check
-    from posernet.refine import refine_graphs
+    from posernet.refinement import refine_graphs
 
     gs = net_graphs()
     torch.manual_seed(0)

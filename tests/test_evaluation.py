@@ -8,7 +8,7 @@ import torch
 from helpers import make_graph
 
 from posernet.evaluation import evaluate_result, result_tables
-from posernet.refine import refine_graphs
+from posernet.refinement import refine_graphs
 from posernet.sync import get_backend
 
 

@@ -25,7 +25,7 @@ from posernet.metrics import (
     threshold_row,
     translation_direction_error_deg,
 )
-from posernet.refine import refine_graphs, result_to_json
+from posernet.refinement import refine_graphs, result_to_json
 from posernet.report import ResultTable
 from posernet.sync import get_backend
 from posernet.testing import random_view_graph

@@ -21,7 +21,7 @@ from posernet.metrics import (
     threshold_row,
     unplaced_per_graph,
 )
-from posernet.refine import refine_graphs
+from posernet.refinement import refine_graphs
 from posernet.report import relative_row
 from posernet.sync import get_backend
 from posernet.testing import random_view_graph

@@ -136,3 +136,14 @@ def test_hydra_instantiate_only_in_the_command_layer() -> None:
                     and any(a.name == "instantiate" for a in node.names):
                 found.append(_module_name(path))
     assert not found, found
+
+
+def test_no_two_modules_share_a_base_name() -> None:
+    """``refine.py`` in three packages meant three different things; every module name is
+    now unique in the package (``__init__`` / ``__main__`` aside), so a name says which."""
+    seen: dict[str, list[str]] = {}
+    for path in sorted(SRC.rglob("*.py")):
+        if path.stem not in ("__init__", "__main__"):
+            seen.setdefault(path.stem, []).append(_module_name(path))
+    shared = {k: v for k, v in seen.items() if len(v) > 1}
+    assert not shared, f"modules sharing a base name: {shared}"

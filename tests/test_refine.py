@@ -16,7 +16,7 @@ from posernet.data import save_posernet_json
 from posernet.evaluation import evaluate_result, result_tables
 from posernet.geometry import relative_pose_vec, rotation_error_deg
 from posernet.lit import PoserNetModule
-from posernet.refine import refine_graphs, result_to_json
+from posernet.refinement import refine_graphs, result_to_json
 from posernet.sync import get_backend
 from posernet.testing import random_view_graph
 

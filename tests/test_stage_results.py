@@ -29,14 +29,14 @@ from posernet.frontend.results import (
     assemble_frontend_result,
 )
 from posernet.ground_truth import align_cameras, trajectory_table
-from posernet.reconstruct import (
+from posernet.reconstruction import (
     bundle_stage,
     poses_json,
     solve_view_graph,
     trajectory_errors_table,
     write_camera_view,
 )
-from posernet.refine import refine_graphs
+from posernet.refinement import refine_graphs
 from posernet.sync import get_backend
 
 N, P, W, H = 5, 120, 320, 240

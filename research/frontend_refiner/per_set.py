@@ -16,7 +16,7 @@ from posernet.checkpoints import resolve_checkpoint
 from posernet.evaluation import evaluate_result
 from posernet.graph import load_graphs
 from posernet.guard import load_refiner
-from posernet.refine import refine_graphs
+from posernet.refinement import refine_graphs
 from posernet.sync import get_backend
 
 

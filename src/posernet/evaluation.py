@@ -19,7 +19,7 @@ from .metrics import (
     relative_rows,
     unplaced_per_graph,
 )
-from .refine import RefineResult
+from .refinement import RefineResult
 
 __all__ = ["evaluate_result", "result_tables"]
 

@@ -176,7 +176,7 @@ def refinement_check(
 
     ``stats``: the checkpoint's training-input statistics (``None``: only the cycle check);
     ``edge_pose``: per stage (``initial``, ``refined``) the ``[E_g, 7]`` poses of each graph,
-    as :class:`posernet.refine.RefineResult` holds them.
+    as :class:`posernet.refinement.RefineResult` holds them.
     """
     reasons = check_inputs(stats, graphs)
     batch = GraphBatch.from_graphs(list(graphs))  # one batched pass, no loop over graphs
@@ -199,7 +199,7 @@ class Guard:
 
     def check(self, graphs: Sequence[ViewGraph], result: Any) -> tuple[str | None, dict[str, Any]]:
         """:func:`refinement_check` of a refine run's ``result`` (a
-        :class:`posernet.refine.RefineResult`) on ``graphs``."""
+        :class:`posernet.refinement.RefineResult`) on ``graphs``."""
         return refinement_check(self.stats, graphs, result.edge_pose)
 
 

@@ -68,7 +68,7 @@ def test_every_shipped_group_option_passes(command, group, option, tmp_path):
             check_config(cfg_of(command, f"{group}={option}", tmp=tmp_path), command)
         import torch
 
-        from posernet.lit.sync import LearnedSyncModule
+        from posernet.lit.learned_sync_module import LearnedSyncModule
 
         module = LearnedSyncModule()
         ckpt = tmp_path / "sync.ckpt"

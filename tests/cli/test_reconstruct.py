@@ -330,7 +330,7 @@ def test_reconstruct_unreadable_image(scene, tmp_path):
 
 
 def test_gauge_fixed_puts_each_component_first_camera_at_identity():
-    from posernet.reconstruct import gauge_fixed
+    from posernet.reconstruction import gauge_fixed
     from posernet.testing import random_absolute_poses
 
     T = random_absolute_poses(5, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
@@ -550,7 +550,7 @@ def test_a_camera_failing_the_self_check_is_unsolved_in_every_output(scene, tmp_
     cameras.html; the others stay placed."""
     from hydra import compose, initialize_config_module
 
-    import posernet.reconstruct as reconstruct_module
+    import posernet.reconstruction as reconstruct_module
     from posernet.cli.reconstruct import run
     from posernet.sfm import selfcheck
 
@@ -597,7 +597,7 @@ def test_html_view_title_and_status_count_the_same_points(scene, tmp_path, monke
     """A few points far out (bad triangulations), which the view does not draw: the page's
     title and its status line still give the same number of 3D points, that of the model."""
 
-    import posernet.reconstruct as reconstruct_module
+    import posernet.reconstruction as reconstruct_module
     from posernet.cli.reconstruct import run
 
     real = reconstruct_module.largest_point_cloud

@@ -13,8 +13,8 @@ from scipy.sparse.csgraph import connected_components
 from posernet.data.synthetic import SceneWorld, load_preset, simulate_graphs
 from posernet.data.synthetic.config import KeypointOptions, MatchOptions
 from posernet.data.synthetic.matching import match_keypoints, reassign_wrong
+from posernet.frontend.assembly import is_connected
 from posernet.frontend.boxmatch import boxes_contain, match_boxes
-from posernet.frontend.graphs import is_connected
 
 BOX_A = np.array([[100.0, 100.0, 200.0, 200.0]])
 BOX_B = np.array([[300.0, 50.0, 400.0, 150.0]])

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from posernet.frontend.assembly import PairResult
 from posernet.frontend.consistency import (
     cycle_errors,
     loop_outliers,
@@ -18,7 +19,6 @@ from posernet.frontend.consistency import (
     triangles,
 )
 from posernet.frontend.features import Features
-from posernet.frontend.graphs import PairResult
 from posernet.frontend.images import ImageRecord
 from posernet.frontend.pipeline import ImageFrontend, _ImageData
 from posernet.frontend.verify import VerifyRules, inlier_spread

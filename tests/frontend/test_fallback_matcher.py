@@ -402,7 +402,7 @@ def test_reconstruct_places_with_the_main_matcher_first(scene, keep, fallback) -
     kept when it places at least ``main_first`` of the images (the fallback never runs),
     else every pair is matched again with the fallback and its result is the one returned,
     with the counts of that second pass only."""
-    from posernet.reconstruct import main_first_line, poses_json, reconstruct
+    from posernet.reconstruction import main_first_line, poses_json, reconstruct
     from posernet.sync import get_backend
 
     fe = _frontend(scene, _MainFirst(keep))

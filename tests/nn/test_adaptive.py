@@ -14,7 +14,7 @@ import torch
 from posernet import GraphBatch, PoserNet, save_graphs
 from posernet.checkpoints import CHECKPOINT_TAG
 from posernet.geometry import rotation_error_deg
-from posernet.lit.refiner import SECTIONS, PoserNetModule, module_hparams
+from posernet.lit.posernet_module import SECTIONS, PoserNetModule, module_hparams
 from posernet.nn.adaptive import (
     CYCLE_DIM,
     HEAD_IN_DIM,
@@ -249,7 +249,7 @@ def _confident_model(keep: bool, gate: float = 3.0) -> PoserNet:
 
 
 def test_guard_keeps_the_input_where_the_confidence_says_so() -> None:
-    from posernet.refine import refine_graphs
+    from posernet.refinement import refine_graphs
 
     gs = graphs(3)
     kept = refine_graphs(_confident_model(True), gs, progress=False, guard=True)
@@ -313,7 +313,7 @@ def test_refine_writes_confidence_and_the_guard_warning(tmp_path: Path, capsys) 
     # the absolute table says the input's averaging was weighted by the model too
     from posernet.evaluation import evaluate_result, result_tables
     from posernet.nn import PoserNet
-    from posernet.refine import refine_graphs
+    from posernet.refinement import refine_graphs
     from posernet.sync import get_backend
 
     model = PoserNet.from_checkpoint(ckpt)

@@ -271,7 +271,7 @@ def test_training_lowers_the_validation_loss():
 
 
 def test_module_sections_and_plain_hyper_parameters(tmp_path):
-    from posernet.lit.sync import SECTIONS, LearnedSyncModule, sync_module_hparams
+    from posernet.lit.learned_sync_module import SECTIONS, LearnedSyncModule, sync_module_hparams
 
     m = LearnedSyncModule(net={"hidden": 8, "rounds": 2}, loss={"gamma": 0.5})
     assert m.CHECKPOINT_TAG == LEARNED_SYNC_TAG == "posernet.LearnedSyncModule"
@@ -289,7 +289,7 @@ def test_module_sections_and_plain_hyper_parameters(tmp_path):
 
 
 def test_module_step_logs_losses_and_absolute_errors():
-    from posernet.lit.sync import LearnedSyncModule
+    from posernet.lit.learned_sync_module import LearnedSyncModule
 
     m = LearnedSyncModule(net={"hidden": 8, "rounds": 2})
     logged = {}
@@ -305,7 +305,7 @@ def test_module_step_logs_losses_and_absolute_errors():
 
 
 def test_refined_input_uses_a_frozen_posernet_outside_the_checkpoint():
-    from posernet.lit.sync import LearnedSyncModule
+    from posernet.lit.learned_sync_module import LearnedSyncModule
 
     shipped = str(default_checkpoint())
     m = LearnedSyncModule(net={"hidden": 8, "rounds": 2}, input={"refiner_ckpt": shipped})
@@ -325,7 +325,7 @@ def test_refined_input_uses_a_frozen_posernet_outside_the_checkpoint():
 
 @pytest.fixture(scope="module")
 def sync_ckpt(tmp_path_factory) -> Path:
-    from posernet.lit.sync import LearnedSyncModule
+    from posernet.lit.learned_sync_module import LearnedSyncModule
 
     torch.manual_seed(0)
     m = LearnedSyncModule(net={"hidden": 8, "rounds": 3})
@@ -333,7 +333,7 @@ def sync_ckpt(tmp_path_factory) -> Path:
 
 
 def test_backend_solves_a_batch_like_the_network(sync_ckpt):
-    from posernet.lit.sync import LearnedSyncModule
+    from posernet.lit.learned_sync_module import LearnedSyncModule
 
     assert "learned" in available_backends()
     be = get_backend("learned", ckpt_path=str(sync_ckpt))

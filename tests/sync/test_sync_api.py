@@ -153,7 +153,7 @@ class _OutsideBackend(SyncBackend):
 
 
 def test_backend_defined_outside_the_package_is_chosen_by_target():
-    from posernet.refine import refine_graphs
+    from posernet.refinement import refine_graphs
     from posernet.testing import random_view_graph
 
     cfg = OmegaConf.create({"_target_": f"{__name__}._OutsideBackend", "name": "outside",

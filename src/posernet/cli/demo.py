@@ -100,7 +100,7 @@ def demo(cfg: DictConfig) -> dict[str, Any]:
     from ..metrics import align_to_ground_truth
     from ..nn import PoserNet
     from ..plots import plot_cameras, plot_sorted_errors
-    from ..refine import refine_graphs
+    from ..refinement import refine_graphs
     from .build import backend_from_config
 
     check_config(cfg, "demo")

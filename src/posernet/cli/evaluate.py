@@ -4,7 +4,7 @@ The table (paper Table 1 layout) gives, per graph, the % of test graphs whose me
 below 3/5/10/30/45 degrees and the median over graphs, for the orientation and the translation
 direction, for the initial poses and the PoserNet-refined ones. It is printed and written
 atomically as ``table.md`` and ``table.csv`` in the output folder. Refinement, averaging and
-the tables are ``posernet-refine``'s (:func:`posernet.refine.refine_graphs`,
+the tables are ``posernet-refine``'s (:func:`posernet.refinement.refine_graphs`,
 :func:`~posernet.evaluation.evaluate_result`, :func:`~posernet.evaluation.result_tables`), the
 code behind every other table. Examples::
 
@@ -49,7 +49,7 @@ def _test_graphs(cfg: DictConfig) -> tuple[list[Any], str]:
 def evaluate(cfg: DictConfig) -> dict[str, Any]:
     """Evaluate ``cfg.ckpt_path`` on the configured test set; return the tables and paths.
 
-    The same path as ``posernet-refine`` (:func:`posernet.refine.refine_graphs`,
+    The same path as ``posernet-refine`` (:func:`posernet.refinement.refine_graphs`,
     :func:`~posernet.evaluation.evaluate_result`, :func:`~posernet.evaluation.result_tables`):
     the relative table, and with ``sync=`` the absolute one with the cameras placed per stage.
     Motion averaging is never weighted by the model's confidence here, so the ``Initial`` rows
@@ -58,7 +58,7 @@ def evaluate(cfg: DictConfig) -> dict[str, Any]:
     from ..evaluation import evaluate_result, result_tables
     from ..graph import GraphValidationError
     from ..nn import PoserNet
-    from ..refine import refine_graphs
+    from ..refinement import refine_graphs
 
     check_config(cfg, "eval")
     quiet_lightning()

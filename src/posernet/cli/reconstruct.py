@@ -93,7 +93,7 @@ def _pictures(rec: Any, out: Path, k: int) -> list[Path]:
 def _camera_plot(rec: Any, out: Path) -> Path | None:
     from ..metrics import align_to_ground_truth
     from ..plots import plot_cameras
-    from ..reconstruct import gauge_fixed
+    from ..reconstruction import gauge_fixed
 
     res, stage, g = rec.result, rec.stage, rec.graph
     if not res.absolute:
@@ -132,7 +132,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     from ..frontend.pipeline import ImageFrontend
     from ..guard import load_refiner
     from ..io import atomic_write_json, atomic_write_text
-    from ..reconstruct import (
+    from ..reconstruction import (
         NothingPlaced,
         focal_mode,
         main_first_line,
@@ -381,7 +381,7 @@ def _report_nothing_placed(err: Any, out: Path, info: dict[str, Any], pictures: 
     from ..frontend.images import read_image
     from ..io import atomic_write_json
     from ..match_pictures import draw_matches
-    from ..reconstruct import unplaced_json
+    from ..reconstruction import unplaced_json
 
     fe = err.frontend
     print("[2/3] front end: " + "\n      ".join([*err.pairs.lines(), *fe.summary.lines()]))

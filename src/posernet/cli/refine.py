@@ -4,7 +4,7 @@ Reads a graph file (posernet ``.pt`` or the authors' JSON), refines every edge's
 with a PoserNet checkpoint (default: the one shipped with posernet), averages initial and
 refined poses into absolute camera poses with the chosen backend (``sync=eig_se3`` by default,
 ``sync=none`` to skip), and writes everything to one JSON file (format in
-:func:`posernet.refine.result_to_json`). When the graphs carry ground truth, the paper's
+:func:`posernet.refinement.result_to_json`). When the graphs carry ground truth, the paper's
 tables are printed and written next to it (``table.md``/``.csv``, ``abs_table.md``/``.csv``).
 """
 
@@ -36,7 +36,7 @@ def refine(cfg: DictConfig) -> dict[str, Any]:
     from ..evaluation import evaluate_result, result_tables
     from ..guard import load_refiner
     from ..io import atomic_write_json
-    from ..refine import refine_graphs, result_to_json
+    from ..refinement import refine_graphs, result_to_json
     from .build import backend_from_config
 
     check_config(cfg, "refine")

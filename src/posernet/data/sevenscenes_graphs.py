@@ -8,7 +8,7 @@ What ``posernet-make-data source=sevenscenes root=DIR`` runs. Per scene:
   sequences); ``max_frames`` optionally thins each split's pool evenly. Intrinsics default to the
   Kinect's f = 585, c = (320, 240); ground truth comes from the ``pose.txt`` files.
 * small graphs (paper: 8 images): grown connected with
-  :func:`~posernet.frontend.graphs.grow_connected`, candidates within ``window`` pool frames of
+  :func:`~posernet.frontend.assembly.grow_connected`, candidates within ``window`` pool frames of
   a chosen one with probability ``locality``; large graphs (paper: 125 images): a random set of
   frames, no connectivity constraint (the paper accepts them as they are).
 
@@ -33,7 +33,7 @@ from typing import Any
 
 import numpy as np
 
-from ..frontend.graphs import grow_connected, is_connected
+from ..frontend.assembly import grow_connected, is_connected
 from ..frontend.images import ImageRecord
 from ..frontend.pipeline import FrontendSummary, ImageFrontend
 from ..graph import ViewGraph

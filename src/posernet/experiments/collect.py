@@ -147,9 +147,9 @@ class Context:
     # ---------------------------------------------------------------- evaluation
     def result(self, spec: ModelSpec, seed: int, size: str = "small",
                backend: str | None = None, scene: str | None = None) -> Any:
-        """:class:`~posernet.refine.RefineResult` of ``spec``/``seed`` on the test graphs."""
+        """:class:`~posernet.refinement.RefineResult` of ``spec``/``seed`` on the test graphs."""
         from ..nn import PoserNet
-        from ..refine import refine_graphs
+        from ..refinement import refine_graphs
         from ..sync import get_backend
 
         key = (spec, seed, size, backend, scene)
@@ -163,12 +163,12 @@ class Context:
         return self._results[key]
 
     def sync_result(self, estimate: str, seed: int, refined: bool) -> Any:
-        """:class:`~posernet.refine.RefineResult` of the learned synchronisation trained on
+        """:class:`~posernet.refinement.RefineResult` of the learned synchronisation trained on
         raw (``refined=False``: the initial stage) or on refined input (the PoserNet model of
         the same estimate and seed refines first: the refined stage), on the small test
         graphs."""
         from ..nn import PoserNet
-        from ..refine import refine_graphs
+        from ..refinement import refine_graphs
         from ..sync.learned import LearnedSync
 
         key = ("learned", estimate, seed, refined)

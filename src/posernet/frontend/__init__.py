@@ -14,10 +14,10 @@ per-image :class:`ImageFeatures`, per-pair :class:`PairMatches` (matches and the
 shares the box-matching rules, the 5-point step and the graph assembly.
 """
 
+from .assembly import PairResult, assemble_view_graph, grow_connected
 from .boxmatch import BoxMatchRules, match_boxes
 from .cache import FrontendCache
 from .features import Features, MatcherError, Matches, SiftMatcher, XFeatMatcher, make_matcher
-from .graphs import PairResult, assemble_view_graph, grow_connected
 from .images import (
     ImageError,
     ImageRecord,

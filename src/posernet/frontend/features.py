@@ -593,7 +593,7 @@ class FallbackMatcher:
         weak_share: the fallback runs only where at least this share of a set's images is
             weakly textured (the front end decides once per set): a textured set with a few
             plain frames (7-Scenes RedKitchen: 2 of 20) stays with SIFT alone.
-        main_first: in such a set :func:`posernet.reconstruct.reconstruct` first places the
+        main_first: in such a set :func:`posernet.reconstruction.reconstruct` first places the
             cameras with SIFT alone and keeps that result when at least this share of the
             images is placed and passes the self-check; only otherwise are the pairs matched
             again with the fallback (0: the fallback runs at once). XFeat's keypoints are

@@ -5,7 +5,7 @@ matching, box matching and both 5-point estimates per image pair, view graphs of
 OpenCV and torch release the GIL), pairs are evaluated on demand (all pairs for a photo folder,
 a sampled few for a large 7-Scenes sequence). It exposes the same ``pair(u, v)`` as the
 synthetic generator's ``SceneWorld``, so graphs come from one assembly
-(:func:`~posernet.frontend.graphs.assemble_view_graph`).
+(:func:`~posernet.frontend.assembly.assemble_view_graph`).
 
 What leaves it is typed data (:mod:`posernet.frontend.results`), stage by stage:
 :meth:`ImageFrontend.extract` (per-image features), :meth:`ImageFrontend.select_pairs`,
@@ -36,10 +36,10 @@ import torch
 from tqdm.auto import tqdm
 
 from ..graph import ViewGraph
+from .assembly import GraphStats, PairResult, assemble_view_graph
 from .boxmatch import BoxMatchRules, box_centres, keypoints_in_matched_boxes, match_boxes
 from .cache import FrontendCache, file_digest
 from .features import Features, Matches
-from .graphs import GraphStats, PairResult, assemble_view_graph
 from .images import ImageRecord, read_image
 from .pairs import PairOptions, PairSelection, select_pairs
 from .relpose import PoseOptions, five_point

@@ -28,8 +28,8 @@ from typing import Any
 import numpy as np
 
 from ..graph import ViewGraph
+from .assembly import GraphStats, PairResult, assemble_view_graph
 from .features import Matches
-from .graphs import GraphStats, PairResult, assemble_view_graph
 from .images import ImageRecord
 from .pairs import PairSelection
 
@@ -136,7 +136,7 @@ class ImageFeatures:
 @dataclass(frozen=True)
 class TwoViewGeometry:
     """The verified two-view geometry of images ``a < b`` (image ids); poses map camera a to
-    camera b. Same fields as :class:`~posernet.frontend.graphs.PairResult` (so graph assembly
+    camera b. Same fields as :class:`~posernet.frontend.assembly.PairResult` (so graph assembly
     takes either), frozen.
 
     Attributes:

@@ -3,12 +3,12 @@
 and the one Trainer builder with its determinism policy (:mod:`.trainer`)."""
 
 from .base import SectionedModule, fill_sections
-from .refiner import (
+from .learned_sync_module import LearnedSyncModule, sync_module_hparams
+from .posernet_module import (
     PoserNetModule,
     load_posernet_checkpoint,
     module_hparams,
 )
-from .sync import LearnedSyncModule, sync_module_hparams
 from .trainer import build_trainer, determinism_policy, trainer_from_config
 
 __all__ = [

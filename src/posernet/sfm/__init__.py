@@ -14,7 +14,7 @@ Stages (each usable on its own):
   edge directions pin) and :func:`resect_cameras` (the others re-placed by PnP on 3D points);
 * :mod:`~posernet.sfm.positioning` -- :func:`global_positioning`: camera centres and points
   together from their viewing rays (rotations known), the start that cannot collapse;
-* :mod:`~posernet.sfm.refine` -- :func:`bundle_adjust_reconstruction`: the orchestrator
+* :mod:`~posernet.sfm.mapper` -- :func:`bundle_adjust_reconstruction`: the orchestrator
   (start, tracks, triangulation, BA, filter, BA) used as the last stage of a reconstruction;
 * :mod:`~posernet.sfm.selfcheck` -- :func:`check_reconstruction`: every placed camera held
   against its verified pairs and its 3D points;
@@ -28,8 +28,8 @@ are defined up to one global scale (the gauge fixes one camera per component, no
 from __future__ import annotations
 
 from .bundle import LOSSES, BundleOptions, BundleResult, bundle_adjust, gauge_cameras
+from .mapper import SfmResult, bundle_adjust_reconstruction
 from .positioning import Positioning, PositioningOptions, global_positioning
-from .refine import SfmResult, bundle_adjust_reconstruction
 from .resection import Resection, anchored_cameras, resect_cameras
 from .selfcheck import CheckOptions, PairEvidence, SelfCheck, check_reconstruction
 from .tracks import Tracks, build_tracks

@@ -31,7 +31,7 @@ from ..options import check_options, option
 __all__ = ["LOSSES", "BundleOptions", "BundleResult", "bundle_adjust", "gauge_cameras"]
 
 LOSSES: tuple[str, ...] = ("linear", "huber", "soft_l1", "cauchy", "arctan")
-#: ``auto`` is for callers that know where the intrinsics came from (``posernet.reconstruct``
+#: ``auto`` is for callers that know where the intrinsics came from (``posernet.reconstruction``
 #: resolves it: refine when they were guessed); :func:`bundle_adjust` itself reads it as ``none``
 FOCAL_MODES: tuple[str, ...] = ("none", "shared", "per_camera", "auto")
 GAUGES: tuple[str, ...] = ("max_degree", "first")
@@ -52,7 +52,7 @@ ROBUST_SOLVERS: tuple[str, ...] = ("lm", "irls", "scipy")
 @dataclass
 class BundleOptions:
     """Options of :func:`bundle_adjust` and of the orchestrator
-    :func:`posernet.sfm.refine.bundle_adjust_reconstruction`.
+    :func:`posernet.sfm.mapper.bundle_adjust_reconstruction`.
 
     Solver: ``loss`` (one of :data:`LOSSES`), ``f_scale`` (px: residuals beyond it are
     down-weighted), ``max_nfev`` (function evaluations; reaching it is a failure), tolerances,

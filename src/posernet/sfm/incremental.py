@@ -11,7 +11,7 @@ triangulated points, placed by PnP and followed by a bundle adjustment of all ca
 so far.
 
 :func:`register_incrementally` does that on the keypoint tracks of
-:func:`~posernet.sfm.refine.bundle_adjust_reconstruction`; that function compares its result
+:func:`~posernet.sfm.mapper.bundle_adjust_reconstruction`; that function compares its result
 with the averaged start and keeps the one that explains more observations.
 """
 

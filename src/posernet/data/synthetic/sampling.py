@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ...frontend.graphs import GraphStats, assemble_view_graph, grow_connected, is_connected
+from ...frontend.assembly import GraphStats, assemble_view_graph, grow_connected, is_connected
 from ...graph import ViewGraph
 from .world import SceneWorld
 
@@ -82,7 +82,7 @@ def build_view_graph(
     world: SceneWorld, nodes: list[int], meta: dict
 ) -> tuple[ViewGraph, GraphStats]:
     """Evaluate every pair of ``nodes`` (frame ids) and assemble the graph (float32) with the
-    front end's :func:`~posernet.frontend.graphs.assemble_view_graph`; returns it and its
+    front end's :func:`~posernet.frontend.assembly.assemble_view_graph`; returns it and its
     statistics."""
     cam = world.options.camera
     g, stats = assemble_view_graph(

@@ -14,13 +14,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ...frontend.assembly import PairResult
 from ...frontend.boxmatch import (
     box_centres,
     boxes_contain,
     keypoints_in_matched_boxes,
     match_boxes,
 )
-from ...frontend.graphs import PairResult
 from ...frontend.relpose import five_point
 from .camera import intrinsics
 from .config import DatasetOptions

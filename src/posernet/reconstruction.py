@@ -45,7 +45,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .frontend.graphs import GraphStats
+from .frontend.assembly import GraphStats
 from .frontend.images import ImageRecord
 from .frontend.pairs import PairOptions, PairSelection
 from .frontend.pipeline import ImageFrontend
@@ -53,7 +53,7 @@ from .frontend.results import FrontendResult
 from .geometry import invert_se3
 from .graph import ViewGraph
 from .io import atomic_write_json
-from .refine import RefineResult, refine_graphs
+from .refinement import RefineResult, refine_graphs
 from .sfm import BundleOptions, SfmResult, anchored_cameras, bundle_adjust_reconstruction
 from .sfm.selfcheck import CheckOptions, PairEvidence, SelfCheck, check_reconstruction
 
@@ -302,7 +302,7 @@ def reconstruct(
     backend). ``refine_focal="auto"`` refines the focal length of guessed intrinsics
     (:func:`focal_mode`).
     ``guard``: keep the input pose where the model's confidence says refinement would not help
-    (:func:`posernet.refine.refine_graphs`; needs a confidence head). With a confidence head
+    (:func:`posernet.refinement.refine_graphs`; needs a confidence head). With a confidence head
     the averaging starts from the model's per-edge confidence.
     ``check``: hold the final stage against its evidence (:func:`self_check`; options, or
     ``True`` for the defaults, ``False`` to skip): cameras that fail are reported unsolved.
