@@ -779,10 +779,12 @@ def colmap_worker(spec_path: str) -> None:
 
 
 def run_method(s: ImageSet, m: Method, work: Path, threads: int, timeout: float,
-               seed: int = 0, colmap_matching: str = "exhaustive") -> dict[str, Any]:
+               seed: int = 0, colmap_matching: str = "exhaustive",
+               poses: dict[str, np.ndarray] | None = None) -> dict[str, Any]:
     """One method on one set in a subprocess: the row of the results (errors, wall time, peak
     memory, the command), or a row with a ``note`` when it was skipped or failed.
-    ``colmap_matching``: the COLMAP methods' pair selection (:data:`COLMAP_MATCHING`)."""
+    ``colmap_matching``: the COLMAP methods' pair selection (:data:`COLMAP_MATCHING`);
+    ``poses``: filled with the placed cameras' world-to-camera poses when given."""
     row: dict[str, Any] = {"set": s.name, "method": m.label, "kind": m.kind,
                            "overrides": m.overrides, "images": len(s.keys), "note": ""}
     out = work / "runs" / s.name / m.label
@@ -832,7 +834,8 @@ def run_method(s: ImageSet, m: Method, work: Path, threads: int, timeout: float,
         except (OSError, ValueError, KeyError, TypeError) as e:
             row["note"] = f"unreadable output ({type(e).__name__}: {e})"[:200]
     row.update(evaluate(s.keys, s.c2w, w2c, comp))
-    row["_w2c"] = w2c  # the placed poses, for the pairs mode (removed before writing)
+    if poses is not None:
+        poses.update(w2c)
     trust = trust_counts(s.keys, s.c2w, w2c, comp, seed=seed)
     row.update(right=trust["right"], wrong=trust["wrong"], not_placed=trust["not_placed"],
                extent=trust["extent"], trust=trust["cameras"])
@@ -1004,8 +1007,8 @@ def run_pairs(sets: list[ImageSet], methods: list[Method], work: Path, threads: 
         for a, b, ang, ov in pairs:
             ps = pair_set(s, a, b, work / "pairs")
             for m in methods:
-                row = run_method(ps, m, work, threads, timeout, seed)
-                w2c = row.pop("_w2c", {})
+                w2c: dict[str, np.ndarray] = {}
+                row = run_method(ps, m, work, threads, timeout, seed, poses=w2c)
                 rot, tdir = pair_error(s.c2w, w2c, a, b)
                 row.update(pair_set=s.name, pair=[a, b], gt_rotation_deg=ang, overlap=ov,
                            pair_rot_deg=rot, pair_tdir_deg=tdir)
@@ -1193,8 +1196,6 @@ def main(argv: list[str] | None = None) -> int:
     else:
         rows = [run_method(s, m, work, args.threads, args.timeout, args.seed,
                            args.colmap_matching) for s in sets for m in methods]
-    for r in rows:
-        r.pop("_w2c", None)
 
     if str(ROOT) not in sys.path:
         sys.path.insert(0, str(ROOT))  # benchmarks/_common.py

@@ -77,6 +77,7 @@ def test_options_and_rule() -> None:
     assert m.wants_fallback(10, 0, None, textured=True)
     assert not m.wants_fallback(60, 55, 0.3, textured=True)
     assert m.keeps_fallback(0, 60, 0.0, matches=5, textured=True)
+    assert not m.keeps_fallback(0, 22, 0.0, matches=5, textured=True)  # chance inliers
     assert not m.keeps_fallback(0, 60, 0.0, matches=40, textured=True)
     assert not m.keeps_fallback(0, 60, 0.0, matches=5, textured=False)
     assert m.is_sparse_set(12) and not m.is_sparse_set(13)
