@@ -246,21 +246,11 @@ TRAINER: Schema = {
 #: own, checked by building it
 SYNC = targeted("sync")
 
-#: ``proposals``: the proposal source's arguments (:func:`targeted`), with these ranges
-PROPOSALS = targeted("proposals", {
-    "path": path(), "top_k": integer(1, null=True),
-    "max_area": number(0, 1, lo_open=True, null=True), "min_size": number(0),
-    "strategy": choice("single", "fast", "quality"), "resize": integer(32, null=True),
-})
-
-
-#: ``matcher``: the matcher's arguments (:func:`targeted`), with these ranges and choices
-MATCHER = targeted("matcher", {
-    "name": choice("auto", "sift", "xfeat", "xfeat+lighterglue"),
-    "max_features": integer(1), "ratio": number(0, 1, lo_open=True),
-    "contrast_threshold": number(0, 1), "min_features": integer(0), "top_k": integer(1),
-    "min_cossim": number(-1, 1), "device": DEVICE,
-})
+#: ``proposals`` and ``matcher``: each source's and matcher's options dataclass (its
+#: ``Options``: :class:`~posernet.frontend.proposals.SelectiveSearchOptions`,
+#: :class:`~posernet.frontend.features.SiftOptions`, ...), each field with its own rule
+PROPOSALS = targeted("proposals")
+MATCHER = targeted("matcher")
 
 
 #: the image front end's groups; those built from a dataclass (``box_matching``, ``relpose``)
