@@ -123,14 +123,15 @@ def test_the_dataclass_backed_blocks_are_found():
         assert block in found, block
 
 
-def test_matchers_and_proposal_sources_declare_their_options():
-    """Each matcher and proposal source checks its arguments against its options dataclass,
-    whose fields are exactly the constructor's arguments, with the same defaults."""
+def test_constructors_declare_their_options():
+    """The network, each matcher and each proposal source checks its arguments against its
+    options dataclass, whose fields are exactly the constructor's arguments and defaults."""
     import inspect
 
     from posernet.frontend import features, proposals
+    from posernet.nn import PoserNet
 
-    for cls in (features.SiftMatcher, features.XFeatMatcher, features.FallbackMatcher,
+    for cls in (PoserNet, features.SiftMatcher, features.XFeatMatcher, features.FallbackMatcher,
                 proposals.SelectiveSearch, proposals.EdgeBoxes, proposals.FileProposals):
         params = {k: p.default for k, p in inspect.signature(cls).parameters.items()}
         fields = {f.name: _default(f) for f in dataclasses.fields(cls.Options)}

@@ -173,26 +173,14 @@ Schema = Mapping[str, Rule]
 
 
 def _model(cfg: Any) -> Schema:
-    """``model``: the network's arguments from its constructor (:func:`typed`), the training
-    sections' values here."""
-    from ..nn import PoserNet
+    """``model``: each section's options dataclass (``net``: :class:`posernet.nn.PoserNetOptions`,
+    ``loss``/``optimizer``/``scheduler``: :mod:`posernet.lit.refiner`'s), each field with its
+    own rule. (``model=learned_sync`` has sections of its own: keys absent here are skipped.)"""
+    from ..lit.refiner import SECTION_OPTIONS
 
-    return {**typed(PoserNet, "net.", depth=integer(1), node_hidden=integer(1),
-                    edge_hidden=integer(0), mlp_hidden=integer(1), mlp_layers=integer(1),
-                    node_in=integer(1), head_hidden=integer(1)),
-            **MODEL_TRAINING}
+    return {f"{section}.{k}": r for section, owner in SECTION_OPTIONS.items()
+            for k, r in field_rules(owner).items()}
 
-
-#: the training sections of ``model`` (loss, optimizer, scheduler)
-MODEL_TRAINING: Schema = {
-    "loss.alpha": number(0), "loss.end_to_end": boolean(),
-    "loss.raw": number(0), "loss.confidence": number(0), "loss.correction": number(0),
-    "loss.harm": number(0), "loss.harm_scale": number(0),
-    "loss.relative_weight": number(0), "loss.absolute_weight": number(0),
-    "loss.position_weight": number(0), "optimizer.lr": positive(),
-    "optimizer.weight_decay": number(0), "scheduler.patience": integer(0),
-    "scheduler.factor": number(0, 1, lo_open=True, hi_open=True), "scheduler.min_lr": number(0),
-}
 
 #: ``data``: the datamodule's arguments (:func:`targeted`), with these ranges and choices
 DATA = targeted("data", {
