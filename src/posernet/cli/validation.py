@@ -6,14 +6,14 @@
    ``trainer``, ``sync``, the front end's ``proposals``/``matcher``/``box_matching``/
    ``relpose``, reconstruct's ``pairs``/``verify``/``bundle``/``check``, the demo's
    ``images``): type, range or choices, and that a required value (``???``) was given. A group
-   built from a dataclass (``bundle``, ``verify``, ``check``, ``pairs``, ``relpose``,
-   ``box_matching``, the sync backends' ``Options``) takes each key's rule from the field that
-   declares it (:func:`posernet.options.option`), so nothing about those options is written
-   here; a group built from a constructor (``matcher``, ``proposals``, ``data``,
-   ``model.net``) takes its keys and types from the signature (:func:`typed`,
-   :func:`targeted`) and its ranges from the tables below. Only the commands' own top-level
-   keys and the training sections (``model.loss``, ``trainer``, ...), which no dataclass
-   owns, are a schema of their own here;
+   built from a dataclass (``bundle``, ``verify``, ...) or from a constructor with an options
+   dataclass (its ``Options``: the sync backends, the matchers, the proposal sources; the
+   ``model`` sections: :data:`posernet.lit.refiner.SECTION_OPTIONS`) takes each key's rule from
+   the field that declares it (:func:`posernet.options.option`), so nothing about those
+   options is written here. Still tables here: ``data`` (the datamodule's keys and types from
+   its signature, :func:`targeted`, its ranges in :data:`DATA`), the Lightning ``trainer``
+   arguments (Lightning's, not the project's: :data:`TRAINER`) and the commands' own
+   top-level keys (:data:`COMMANDS`);
 2. what a group's own constructor checks across fields (the sync backend: its scale policy,
    gtsam installed; the demo's synthetic dataset options), by building it early;
 3. the machine: ``device=cuda`` (``trainer.accelerator=gpu``) needs CUDA;
@@ -203,7 +203,9 @@ def _mixture_ok(v: Any) -> bool:
         return False
     return True
 
-#: the Lightning Trainer arguments of posernet/conf/trainer/*.yaml (others pass through unchecked)
+#: the Lightning Trainer arguments of posernet/conf/trainer/*.yaml (others pass through
+#: unchecked). A table, not a dataclass: the arguments are Lightning's, which the project does
+#: not own, and Hydra passes them to ``lightning.Trainer`` as they are
 TRAINER: Schema = {
     "accelerator": choice("auto", "cpu", "gpu", "cuda", "mps"),
     "devices": one_of(Rule("", lambda v: is_int(v) and (v == -1 or v >= 1)), choice("auto"),
