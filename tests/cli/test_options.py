@@ -85,6 +85,8 @@ COMMAND_DEFAULTS = {
     ("reconstruct.yaml", "bundle.refine_focal"): "auto: the command knows whether the "
                                                   "intrinsics were guessed",
     ("relpose/ransac.yaml", "method"): "the classic-RANSAC choice of the group",
+    ("matcher/xfeat_lighterglue.yaml", "lighterglue"): "the group's choice: LighterGlue",
+    ("matcher/sift_xfeat.yaml", "lighterglue"): "the fallback matches with LighterGlue",
 }
 
 
@@ -113,8 +115,32 @@ def test_the_dataclass_backed_blocks_are_found():
     for block in [("reconstruct.yaml", "bundle."), ("reconstruct.yaml", "verify."),
                   ("reconstruct.yaml", "check."), ("reconstruct.yaml", "pairs."),
                   ("relpose/usac.yaml", ""), ("box_matching/paper.yaml", ""),
-                  ("sync/eig_se3.yaml", ""), ("sync/rotation_translation.yaml", "")]:
+                  ("sync/eig_se3.yaml", ""), ("sync/rotation_translation.yaml", ""),
+                  *((f"matcher/{m}.yaml", "") for m in ("auto", "sift", "sift_xfeat", "xfeat",
+                                                         "xfeat_lighterglue")),
+                  *((f"proposals/{p}.yaml", "") for p in ("selective_search", "edge_boxes",
+                                                           "file"))]:
         assert block in found, block
+
+
+def test_constructors_declare_their_options():
+    """The network, each matcher and each proposal source checks its arguments against its
+    options dataclass, whose fields are exactly the constructor's arguments and defaults."""
+    import inspect
+
+    from posernet.frontend import features, proposals
+    from posernet.nn import PoserNet
+
+    for cls in (PoserNet, features.SiftMatcher, features.XFeatMatcher, features.FallbackMatcher,
+                proposals.SelectiveSearch, proposals.EdgeBoxes, proposals.FileProposals):
+        params = {k: p.default for k, p in inspect.signature(cls).parameters.items()}
+        fields = {f.name: _default(f) for f in dataclasses.fields(cls.Options)}
+        fields = {k: (inspect.Parameter.empty if v is dataclasses.MISSING else v)
+                  for k, v in fields.items()}
+        assert fields == params, cls.__name__
+    shared = set(features.SiftOptions.__dataclass_fields__)
+    assert shared < set(features.FallbackOptions.__dataclass_fields__)
+    assert features.make_matcher.Options is features.MatcherOptions
 
 
 def _default(f: dataclasses.Field):
@@ -180,3 +206,7 @@ def test_help_shows_the_declared_help_and_choices():
     assert "arctan" in lines["bundle.loss"]
     assert "[auto | exhaustive | sequential | retrieval]" in lines["pairs.mode"]
     assert "[unit | given | oracle | free]" in lines["sync.scale"]
+    assert "[single | fast | quality]" in lines["proposals.strategy"]
+    assert "keep the best this many boxes" in lines["proposals.top_k"]
+    assert "Lowe's ratio" in lines["matcher.ratio"]
+    assert "weakly textured" in lines["matcher.weak_share"]

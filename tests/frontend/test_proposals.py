@@ -21,6 +21,7 @@ from posernet.frontend.proposals import (
     nms,
     write_proposals_json,
 )
+from posernet.options import ConfigValueError
 
 # ---------------------------------------------------------------------------- synthetic scenes
 
@@ -242,14 +243,20 @@ def test_bad_images_are_refused(make):
 
 
 def test_bad_settings_are_refused():
-    with pytest.raises(ProposalError, match="strategy"):
+    # each option's rule is declared on its field (SelectiveSearchOptions, ...)
+    with pytest.raises(ConfigValueError, match="^SelectiveSearchOptions.strategy: 'best' is not "
+                                               "one of single, fast, quality$"):
         SelectiveSearch(strategy="best")
-    with pytest.raises(ProposalError, match="max_area"):
+    with pytest.raises(ConfigValueError, match=r"^EdgeBoxesOptions.max_area: 1.5 is not a number "
+                                               r"in \(0, 1\] or null$"):
         EdgeBoxes(max_area=1.5)
-    with pytest.raises(ProposalError, match="top_k"):
+    with pytest.raises(ConfigValueError, match="^SelectiveSearchOptions.top_k: 0 is not"):
         SelectiveSearch(top_k=0)
-    with pytest.raises(ProposalError, match="resize"):
+    with pytest.raises(ConfigValueError, match="^EdgeBoxesOptions.resize: 8 is not an integer "
+                                               ">= 32 or null$"):
         EdgeBoxes(resize=8)
+    with pytest.raises(ConfigValueError, match="^FileProposalsOptions.path: '' is not a path$"):
+        FileProposals("")
 
 
 def test_hydra_instantiate(tmp_path):

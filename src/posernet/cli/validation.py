@@ -6,14 +6,14 @@
    ``trainer``, ``sync``, the front end's ``proposals``/``matcher``/``box_matching``/
    ``relpose``, reconstruct's ``pairs``/``verify``/``bundle``/``check``, the demo's
    ``images``): type, range or choices, and that a required value (``???``) was given. A group
-   built from a dataclass (``bundle``, ``verify``, ``check``, ``pairs``, ``relpose``,
-   ``box_matching``, the sync backends' ``Options``) takes each key's rule from the field that
-   declares it (:func:`posernet.options.option`), so nothing about those options is written
-   here; a group built from a constructor (``matcher``, ``proposals``, ``data``,
-   ``model.net``) takes its keys and types from the signature (:func:`typed`,
-   :func:`targeted`) and its ranges from the tables below. Only the commands' own top-level
-   keys and the training sections (``model.loss``, ``trainer``, ...), which no dataclass
-   owns, are a schema of their own here;
+   built from a dataclass (``bundle``, ``verify``, ...) or from a constructor with an options
+   dataclass (its ``Options``: the sync backends, the matchers, the proposal sources; the
+   ``model`` sections: :data:`posernet.lit.refiner.SECTION_OPTIONS`) takes each key's rule from
+   the field that declares it (:func:`posernet.options.option`), so nothing about those
+   options is written here. Still tables here: ``data`` (the datamodule's keys and types from
+   its signature, :func:`targeted`, its ranges in :data:`DATA`), the Lightning ``trainer``
+   arguments (Lightning's, not the project's: :data:`TRAINER`) and the commands' own
+   top-level keys (:data:`COMMANDS`);
 2. what a group's own constructor checks across fields (the sync backend: its scale policy,
    gtsam installed; the demo's synthetic dataset options), by building it early;
 3. the machine: ``device=cuda`` (``trainer.accelerator=gpu``) needs CUDA;
@@ -173,26 +173,14 @@ Schema = Mapping[str, Rule]
 
 
 def _model(cfg: Any) -> Schema:
-    """``model``: the network's arguments from its constructor (:func:`typed`), the training
-    sections' values here."""
-    from ..nn import PoserNet
+    """``model``: each section's options dataclass (``net``: :class:`posernet.nn.PoserNetOptions`,
+    ``loss``/``optimizer``/``scheduler``: :mod:`posernet.lit.refiner`'s), each field with its
+    own rule. (``model=learned_sync`` has sections of its own: keys absent here are skipped.)"""
+    from ..lit.refiner import SECTION_OPTIONS
 
-    return {**typed(PoserNet, "net.", depth=integer(1), node_hidden=integer(1),
-                    edge_hidden=integer(0), mlp_hidden=integer(1), mlp_layers=integer(1),
-                    node_in=integer(1), head_hidden=integer(1)),
-            **MODEL_TRAINING}
+    return {f"{section}.{k}": r for section, owner in SECTION_OPTIONS.items()
+            for k, r in field_rules(owner).items()}
 
-
-#: the training sections of ``model`` (loss, optimizer, scheduler)
-MODEL_TRAINING: Schema = {
-    "loss.alpha": number(0), "loss.end_to_end": boolean(),
-    "loss.raw": number(0), "loss.confidence": number(0), "loss.correction": number(0),
-    "loss.harm": number(0), "loss.harm_scale": number(0),
-    "loss.relative_weight": number(0), "loss.absolute_weight": number(0),
-    "loss.position_weight": number(0), "optimizer.lr": positive(),
-    "optimizer.weight_decay": number(0), "scheduler.patience": integer(0),
-    "scheduler.factor": number(0, 1, lo_open=True, hi_open=True), "scheduler.min_lr": number(0),
-}
 
 #: ``data``: the datamodule's arguments (:func:`targeted`), with these ranges and choices
 DATA = targeted("data", {
@@ -215,7 +203,9 @@ def _mixture_ok(v: Any) -> bool:
         return False
     return True
 
-#: the Lightning Trainer arguments of posernet/conf/trainer/*.yaml (others pass through unchecked)
+#: the Lightning Trainer arguments of posernet/conf/trainer/*.yaml (others pass through
+#: unchecked). A table, not a dataclass: the arguments are Lightning's, which the project does
+#: not own, and Hydra passes them to ``lightning.Trainer`` as they are
 TRAINER: Schema = {
     "accelerator": choice("auto", "cpu", "gpu", "cuda", "mps"),
     "devices": one_of(Rule("", lambda v: is_int(v) and (v == -1 or v >= 1)), choice("auto"),
@@ -246,21 +236,11 @@ TRAINER: Schema = {
 #: own, checked by building it
 SYNC = targeted("sync")
 
-#: ``proposals``: the proposal source's arguments (:func:`targeted`), with these ranges
-PROPOSALS = targeted("proposals", {
-    "path": path(), "top_k": integer(1, null=True),
-    "max_area": number(0, 1, lo_open=True, null=True), "min_size": number(0),
-    "strategy": choice("single", "fast", "quality"), "resize": integer(32, null=True),
-})
-
-
-#: ``matcher``: the matcher's arguments (:func:`targeted`), with these ranges and choices
-MATCHER = targeted("matcher", {
-    "name": choice("auto", "sift", "xfeat", "xfeat+lighterglue"),
-    "max_features": integer(1), "ratio": number(0, 1, lo_open=True),
-    "contrast_threshold": number(0, 1), "min_features": integer(0), "top_k": integer(1),
-    "min_cossim": number(-1, 1), "device": DEVICE,
-})
+#: ``proposals`` and ``matcher``: each source's and matcher's options dataclass (its
+#: ``Options``: :class:`~posernet.frontend.proposals.SelectiveSearchOptions`,
+#: :class:`~posernet.frontend.features.SiftOptions`, ...), each field with its own rule
+PROPOSALS = targeted("proposals")
+MATCHER = targeted("matcher")
 
 
 #: the image front end's groups; those built from a dataclass (``box_matching``, ``relpose``)

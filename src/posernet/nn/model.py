@@ -18,14 +18,17 @@ parallel training requires.
 
 from __future__ import annotations
 
+import dataclasses
 import inspect
 import os
+from dataclasses import dataclass
 from typing import Any
 
 import torch
 from torch import Tensor, nn
 
 from ..geometry import quaternion_canonical, quaternion_normalize
+from ..options import check_options, option
 from .adaptive import (
     CYCLE_DIM,
     AdaptiveOutput,
@@ -36,7 +39,36 @@ from .adaptive import (
 )
 from .conv import PoserConv, check_module_inputs, graph_inputs, is_graph_input, validate_inputs
 
-__all__ = ["PoserNet"]
+__all__ = ["PoserNet", "PoserNetOptions"]
+
+
+@dataclass(frozen=True)
+class PoserNetOptions:
+    """The architecture options of :class:`PoserNet` (``model.net.*``; see there)."""
+
+    depth: int = option(2, ge=1, help="message-passing rounds")
+    node_in: int = option(4, ge=1, help="size of the node input (width, height, focal, k1)")
+    node_hidden: int = option(32, ge=1, help="node state size after each round")
+    edge_hidden: int = option(0, ge=0, help="hidden edge state per direction (0: the pose only)")
+    mlp_hidden: int = option(32, ge=1, help="units of each hidden layer of Psi_E / Psi_N")
+    mlp_layers: int = option(3, ge=1, help="linear layers per MLP")
+    negative_slope: float = option(0.01, help="leaky ReLU slope")
+    shared_weights: bool = option(False, help="one PoserConv reused by every round")
+    residual: bool = option(False, help="predict a correction composed with the input pose")
+    unit_output: bool = option(False, help="normalise the output quaternion and translation")
+    nested_mean: bool = option(True, help="the paper's nested mean for the node update")
+    gate: bool = option(False, help="a learned per-edge gate between input and prediction")
+    confidence: bool = option(False, help="a per-edge error-scale head")
+    cycle_feature: bool = option(False, help="input rotation cycle consistency as the initial "
+                                             "edge state (needs edge_hidden >= 3)")
+    head_hidden: int = option(32, ge=1, help="width of the gate / confidence MLP")
+
+    def __post_init__(self) -> None:
+        check_options(self)
+        if self.cycle_feature and self.edge_hidden < CYCLE_DIM:
+            raise ValueError(f"PoserNet cycle_feature=True needs edge_hidden >= {CYCLE_DIM} "
+                             f"(the cycle features are the initial edge state), got "
+                             f"edge_hidden={self.edge_hidden}")
 
 
 class PoserNet(nn.Module):
@@ -78,6 +110,8 @@ class PoserNet(nn.Module):
         (a list of ``depth`` of them, one per round, with ``return_all=True``).
     """
 
+    Options = PoserNetOptions
+
     def __init__(
         self,
         depth: int = 2,
@@ -97,12 +131,8 @@ class PoserNet(nn.Module):
         head_hidden: int = 32,
     ) -> None:
         super().__init__()
-        if depth < 1:
-            raise ValueError(f"PoserNet depth must be >= 1, got {depth}")
-        if cycle_feature and edge_hidden < CYCLE_DIM:
-            raise ValueError(f"PoserNet cycle_feature=True needs edge_hidden >= {CYCLE_DIM} "
-                             f"(the cycle features are the initial edge state), got "
-                             f"edge_hidden={edge_hidden}")
+        args = locals()
+        PoserNetOptions(**{f.name: args[f.name] for f in dataclasses.fields(PoserNetOptions)})
         self.edge_hidden = edge_hidden
         self.gate, self.confidence, self.cycle_feature = bool(gate), bool(confidence), \
             bool(cycle_feature)
