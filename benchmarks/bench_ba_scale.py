@@ -49,9 +49,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import table, write_results
 
 from posernet.metrics import absolute_pose_errors_per_camera
+from posernet.pinhole import look_at
 from posernet.sfm import BundleOptions, bundle_adjust_reconstruction
 from posernet.sfm.bundle import _Problem, _Schur
-from posernet.sfm.synthetic import SyntheticScene, _pair_matches, look_at_w2c, perturb_poses
+from posernet.sfm.synthetic import SyntheticScene, _pair_matches, perturb_poses
 from posernet.sfm.triangulation import triangulate_tracks
 
 NEVER = 10**9  # pcg_min_cameras that keeps the direct solve
@@ -69,8 +70,8 @@ def sweep_scene(n: int, points_per_camera: int = 40, views_per_lap: int = 8,
     angle = 2 * np.pi * laps * np.arange(n) / n
     half = np.pi * views_per_lap * laps / n  # half the angle a point is seen over, per lap
     up = np.array([0.0, -1.0, 0.0])
-    w2c = np.stack([look_at_w2c(4.0 * np.array([np.sin(a), 0.2 * np.sin(5 * a), -np.cos(a)]),
-                                np.zeros(3), up) for a in angle])
+    centres = 4.0 * np.stack([np.sin(angle), 0.2 * np.sin(5 * angle), -np.cos(angle)], 1)
+    w2c = look_at(centres, np.zeros_like(centres), up=up)
     by_home = np.argsort(home, kind="stable")
     home_sorted = home[by_home]
     uv, kp_point, oi, op, ok = [], [], [], [], []
