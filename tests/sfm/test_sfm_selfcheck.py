@@ -127,19 +127,23 @@ def test_thin_support_and_rotation_alone(ring) -> None:
     assert "could not verify" in out.line()
 
 
-def test_a_single_pair_whose_matches_do_not_join_the_points_fails(ring) -> None:
-    """Camera 0 rests on one agreeing pair: it passes while the points it sees account for
-    that pair's inliers, and fails when most of them did not join the 3D points (a wrong
-    two-view geometry fits its own matches, not the other cameras' points)."""
-    ev = evidence(ring)
+def single_pair(ev: PairEvidence, planar: np.ndarray | None = None) -> PairEvidence:
+    """``ev`` with camera 0 left with its first pair only (``planar``: per kept pair)."""
     mine = (ev.pairs == 0).any(1)
     keep = ~mine
     keep[np.flatnonzero(mine)[0]] = True
     sel = np.isin(ev.match_pair, np.flatnonzero(keep))
     remap = np.cumsum(keep) - 1
-    thin = PairEvidence(ev.pairs[keep], ev.R[keep], ev.t[keep], ev.rotation_only[keep],
+    return PairEvidence(ev.pairs[keep], ev.R[keep], ev.t[keep], ev.rotation_only[keep],
                         ev.weight[keep], remap[ev.match_pair[sel]], ev.x_a[sel], ev.x_b[sel],
-                        ev.focal[keep])
+                        ev.focal[keep], planar=planar)
+
+
+def test_a_single_pair_whose_matches_do_not_join_the_points_fails(ring) -> None:
+    """Camera 0 rests on one agreeing pair: it passes while the points it sees account for
+    that pair's inliers, and fails when most of them did not join the 3D points (a wrong
+    two-view geometry fits its own matches, not the other cameras' points)."""
+    thin = single_pair(evidence(ring))
     w0 = int(thin.weight[(thin.pairs == 0).any(1)][0])
     pts, img, pid = structure(ring)
     seen = np.flatnonzero(img == 0)
@@ -164,19 +168,13 @@ def test_a_camera_resting_on_one_planar_pair_fails(ring) -> None:
     when a homography explains its inliers (two relative poses fit a plane's matches), and a
     planar pair among several does not fail its cameras."""
     ev = evidence(ring)
-    mine = (ev.pairs == 0).any(1)
-    keep = ~mine
-    keep[np.flatnonzero(mine)[0]] = True
-    sel = np.isin(ev.match_pair, np.flatnonzero(keep))
-    remap = np.cumsum(keep) - 1
+    base = single_pair(ev)
 
     def thin(planar: np.ndarray) -> PairEvidence:
-        return PairEvidence(ev.pairs[keep], ev.R[keep], ev.t[keep], ev.rotation_only[keep],
-                            ev.weight[keep], remap[ev.match_pair[sel]], ev.x_a[sel],
-                            ev.x_b[sel], ev.focal[keep], planar=planar)
+        return single_pair(ev, planar)
 
-    single = (ev.pairs[keep] == 0).any(1)
-    out = check_reconstruction(ring.w2c, np.ones(12, bool), thin(np.zeros(keep.sum(), bool)))
+    single = (base.pairs == 0).any(1)
+    out = check_reconstruction(ring.w2c, np.ones(12, bool), thin(np.zeros(len(single), bool)))
     assert out.passed.all()
     out = check_reconstruction(ring.w2c, np.ones(12, bool), thin(single))
     assert out.failed.tolist() == [i == 0 for i in range(12)]
