@@ -8,8 +8,8 @@
    ``images``): type, range or choices, and that a required value (``???``) was given. A group
    built from a dataclass (``bundle``, ``verify``, ...) or from a constructor with an options
    dataclass (its ``Options``: the sync backends, the matchers, the proposal sources; the
-   ``model`` sections: :data:`posernet.lit.refiner.SECTION_OPTIONS`) takes each key's rule from
-   the field that declares it (:func:`posernet.options.option`), so nothing about those
+   ``model`` sections: :data:`posernet.lit.posernet_module.SECTION_OPTIONS`) takes each key's
+   rule from the field that declares it (:func:`posernet.options.option`), so nothing about those
    options is written here. Still tables here: ``data`` (the datamodule's keys and types from
    its signature, :func:`targeted`, its ranges in :data:`DATA`), the Lightning ``trainer``
    arguments (Lightning's, not the project's: :data:`TRAINER`) and the commands' own
@@ -173,10 +173,11 @@ Schema = Mapping[str, Rule]
 
 
 def _model(cfg: Any) -> Schema:
-    """``model``: each section's options dataclass (``net``: :class:`posernet.nn.PoserNetOptions`,
-    ``loss``/``optimizer``/``scheduler``: :mod:`posernet.lit.refiner`'s), each field with its
-    own rule. (``model=learned_sync`` has sections of its own: keys absent here are skipped.)"""
-    from ..lit.refiner import SECTION_OPTIONS
+    """``model``: each section's options dataclass (``net``:
+    :class:`posernet.nn.PoserNetOptions`, ``loss``/``optimizer``/``scheduler``:
+    :mod:`posernet.lit.posernet_module`'s), each field with its own rule.
+    (``model=learned_sync`` has sections of its own: keys absent here are skipped.)"""
+    from ..lit.posernet_module import SECTION_OPTIONS
 
     return {f"{section}.{k}": r for section, owner in SECTION_OPTIONS.items()
             for k, r in field_rules(owner).items()}
