@@ -11,9 +11,8 @@ Solvers:
 * ``lm-schur`` -- :func:`posernet.sfm.bundle_adjust`, the default: Levenberg-Marquardt with
   exact Schur-complement steps (dense reduced camera system, scipy Cholesky), the observations
   reweighted every iteration with a graduated loss scale, analytic sparse Jacobian;
-* ``scipy-irls`` -- the same reweighting around scipy ``least_squares`` trf + lsmr
-  (``robust="irls"``);
-* ``scipy-loss`` -- the same problem with scipy's own robust loss (``robust="scipy"``);
+  (scipy's trf, reweighted or with its own robust loss, stood beside it until it lost on
+  every problem here: ``benchmarks/results/ba.md`` keeps that run);
 * ``gtsam`` -- projection factors with a robust Cauchy noise model, Levenberg-Marquardt
   (optional: ``pip install gtsam``);
 * ``pycolmap`` -- COLMAP's Ceres bundle adjuster through pycolmap (optional).
@@ -130,9 +129,8 @@ class Problem:
                 "pos_max": float(pos.max()), "pos_mean": float(pos.mean())}
 
 
-def run_scipy(pb: Problem, args: argparse.Namespace, robust: str) -> dict[str, object]:
-    opt = BundleOptions(loss="cauchy", f_scale=args.f_scale, max_nfev=args.max_iters * 5,
-                        robust=robust)
+def run_posernet(pb: Problem, args: argparse.Namespace) -> dict[str, object]:
+    opt = BundleOptions(loss="cauchy", f_scale=args.f_scale, max_nfev=args.max_iters * 5)
     t0 = time.perf_counter()
     res = bundle_adjust(pb.w2c0, pb.points0, pb.scene.K, pb.xy, pb.obs_image, pb.obs_point,
                         opt, fixed_cameras=np.array([pb.fixed]))
@@ -261,9 +259,7 @@ def _version(dist: str) -> str:
 
 def solvers(args: argparse.Namespace) -> dict[str, object]:
     out: dict[str, object] = {
-        "lm-schur": lambda pb: run_scipy(pb, args, "lm"),
-        "scipy-irls": lambda pb: run_scipy(pb, args, "irls"),
-        "scipy-loss": lambda pb: run_scipy(pb, args, "scipy"),
+        "lm-schur": lambda pb: run_posernet(pb, args),
     }
     out["gtsam"] = (lambda pb: run_gtsam(pb, args)) if gtsam is not None else None
     out["pycolmap"] = (lambda pb: run_pycolmap(pb, args)) if pycolmap is not None else None

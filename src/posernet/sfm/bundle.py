@@ -1,11 +1,13 @@
-"""Robust bundle adjustment: Levenberg-Marquardt with exact Schur-complement steps (default),
-or :func:`scipy.optimize.least_squares`; analytic sparse Jacobian.
+"""Robust bundle adjustment: Levenberg-Marquardt with exact Schur-complement steps, reweighted
+by a per-observation robust loss; analytic sparse Jacobian. (Two scipy-based solvers that
+stood beside it lost on every problem of ``benchmarks/bench_ba.py``: slower at equal
+accuracy, or less accurate, and were removed.)
 
 Unknowns: per camera a rotation increment ``w`` (angle-axis, ``R = exp(w) R_0``: starts at 0,
 stays far from the pi wrap of a rotation vector) and translation ``t``; per point ``X``;
 optionally a log focal scale (one shared or one per camera, ``fx, fy, skew`` scaled by
 ``exp(s)``). Residuals: undistorted pixel minus projection, 2 per observation, in pixels; the
-robust loss (scipy's, applied per residual component) uses ``f_scale`` in pixels.
+robust loss (on each observation's 2D error) uses ``f_scale`` in pixels.
 
 Gauge: one camera per connected component (cameras linked by shared points) keeps its pose;
 the global scale is left free (the Jacobian has one null direction that the trust region
@@ -45,8 +47,6 @@ GAUGES: tuple[str, ...] = ("max_degree", "first")
 #: is still in doubt; kept: the most refined cameras seeing their points at a useful angle,
 #: then the most observations explained)
 STARTS: tuple[str, ...] = ("auto", "averaged", "positioning", "incremental")
-#: the solvers of ``robust``
-ROBUST_SOLVERS: tuple[str, ...] = ("lm", "irls", "scipy")
 
 
 @dataclass
@@ -62,12 +62,7 @@ class BundleOptions:
     ``accept_unconverged`` (keep an improved but unconverged result instead of the input),
     ``anneal_factor`` (robust losses start with ``f_scale`` at this many times the median
     error and shrink it to ``f_scale`` in stages, divided by ``anneal_step`` per stage; 0 turns
-    this off), ``robust`` (the solver; ``"lm"``: Levenberg-Marquardt with exact
-    Schur-complement steps, reweighted every iteration by a per-observation loss, converged
-    when a step lowers the robust cost by less than ``irls_tol`` of it; ``"irls"``: the same
-    reweighting around scipy's trf, ``max_outer`` passes of at most
-    ``inner_nfev`` trf evaluations, converged when a pass lowers the robust cost by less than
-    ``irls_tol`` of it; ``"scipy"``: scipy's per-coordinate robust loss).
+    this off).
 
     Orchestrator: ``max_reproj_px`` (observations above it after a BA are dropped; also the
     triangulation filter of later rounds), ``initial_reproj_factor`` (first triangulation, from
@@ -80,7 +75,7 @@ class BundleOptions:
     must explain, every camera refined, for the incremental start not to be tried) and
     ``incremental_max_cameras`` (larger components start from the averaged poses only).
 
-    ``pcg_min_cameras``: ``robust="lm"`` solves the reduced camera system of problems with at
+    ``pcg_min_cameras``: the solver solves the reduced camera system of problems with at
     least this many variable cameras by conjugate gradients on the implicit Schur complement
     (block-Jacobi preconditioner) instead of a dense Cholesky factorisation, whose cost grows
     with the cube of the cameras (0: always, a huge value: never).
@@ -91,9 +86,8 @@ class BundleOptions:
     f_scale: float = option(2.0, gt=0, help="px: errors beyond this are down-weighted")
     max_nfev: int = option(1000, ge=1, help="solver evaluations per adjustment; reaching it = "
                            "not converged")
-    ftol: float = option(1e-6, gt=0, help="scipy: relative cost change to stop at")
-    xtol: float = option(1e-10, gt=0, help="scipy: relative step size to stop at")
-    gtol: float = option(1e-10, gt=0, help="scipy: gradient norm to stop at")
+    xtol: float = option(1e-10, gt=0, help="converged when a step is below this share of the "
+                         "parameters")
     refine_focal: str = option("none", choices=FOCAL_MODES,
                                help="focal lengths refined with the poses; auto: refine "
                                     "guessed intrinsics, keep given ones")
@@ -103,12 +97,8 @@ class BundleOptions:
     anneal_factor: float = option(3.0, ge=0, help="robust losses start at this many times the "
                                   "median error (0: off)")
     anneal_step: float = option(4.0, gt=1, help="... and divide f_scale by this per stage")
-    robust: str = option("lm", choices=ROBUST_SOLVERS,
-                         help="solver: lm (Schur LM), irls (around scipy's trf), scipy")
-    max_outer: int = option(100, ge=1, help="irls: reweighting passes")
     irls_tol: float = option(1e-5, gt=0, help="converged when a step lowers the robust cost by "
                              "less than this share")
-    inner_nfev: int = option(10, ge=1, help="irls: trf evaluations per pass")
     max_reproj_px: float = option(4.0, gt=0, help="observations still above this after an "
                                   "adjustment are dropped")
     initial_reproj_factor: float = option(3.0, gt=0, help="first triangulation: tracks kept "
@@ -661,53 +651,6 @@ def _stats(err: np.ndarray) -> tuple[float, float]:
     return float(np.median(err)), float(np.mean(err))
 
 
-def _solve_irls(prob: _Problem, x0: np.ndarray, med0: float, opt: BundleOptions
-                ) -> tuple[np.ndarray, np.ndarray, int, bool, str]:
-    """Iteratively reweighted least squares around scipy's trf (linear loss, sparse lsmr).
-
-    Each outer pass fixes per-observation weights ``rho'(|e|^2 / f^2)`` and runs a few trf
-    iterations on the weighted residuals; for the losses here this never raises the robust
-    cost (majorise-minimise). Graduated robustness: ``f`` starts at ``anneal_factor`` times the
-    median error (from poses degrees off, every residual would sit on the flat tail of the
-    loss and the solver would stop at once) and shrinks by ``anneal_step`` each pass down to
-    ``f_scale``.
-    Returns ``x``, unweighted residuals, evaluations used, converged flag, message.
-    """
-    from scipy.optimize import least_squares  # only this solver needs it (import ~0.15 s)
-
-    x = x0
-    r = prob.residuals(x)
-    fs = opt.f_scale
-    if opt.anneal_factor > 0 and opt.loss != "linear":
-        fs = max(opt.f_scale, opt.anneal_factor * med0)
-    nfev, prev = 1, np.inf
-    for _ in range(opt.max_outer):
-        e2 = (r.reshape(-1, 2) ** 2).sum(1)
-        sw = np.repeat(np.sqrt(_rho(e2 / fs**2, opt.loss)[1]), 2)
-
-        def fun(x: np.ndarray, sw: np.ndarray = sw) -> np.ndarray:
-            return sw * prob.residuals(x)
-
-        def jac(x: np.ndarray, sw: np.ndarray = sw) -> csr_matrix:
-            return prob.jacobian(x, sw)
-
-        budget = opt.max_nfev - nfev
-        if budget < 1:
-            return x, r, nfev, False, "evaluation budget used up"
-        res = least_squares(fun, x, jac=jac, method="trf", x_scale="jac", ftol=opt.ftol,
-                            xtol=opt.xtol, gtol=opt.gtol, tr_solver="lsmr",
-                            max_nfev=min(budget, opt.inner_nfev))
-        nfev += int(res.nfev)
-        x = res.x
-        r = prob.residuals(x)
-        cost = _robust_cost(r, opt.loss, opt.f_scale)
-        if fs <= opt.f_scale and (prev - cost) <= opt.irls_tol * max(cost, 1e-300):
-            return x, r, nfev, True, "robust cost converged (IRLS)"
-        prev = cost if fs <= opt.f_scale else np.inf
-        fs = max(opt.f_scale, fs / opt.anneal_step)
-    return x, r, nfev, False, f"max_outer={opt.max_outer} IRLS passes reached"
-
-
 def _spread(prob: _Problem, x: np.ndarray) -> float:
     """Mean distance of the variable cameras' centres from the gauge camera's."""
     _, R, t, _, _ = prob.unpack(x)
@@ -741,9 +684,10 @@ def _solve_lm(prob: _Problem, x0: np.ndarray, med0: float, opt: BundleOptions
     Gauss-Newton step (:class:`_Schur`), accepted when it lowers the robust cost at ``f``.
     Exact reduced solves keep their accuracy on ill-conditioned problems (long focal lengths,
     where rotation and translation nearly trade off) on which an iterative trust-region solve
-    stalls. ``f`` anneals from ``anneal_factor`` x the median error to ``f_scale`` as in
-    :func:`_solve_irls`. Converged when a step at the final ``f`` lowers the cost by less than
-    ``irls_tol`` of it (or the step is below ``xtol``). Returns as :func:`_solve_irls`.
+    stalls. ``f`` anneals from ``anneal_factor`` x the median error to ``f_scale``, divided by
+    ``anneal_step`` per stage (graduated robustness). Converged when a step at the final ``f``
+    lowers the cost by less than ``irls_tol`` of it (or the step is below ``xtol``). Returns
+    the parameters, the residuals, the evaluations used, whether it converged and why.
     """
     n_cam, n_pt = 6 * prob.var_cam.size, prob.var_pt.size
     x = x0
@@ -797,31 +741,6 @@ def _solve_lm(prob: _Problem, x0: np.ndarray, med0: float, opt: BundleOptions
         elif small:
             return x, r, nfev, True, "robust cost converged (LM)"
     return x, r, nfev, False, "evaluation budget used up"
-
-
-def _solve_scipy_loss(prob: _Problem, x0: np.ndarray, med0: float, opt: BundleOptions
-                      ) -> tuple[np.ndarray, np.ndarray, int, bool, str]:
-    """scipy's own robust loss (applied per residual coordinate), with the same graduated
-    ``f_scale``. Kept for comparison: slower and less accurate than IRLS in
-    ``benchmarks/bench_ba.py``."""
-    from scipy.optimize import least_squares
-
-    x = x0
-    fs = opt.f_scale
-    if opt.anneal_factor > 0 and opt.loss != "linear":
-        fs = max(opt.f_scale, opt.anneal_factor * med0)
-    nfev = 0
-    while True:
-        res = least_squares(prob.residuals, x, jac=prob.jacobian, method="trf", loss=opt.loss,
-                            f_scale=fs, x_scale="jac", max_nfev=max(1, opt.max_nfev - nfev),
-                            ftol=opt.ftol, xtol=opt.xtol, gtol=opt.gtol, tr_solver="lsmr")
-        nfev += int(res.nfev)
-        x = res.x
-        if fs <= opt.f_scale or res.status <= 0 or nfev >= opt.max_nfev:
-            break
-        fs = max(opt.f_scale, fs / opt.anneal_step)
-    converged = bool(res.status > 0) and fs <= opt.f_scale
-    return x, res.fun, nfev, converged, str(res.message)
 
 
 def bundle_adjust(w2c: np.ndarray, points: np.ndarray, K: np.ndarray, xy: np.ndarray,
@@ -887,7 +806,7 @@ def bundle_adjust(w2c: np.ndarray, points: np.ndarray, K: np.ndarray, xy: np.nda
     if prob.n_params == 0:
         return fail("nothing to optimise (all cameras fixed, no points)", err0, cost0, fixed)
     try:
-        solve = {"lm": _solve_lm, "irls": _solve_irls, "scipy": _solve_scipy_loss}[opt.robust]
+        solve = _solve_lm
         x, r1, nfev, converged, msg = solve(prob, x0, med0, opt)
     except (ValueError, np.linalg.LinAlgError, FloatingPointError) as exc:
         return fail(f"solver error: {exc}", err0, cost0, fixed)
