@@ -925,25 +925,23 @@ def pair_set(s: ImageSet, a: str, b: str, work: Path) -> ImageSet:
 
 def pair_error(gt_c2w: dict[str, np.ndarray], est_w2c: dict[str, np.ndarray], a: str, b: str
                ) -> tuple[float, float]:
-    """Relative rotation error and *signed* translation-direction error (deg) of the
-    estimated pair ``a -> b`` (a direction pointing backwards is 180 deg off, not 0); both
-    ``inf`` when either camera is not placed."""
+    """Relative rotation error and translation-direction error (deg) of the estimated pair
+    ``a -> b`` by :func:`posernet.metrics.relative_pose_errors`, as every other relative error
+    here; the direction is compared signed (a direction pointing backwards is 180 deg off).
+    Both ``inf`` when either camera is not placed, the direction when it is undefined."""
+    import torch
+
+    from posernet.geometry import invert_se3, matrix_to_pose_vec
+    from posernet.metrics import relative_pose_errors
+
     if a not in est_w2c or b not in est_w2c:
         return math.inf, math.inf
-    gt = {k: np.linalg.inv(gt_c2w[k]) for k in (a, b)}
-
-    def rel(P: dict[str, np.ndarray]) -> np.ndarray:
-        return P[b] @ np.linalg.inv(P[a])
-
-    E, G = rel(est_w2c), rel(gt)
-    rot = rotation_angle_deg(np.eye(4), np.block([[E[:3, :3] @ G[:3, :3].T, np.zeros((3, 1))],
-                                                 [np.zeros((1, 3)), np.ones((1, 1))]]))
-    te, tg = E[:3, 3], G[:3, 3]
-    ne, ng = np.linalg.norm(te), np.linalg.norm(tg)
-    if ne < 1e-12 or ng < 1e-12:
-        return rot, math.inf
-    tdir = float(np.degrees(np.arccos(np.clip(te @ tg / (ne * ng), -1.0, 1.0))))
-    return rot, tdir
+    est = torch.as_tensor(np.stack([est_w2c[a], est_w2c[b]]), dtype=torch.float64)
+    gt = invert_se3(torch.as_tensor(np.stack([gt_c2w[a], gt_c2w[b]]), dtype=torch.float64))
+    rot, tdir = relative_pose_errors(matrix_to_pose_vec(est[1:] @ invert_se3(est[:1])),
+                                     matrix_to_pose_vec(gt[1:] @ invert_se3(gt[:1])))
+    r, t = float(rot[0]), float(tdir[0])
+    return (r if math.isfinite(r) else math.inf), (t if math.isfinite(t) else math.inf)
 
 
 def pose_auc(errors: list[float], thresholds: tuple[float, ...] = PAIR_AUC_DEG) -> list[float]:
