@@ -118,8 +118,13 @@ def test_sync_backend_on_cuda_matches_cpu(name: str, learned_ckpt: Path) -> None
             assert gpu.poses.device.type == "cuda", what
             assert torch.equal(gpu.solved.cpu(), cpu.solved), what
             assert torch.equal(gpu.component.cpu(), cpu.component), what
+            # where the edges leave positions free (a camera on one edge), the answer is the
+            # ridge's choice, fixed to about 1e-5 by float64 round-off
+            free = cpu.info.get("parallel_rigid") is not None and not bool(
+                cpu.info["parallel_rigid"].all())
             torch.testing.assert_close(gauge_free(gpu.poses, gpu.component),
-                                       gauge_free(cpu.poses, cpu.component), atol=tol, rtol=0,
+                                       gauge_free(cpu.poses, cpu.component),
+                                       atol=max(tol, 1e-4) if free else tol, rtol=0,
                                        msg=lambda m, what=what: f"{what}: {m}")
             torch.testing.assert_close(gpu.edge_weight.cpu(), cpu.edge_weight, atol=tol,
                                        rtol=0, msg=lambda m, what=what: f"{what}: {m}")

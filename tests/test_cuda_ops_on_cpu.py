@@ -8,7 +8,10 @@ to fail where CUDA fails:
 * ops without a deterministic CUDA kernel, which raise under
   ``torch.use_deterministic_algorithms(True)`` (Lightning's ``deterministic=True``):
   ``median`` with indices, floating ``cumsum``, weighted ``bincount``, ``histc``, ``put_``,
-  ``scatter_reduce(reduce="prod")``, ``nll_loss`` / ``cross_entropy``.
+  ``scatter_reduce(reduce="prod")``, ``nll_loss`` / ``cross_entropy``;
+* answers that hang on round-off, so that the GPU's different arithmetic gives another
+  answer: the inputs are moved by far less than a float32 network's device difference and the
+  outputs must follow by about as little.
 
 Every path runs under deterministic algorithms, so both kinds raise here as on a GPU. The
 CUDA tests themselves (``tests/test_cuda.py``) need a GPU.
@@ -236,3 +239,53 @@ def test_training_and_validation_steps(kind: str, cuda_semantics: None) -> None:
     with torch.no_grad():
         assert torch.isfinite(module.validation_step(batch, 0))
     module.on_validation_epoch_end()
+
+
+# --------------------------------------------------------------------------- round-off
+
+
+def _gauge_free(poses: torch.Tensor, component: torch.Tensor) -> torch.Tensor:
+    """``M_i M_a^{-1}`` (``a`` the first camera of ``i``'s component) of ``poses [N, 4, 4]``."""
+    first = {int(c): int((component == c).nonzero()[0]) for c in component.unique()}
+    anchor = torch.stack([poses[first[int(c)]] for c in component])
+    return poses.double() @ torch.linalg.inv(anchor.double())
+
+
+def test_positions_a_graph_leaves_free_do_not_hang_on_round_off() -> None:
+    # Graph 1 of sync_graphs has a 4-camera component with one camera on a single edge: the
+    # directions do not fix its distance. The answer is the ridge's choice, not one that the
+    # refinement against the unridged system drifts to by round-off / ridge (a 1e-15 move of
+    # the input once moved the positions by 0.036, and CUDA answered 0.036 away).
+    batch = GraphBatch.from_graphs(sync_graphs())
+    be = get_backend("rotation_translation")
+    a = be.solve_with_info(batch, batch.edge_pose)
+    assert a.info["parallel_rigid"].tolist() == [True, False, True]
+    gen = torch.Generator().manual_seed(1)
+    for eps in (1e-15, 1e-13, 1e-11):
+        moved = batch.edge_pose + eps * torch.randn(batch.edge_pose.shape, generator=gen,
+                                                    dtype=batch.edge_pose.dtype)
+        b = be.solve_with_info(batch, moved)
+        diff = (_gauge_free(a.poses, a.component) - _gauge_free(b.poses, b.component)).abs()
+        assert float(diff.max()) < 1e-4, eps
+
+
+def test_guarded_refinement_does_not_hang_on_round_off() -> None:
+    # The guarded, weighted refinement with rotation_translation on small random graphs: an
+    # input moved by 1e-6 (float32's device difference) once moved cameras by up to 2.0.
+    from posernet.refinement import refine_graphs
+
+    torch.manual_seed(0)
+    model = PoserNet(depth=2, **ADAPTIVE)
+    gen = torch.Generator().manual_seed(1)
+    moved = net_graphs(6)
+    for g in moved:
+        g.edge_pose = g.edge_pose + 1e-6 * torch.randn(g.edge_pose.shape, generator=gen)
+        g.estimates = {"kp": g.edge_pose, "bb": g.edge_pose}
+    a, b = (refine_graphs(model, gs, backend=get_backend("rotation_translation"),
+                          progress=False, batch_size=4, guard=True, weighted=True)
+            for gs in (net_graphs(6), moved))
+    for stage in ("initial", "refined"):
+        for k in range(6):
+            diff = (_gauge_free(a.absolute[stage][k], a.component[stage][k])
+                    - _gauge_free(b.absolute[stage][k], b.component[stage][k])).abs()
+            assert float(diff.max()) < 1e-3, (stage, k)

@@ -34,7 +34,8 @@ convention ``t_e = t_j - R_j R_i^T t_i = -R_j (c_j - c_i)``, edge ``e`` says
   of squared sines, the Huber factor (MAD threshold) bounds the influence of outliers. Huber,
   not Cauchy: on small graphs a redescending loss can switch off enough edges to lose parallel
   rigidity (measured: worse medians on noisy 8-node graphs). The output gauge is centroid 0
-  and RMS distance 1 to the centroid: evaluate with a similarity alignment.
+  and RMS distance 1 to the centroid, axes those of each component's first camera: evaluate
+  with a similarity alignment.
 * ``scale`` in ``unit`` / ``given`` / ``oracle``: metric least squares
   ``min sum_e a_e |c_j - c_i - u_e|^2``, ``sum_i c_i = 0`` (weighted graph Laplacian), with the
   same Cauchy IRLS on ``|c_j - c_i - u_e|``.
@@ -246,16 +247,21 @@ def translations_from_directions(prob: PaddedProblem, R: Tensor, iters: int, rob
     vm = prob.node_mask.to(dt)
     a = emask.to(dt) if w0 is None else torch.where(emask, w0.to(dt), torch.zeros_like(w0))
     c = torch.zeros(G, n, 3, dtype=dt, device=dev)
+    sparse = use_sparse(n, dev)
+    # The ridge's bias is refined away only where the edges fix the positions: elsewhere the
+    # refinement walks along the null space by round-off / ridge, so the answer would depend on
+    # the device's arithmetic instead of being the ridge's (minimum-norm-like) choice.
+    exact = None if sparse else parallel_rigid(prob, emask)
     for it in range(iters if robust else 1):
         aP = a[..., None, None] * P
-        if use_sparse(n, dev):
+        if sparse:
             C = _constraint_rows(prob, a, d, vm)
             # large components come one per group (split_by_size): a loop of one or few
             c_new = torch.stack([
                 _kkt_solve_sparse(prob.src[g], prob.dst[g], aP[g], C[g], bool(empty[g]),
                                   float(a[g].sum()), ridge_rel, vm[g]) for g in range(G)])
         else:
-            c_new = _kkt_solve_dense(prob, aP, a, d, vm, empty, ridge_rel)
+            c_new = _kkt_solve_dense(prob, aP, a, d, vm, empty, ridge_rel, exact)
         change = float((c_new - c).abs().max())
         c = c_new
         if not robust:
@@ -275,6 +281,10 @@ def translations_from_directions(prob: PaddedProblem, R: Tensor, iters: int, rob
     return c / rms.sqrt().clamp_min(1e-300)[:, None, None]
 
 
+#: relative ridge of a component whose edges do not fix its positions
+NONRIGID_RIDGE = 1e-10
+
+
 def _constraint_rows(prob: PaddedProblem, a: Tensor, d: Tensor, vm: Tensor) -> Tensor:
     """``[G, 4, 3n]``: sum_i c_i = 0 (3 rows) and sum_e a_e d_e . (c_j - c_i) = sum_e a_e."""
     G, n = prob.G, prob.n
@@ -286,9 +296,10 @@ def _constraint_rows(prob: PaddedProblem, a: Tensor, d: Tensor, vm: Tensor) -> T
 
 
 def _kkt_solve_dense(prob: PaddedProblem, aP: Tensor, a: Tensor, d: Tensor, vm: Tensor,
-                     empty: Tensor, ridge_rel: float) -> Tensor:
+                     empty: Tensor, ridge_rel: float, exact: Tensor) -> Tensor:
     """One weighted solve of :func:`translations_from_directions`, dense and batched
-    (``aP [G, m, 3, 3]``: each edge's weight times its projector): the centres ``[G, n, 3]``."""
+    (``aP [G, m, 3, 3]``: each edge's weight times its projector): the centres ``[G, n, 3]``.
+    ``exact [G]`` bool: remove the ridge's bias (components whose edges fix the positions)."""
     G, n = prob.G, prob.n
     dt, dev = a.dtype, a.device
     size = 3 * n + 4
@@ -307,13 +318,19 @@ def _kkt_solve_dense(prob: PaddedProblem, aP: Tensor, a: Tensor, d: Tensor, vm: 
     rhs = torch.zeros(G, size, 1, dtype=dt, device=dev)
     rhs[:, -1, 0] = a.sum(1)
     # A small ridge keeps non-parallel-rigid graphs solvable (minimum-norm-like answer);
-    # two steps of iterative refinement against the unridged system remove its bias.
+    # two steps of iterative refinement against the unridged system remove its bias where the
+    # graph is rigid.
     ridge = torch.zeros(G, size, dtype=dt, device=dev)
-    ridge[:, :3 * n] = (ridge_rel * scale)[:, None] * vm.repeat_interleave(3, dim=1)
+    # where the positions are not fixed, a ridge well above round-off makes that choice one
+    # answer on every device (its bias, 1e-6 of the scale, is below any position's accuracy)
+    rel = torch.where(exact, torch.full_like(scale, ridge_rel),
+                      torch.full_like(scale, max(ridge_rel, NONRIGID_RIDGE)))
+    ridge[:, :3 * n] = (rel * scale)[:, None] * vm.repeat_interleave(3, dim=1)
     LU, piv = torch.linalg.lu_factor(A + torch.diag_embed(ridge))
     sol = torch.linalg.lu_solve(LU, piv, rhs)
+    step = exact.to(dt)[:, None, None]
     for _ in range(2):
-        sol = sol + torch.linalg.lu_solve(LU, piv, rhs - A @ sol)
+        sol = sol + step * torch.linalg.lu_solve(LU, piv, rhs - A @ sol)
     return sol.squeeze(-1)[:, :3 * n].view(G, n, 3) * vm[..., None]
 
 
@@ -528,6 +545,12 @@ class RotationTranslation(SyncBackend):
         else:
             keep = None if w_t is None else w_t > 0
             c = translations_metric(prob, R, o.translation_iters, o.robust, o.theta, keep)
+        # One gauge on every device: the world axes are those of each component's first camera.
+        # The spectral rotations' gauge is an eigenbasis, which round-off alone can turn (a
+        # 1e-13 move of the input turned every camera by 90+ deg, residuals unchanged).
+        R0 = R[:, :1]
+        R = R @ R0.mT
+        c = (R0 @ c[..., None]).squeeze(-1)
         t = -(R @ c[..., None]).squeeze(-1)
         poses, solved, w, it, cv = assemble(struct, comps, prob, R, t, w_edge, iters, conv,
                                             edge_pose.dtype, edge_pose.device)
