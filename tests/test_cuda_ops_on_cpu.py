@@ -270,22 +270,25 @@ def test_positions_a_graph_leaves_free_do_not_hang_on_round_off() -> None:
 
 
 def test_guarded_refinement_does_not_hang_on_round_off() -> None:
-    # The guarded, weighted refinement with rotation_translation on small random graphs: an
-    # input moved by 1e-6 (float32's device difference) once moved cameras by up to 2.0.
+    # The guarded, weighted refinement with rotation_translation on small random graphs, some
+    # of them not parallel rigid: an input moved by float32's round-off (what CUDA's
+    # arithmetic does to the network's confidence weights) once moved cameras by 1.5.
     from posernet.refinement import refine_graphs
 
     torch.manual_seed(0)
     model = PoserNet(depth=2, **ADAPTIVE)
-    gen = torch.Generator().manual_seed(1)
-    moved = net_graphs(6)
-    for g in moved:
-        g.edge_pose = g.edge_pose + 1e-6 * torch.randn(g.edge_pose.shape, generator=gen)
-        g.estimates = {"kp": g.edge_pose, "bb": g.edge_pose}
-    a, b = (refine_graphs(model, gs, backend=get_backend("rotation_translation"),
-                          progress=False, batch_size=4, guard=True, weighted=True)
-            for gs in (net_graphs(6), moved))
-    for stage in ("initial", "refined"):
-        for k in range(6):
-            diff = (_gauge_free(a.absolute[stage][k], a.component[stage][k])
-                    - _gauge_free(b.absolute[stage][k], b.component[stage][k])).abs()
-            assert float(diff.max()) < 1e-3, (stage, k)
+    ref = refine_graphs(model, net_graphs(6), backend=get_backend("rotation_translation"),
+                        progress=False, batch_size=4, guard=True, weighted=True)
+    for seed, eps in ((1, 1e-7), (3, 1e-7), (1, 1e-6)):
+        gen = torch.Generator().manual_seed(seed)
+        moved = net_graphs(6)
+        for g in moved:
+            g.edge_pose = g.edge_pose + eps * torch.randn(g.edge_pose.shape, generator=gen)
+            g.estimates = {"kp": g.edge_pose, "bb": g.edge_pose}
+        out = refine_graphs(model, moved, backend=get_backend("rotation_translation"),
+                            progress=False, batch_size=4, guard=True, weighted=True)
+        for stage in ("initial", "refined"):
+            for k in range(6):
+                diff = (_gauge_free(ref.absolute[stage][k], ref.component[stage][k])
+                        - _gauge_free(out.absolute[stage][k], out.component[stage][k])).abs()
+                assert float(diff.max()) < 1e-3, (seed, eps, stage, k)

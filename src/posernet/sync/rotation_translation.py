@@ -485,11 +485,20 @@ def translation_stage(prob: PaddedProblem, R: Tensor, o: RotationTranslationOpti
                 c = torch.where(ok[:, None, None], c2, c)
                 w = torch.where(ok[:, None], w2, w)
                 keep = keep2
+    rigid = parallel_rigid(prob, keep)
+    if not bool(rigid.all()):
+        # Where the kept edges leave positions free, every reweighting reads lengths the data
+        # do not fix (1 / |b|^2, residual angles of free edges), so the robust answers go
+        # wherever round-off sends them (float32 confidence weights on CPU vs CUDA: cameras
+        # 1.5 apart). Such a component gets the one linear solve: one answer, the ridge's.
+        km = keep.to(R.dtype)
+        c_lin = translations_from_directions(prob, R, 1, False, o.theta, w0=w_start * km)
+        c = torch.where(rigid[:, None, None], c, c_lin)
+        w = torch.where(rigid[:, None], w, km * w_start)
     return TranslationStage(
         c=c, usable=usable, rotation_outlier=rot_out, direction_outlier=dir_out, used=keep,
         weight=torch.where(keep, w, torch.zeros_like(w)), rotation_residual=rot_res,
-        direction_residual=direction_residual_deg(prob, c, d), rigid=parallel_rigid(prob, keep),
-        fallback=fallback)
+        direction_residual=direction_residual_deg(prob, c, d), rigid=rigid, fallback=fallback)
 
 
 class RotationTranslation(SyncBackend):
