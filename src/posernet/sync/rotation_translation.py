@@ -49,6 +49,7 @@ solvers for the linear KKT system and the parallel-rigidity test, whose dense fo
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -226,13 +227,15 @@ def translations_metric(prob: PaddedProblem, R: Tensor, iters: int, robust: bool
 
 def translations_from_directions(prob: PaddedProblem, R: Tensor, iters: int, robust: bool,
                                  theta: float, ridge_rel: float = 1e-10,
-                                 w0: Tensor | None = None) -> Tensor:
+                                 w0: Tensor | None = None,
+                                 rigid: Callable[[Tensor], Tensor] | None = None) -> Tensor:
     """Scale-free camera centres ``[G, n, 3]`` (centroid 0, RMS radius 1) from directions.
 
     See the module docstring for the objective, constraints and reweighting. ``w0 [G, m]``:
     optional starting edge weights (per-edge confidence; uniform when omitted); an edge with
     ``w0 = 0`` is left out entirely (it has no usable direction or was pruned). A component left
-    without any edge gets all its centres at 0.
+    without any edge gets all its centres at 0. ``rigid``: :func:`parallel_rigid` of an edge
+    mask ``[G, m]`` (e.g. a :func:`rigidity_memo`; computed here when omitted).
     """
     G, n = prob.G, prob.n
     dt, dev = R.dtype, R.device
@@ -251,7 +254,7 @@ def translations_from_directions(prob: PaddedProblem, R: Tensor, iters: int, rob
     # The ridge's bias is refined away only where the edges fix the positions: elsewhere the
     # refinement walks along the null space by round-off / ridge, so the answer would depend on
     # the device's arithmetic instead of being the ridge's (minimum-norm-like) choice.
-    exact = None if sparse else parallel_rigid(prob, emask)
+    exact = None if sparse else (rigid or rigidity_memo(prob))(emask)
     for it in range(iters if robust else 1):
         aP = a[..., None, None] * P
         if sparse:
@@ -394,21 +397,38 @@ class TranslationStage:
     fallback: Tensor
 
 
+def rigidity_memo(prob: PaddedProblem) -> Callable[[Tensor], Tensor]:
+    """:func:`parallel_rigid` of ``prob`` for an edge mask ``[G, m]`` -> ``[G]``, computed once
+    per distinct mask: a translation stage asks about the same edge sets several times (an
+    eigen-solve of every component each time)."""
+    seen: dict[bytes, Tensor] = {}
+
+    def rigid(mask: Tensor) -> Tensor:
+        key = mask.detach().cpu().numpy().tobytes()
+        if key not in seen:
+            seen[key] = parallel_rigid(prob, mask)
+        return seen[key]
+
+    return rigid
+
+
 def _solve_positions(prob: PaddedProblem, R: Tensor, d: Tensor, keep: Tensor, w_start: Tensor,
-                     w_prior: Tensor, c0: Tensor | None, o: RotationTranslationOptions
-                     ) -> tuple[Tensor, Tensor]:
+                     w_prior: Tensor, c0: Tensor | None, o: RotationTranslationOptions,
+                     rigid: Callable[[Tensor], Tensor]) -> tuple[Tensor, Tensor]:
     """Centres ``[G, n, 3]`` and final weights ``[G, m]`` from the edges ``keep`` with the
-    chosen method; ``c0`` a start (``None``: the linear solution)."""
+    chosen method; ``c0`` a start (``None``: the linear solution); ``rigid`` as in
+    :func:`translations_from_directions`."""
     km = keep.to(R.dtype)
     if o.translation == "linear":
         c = translations_from_directions(prob, R, o.translation_iters, o.robust, o.theta,
-                                         w0=w_start * km)
+                                         w0=w_start * km, rigid=rigid)
         return c, km
     if c0 is None:
         # One weighted bearing solve, no re-weighting: the Huber IRLS of the linear method
         # forgets the start weights and lets edges collapse onto wrong directions (its 1 / l^2
         # factor rewards short baselines), a worse start than the plain weighted solution.
-        c0 = translations_from_directions(prob, R, 1, False, o.theta, w0=w_start * km)
+        c0 = translations_from_directions(prob, R, 1, False, o.theta, w0=w_start * km,
+                                          rigid=rigid)
     if o.translation == "bata":
         return translations_bata(prob, d, keep, w_prior * km, c0, o.translation_iters, o.theta)
     return translations_lud(prob, d, keep, w_prior * km, c0, 5 * o.translation_iters)
@@ -442,18 +462,19 @@ def translation_stage(prob: PaddedProblem, R: Tensor, o: RotationTranslationOpti
     w_prior = w_start if o.weight_mode == "prior" else ones
     rot_res = rotation_residual_deg(prob, R)
     none = torch.zeros_like(usable)
+    rigid_of = rigidity_memo(prob)
     keep, rot_out = usable, none
     if o.max_rotation_residual_deg:
         th = mad_threshold(rot_res, prob.edge_mask, float(o.max_rotation_residual_deg),
                            o.outlier_mad)
         rot_out = usable & (rot_res > th[:, None])
         if bool(rot_out.any()):
-            ok = parallel_rigid(prob, usable & ~rot_out) | ~parallel_rigid(prob, usable)
+            ok = rigid_of(usable & ~rot_out) | ~rigid_of(usable)
             rot_out = rot_out & ok[:, None]
             keep = usable & ~rot_out
     if o.triangle_weights and prob.n <= TRIANGLE_MAX_NODES:
         w_start = w_start * triangle_weights(prob, d, keep, 3.0, 2.0)
-    c, w = _solve_positions(prob, R, d, keep, w_start, w_prior, None, o)
+    c, w = _solve_positions(prob, R, d, keep, w_start, w_prior, None, o, rigid_of)
     fallback = torch.zeros(prob.G, dtype=torch.bool, device=R.device)
     if o.linear_fallback and o.translation != "linear":
         # A redescending loss can switch off edges a sparse graph needs, and a bad start can
@@ -462,7 +483,7 @@ def translation_stage(prob: PaddedProblem, R: Tensor, o: RotationTranslationOpti
         # kept. Measured: removes the regression on sparse, outlier-free 8-camera graphs and
         # keeps the gains on graphs with wrong directions.
         c_lin = translations_from_directions(prob, R, o.translation_iters, o.robust, o.theta,
-                                             w0=w_user * keep.to(R.dtype))
+                                             w0=w_user * keep.to(R.dtype), rigid=rigid_of)
         km = keep.to(R.dtype)
         l1_lin = (direction_residual_deg(prob, c_lin, d) * km).sum(1)
         l1_rob = (direction_residual_deg(prob, c, d) * km).sum(1)
@@ -476,23 +497,23 @@ def translation_stage(prob: PaddedProblem, R: Tensor, o: RotationTranslationOpti
         cand = keep & (ang > th[:, None])
         if bool(cand.any()):
             # only where the rest still fixes the positions (or never did)
-            ok = cand.any(1) & (parallel_rigid(prob, keep & ~cand)
-                                | ~parallel_rigid(prob, keep))
+            ok = cand.any(1) & (rigid_of(keep & ~cand) | ~rigid_of(keep))
             if bool(ok.any()):
                 dir_out = cand & ok[:, None]
                 keep2 = keep & ~dir_out
-                c2, w2 = _solve_positions(prob, R, d, keep2, w_start, w_prior, c, o)
+                c2, w2 = _solve_positions(prob, R, d, keep2, w_start, w_prior, c, o, rigid_of)
                 c = torch.where(ok[:, None, None], c2, c)
                 w = torch.where(ok[:, None], w2, w)
                 keep = keep2
-    rigid = parallel_rigid(prob, keep)
+    rigid = rigid_of(keep)
     if not bool(rigid.all()):
         # Where the kept edges leave positions free, every reweighting reads lengths the data
         # do not fix (1 / |b|^2, residual angles of free edges), so the robust answers go
         # wherever round-off sends them (float32 confidence weights on CPU vs CUDA: cameras
         # 1.5 apart). Such a component gets the one linear solve: one answer, the ridge's.
         km = keep.to(R.dtype)
-        c_lin = translations_from_directions(prob, R, 1, False, o.theta, w0=w_start * km)
+        c_lin = translations_from_directions(prob, R, 1, False, o.theta, w0=w_start * km,
+                                             rigid=rigid_of)
         c = torch.where(rigid[:, None, None], c, c_lin)
         w = torch.where(rigid[:, None], w, km * w_start)
     return TranslationStage(
