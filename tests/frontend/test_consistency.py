@@ -141,6 +141,24 @@ def test_inlier_spread_tells_crowded_from_spread_matches():
 # ---------------------------------------------------------------- on a front end's pairs
 
 
+#: the keypoints of every image of the hand-made front ends below
+UV = np.random.default_rng(0).uniform([0, 0], [W, H], (400, 2))
+
+
+def _edges(poses: list[np.ndarray], pairs: dict[tuple[int, int], np.ndarray],
+           inliers: dict[tuple[int, int], np.ndarray]) -> dict[tuple[int, int], PairResult]:
+    """Verified keypoint edges with relative rotations ``pairs`` (directions from ``poses``)
+    and inlier keypoint indices ``inliers``."""
+    none = np.zeros(0, np.int64)
+    out = {}
+    for (a, b), R in pairs.items():
+        t = poses[b][:3, 3] - R @ poses[a][:3, 3]
+        out[(a, b)] = PairResult(a, b, none, none, np.zeros(0, bool), 400, 0,
+                                 (R, t / np.linalg.norm(t)), None, "edge",
+                                 inliers=inliers[(a, b)], info={"inliers": 100})
+    return out
+
+
 def _frontend(n: int, poses: list[np.ndarray], pairs: dict[tuple[int, int], np.ndarray],
               inliers: dict[tuple[int, int], np.ndarray]) -> ImageFrontend:
     """A front end whose images and evaluated pairs are given (no image is read)."""
@@ -148,24 +166,19 @@ def _frontend(n: int, poses: list[np.ndarray], pairs: dict[tuple[int, int], np.n
     records = [ImageRecord(Path(f"img{i}.png"), f"img{i}.png", K, size=(W, H))
                for i in range(n)]
     fe = ImageFrontend(records, None, matcher=None, edge_rule="verified")
-    rng = np.random.default_rng(0)
-    uv = rng.uniform([0, 0], [W, H], (400, 2))  # the same keypoints in every image
     for i in range(n):
-        feats = Features(uv, np.zeros((400, 1), np.float32), (W, H))
+        feats = Features(UV, np.zeros((400, 1), np.float32), (W, H))
         fe._images[i] = _ImageData(np.zeros((0, 4)), np.zeros(0), feats, np.ones(400, bool))
-    none = np.zeros(0, np.int64)
-    for (a, b), R in pairs.items():
-        t = poses[b][:3, 3] - R @ poses[a][:3, 3]
-        fe._pairs[(a, b)] = PairResult(a, b, none, none, np.zeros(0, bool), 400, 0,
-                                       (R, t / np.linalg.norm(t)), None, "edge",
-                                       inliers=inliers[(a, b)], info={"inliers": 100})
+    for key, p in _edges(poses, pairs, inliers).items():
+        fe._pairs[key] = p
         fe.summary.pairs["edge"] += 1
         fe.summary.pairs["edge_few_boxes"] += 1
     return fe
 
 
-def test_screen_edges_books_crowded_and_loop_rejections_like_other_rejections():
-    n = 7
+def _planted(n: int = 7) -> tuple[list, list, dict, dict]:
+    """``n`` cameras, every pair an edge: (2, 5) 109 deg wrong, (0, 6) right but with every
+    inlier on one small patch of the first image. Returns poses, pairs, rotations, inliers."""
     R_abs = Rotation.random(n, random_state=7).as_matrix()
     poses = []
     for i in range(n):
@@ -177,12 +190,33 @@ def test_screen_edges_books_crowded_and_loop_rejections_like_other_rejections():
     pairs[(2, 5)] = Rotation.from_rotvec([0, 1.9, 0]).as_matrix() @ pairs[(2, 5)]  # wrong
     everywhere = np.stack([np.arange(400)] * 2, axis=1)
     inliers = {k: everywhere for k in keys}
-    # (0, 6): right pose, but every inlier on one small patch of the first image
-    uv = np.random.default_rng(0).uniform([0, 0], [W, H], (400, 2))
-    patch = np.flatnonzero((np.abs(uv[:, 0] - 100) < 30) & (np.abs(uv[:, 1] - 100) < 30))
+    patch = np.flatnonzero((np.abs(UV[:, 0] - 100) < 30) & (np.abs(UV[:, 1] - 100) < 30))
     inliers[(0, 6)] = np.stack([patch, patch], axis=1)
+    return poses, keys, pairs, inliers
+
+
+def test_screen_edges_names_the_crowded_and_the_loop_breaking_edge_and_changes_nothing():
+    # on plain pair results: no front end
+    poses, _, pairs, inliers = _planted()
+    edges = _edges(poses, pairs, inliers)
+    found = screen_edges(list(edges.values()), lambda i: UV, [(W, H)] * 7, "kp", VerifyRules())
+    assert [((p.a, p.b), r) for p, r in found.rejected] == [((0, 6), "crowded"),
+                                                            ((2, 5), "loop")]
+    assert found.counts() == {"crowded": 1, "loop": 1, "triangles": found.triangles}
+    assert found.triangles == 30  # C(7, 3) = 35 less the 5 through the crowded edge
+    assert all(p.is_edge and p.inliers is not None for p in edges.values())
+    assert edges[(2, 5)].info["loop_inconsistent"] == 5 and edges[(0, 6)].info["spread"] < 0.015
+    # images of unknown size: no spread test, the loop check still runs
+    found = screen_edges(list(_edges(poses, pairs, inliers).values()), lambda i: UV,
+                         [None] * 7, "kp", VerifyRules())
+    assert [((p.a, p.b), r) for p, r in found.rejected] == [((2, 5), "loop")]
+
+
+def test_screen_edges_books_crowded_and_loop_rejections_like_other_rejections():
+    n = 7
+    poses, keys, pairs, inliers = _planted(n)
     fe = _frontend(n, poses, pairs, inliers)
-    out = screen_edges(fe, keys, VerifyRules())
+    out = fe.screen(keys, VerifyRules())
     assert out["crowded"] == 1 and out["loop"] == 1
     rejected = {(r["source"], r["target"]): r for r in fe.rejected_pairs()}
     assert set(rejected) == {("img0.png", "img6.png"), ("img2.png", "img5.png")}
@@ -216,7 +250,7 @@ def test_screen_edges_off_keeps_every_edge():
     pairs[(1, 3)] = Rotation.from_rotvec([1.0, 0, 0]).as_matrix() @ pairs[(1, 3)]
     inliers = {k: np.stack([np.arange(3)] * 2, axis=1) for k in keys}
     fe = _frontend(n, poses, pairs, inliers)
-    out = screen_edges(fe, keys, VerifyRules(min_spread=0.0, max_loop_deg=0.0))
+    out = fe.screen(keys, VerifyRules(min_spread=0.0, max_loop_deg=0.0))
     assert out == {"crowded": 0, "loop": 0, "triangles": 0}
     assert all(fe.pair(*k).is_edge for k in keys)
     assert not fe.summary.rejected
@@ -247,7 +281,7 @@ def test_ordinary_rendered_pairs_all_pass(tmp_path):
     keys = list(itertools.combinations(range(len(records)), 2))
     fe.evaluate_pairs(keys, progress=False)
     edges = [k for k in keys if fe.pair(*k).is_edge]
-    out = screen_edges(fe, keys)
+    out = fe.screen(keys)
     assert len(edges) >= 8 and out["triangles"] >= 4
     assert out["crowded"] == 0 and out["loop"] == 0
     assert all(fe.pair(*k).is_edge and fe.pair(*k).info["spread"] > 0.05 for k in edges)

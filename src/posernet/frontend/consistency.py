@@ -15,13 +15,14 @@ edges poison motion averaging. Two cheap checks catch most of them once every pa
   edges), and at least two, is rejected with reason ``loop``, the worst first, again until
   none is left. Edges on no triangle cannot be judged and are kept.
 
-:func:`screen_edges` applies both to an :class:`~posernet.frontend.pipeline.ImageFrontend`'s
-evaluated pairs and books the rejections like any other (pair status, ``reason``, summary).
+:func:`screen_edges` applies both to verified pairs and returns what it rejects; the
+:class:`~posernet.frontend.pipeline.ImageFrontend` books those like any other rejection
+(pair status, ``reason``, summary).
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -29,8 +30,8 @@ import numpy as np
 
 from .verify import VerifyRules, inlier_spread
 
-__all__ = ["MIN_INCONSISTENT", "LoopCheck", "cycle_errors", "loop_outliers", "screen_edges",
-           "triangles"]
+__all__ = ["MIN_INCONSISTENT", "LoopCheck", "Screening", "cycle_errors", "loop_outliers",
+           "screen_edges", "triangles"]
 
 #: an edge is judged wrong only on two or more inconsistent triangles: one alone says that one
 #: of its three edges is wrong, not which (on sparse rings, guessing lost right edges)
@@ -177,77 +178,70 @@ def _edge_pose(p: Any, estimate: str) -> tuple[np.ndarray, np.ndarray] | None:
     return first if first is not None else other
 
 
-def screen_edges(frontend: Any, pairs: Sequence[tuple[int, int]],
-                 rules: VerifyRules | None = None) -> dict[str, Any]:
-    """Reject the edges among ``pairs`` (image-id pairs, evaluated by ``frontend``) whose
-    inliers are crowded on a small part of either image, then those that contradict the
-    triangles of the rest (see the module docstring); ``rules`` default to the front end's.
+@dataclass(frozen=True)
+class Screening:
+    """What :func:`screen_edges` found: ``rejected`` ``(edge, reason)`` in the order judged
+    (reason ``crowded`` or ``loop``) and ``triangles`` the loop check looked at."""
 
-    A rejected pair keeps its numbers, gets reason ``crowded`` / ``loop``, loses its matches
-    from the keypoint tracks (its geometry is not trusted), and is counted in the front end's
-    summary as a two-view rejection (``<estimate>:<reason>``). Every judged edge records its
-    inlier spread and loop numbers in ``info``. Returns the counts.
+    rejected: tuple[tuple[Any, str], ...]
+    triangles: int
+
+    def counts(self) -> dict[str, int]:
+        """``{"crowded": n, "loop": n, "triangles": n}``."""
+        reasons = [r for _, r in self.rejected]
+        return {"crowded": reasons.count("crowded"), "loop": reasons.count("loop"),
+                "triangles": self.triangles}
+
+
+def screen_edges(edges: Sequence[Any], uv: Callable[[int], np.ndarray],
+                 sizes: Sequence[tuple[int, int] | None], estimate: str,
+                 rules: VerifyRules) -> Screening:
+    """Judge the verified ``edges`` (pair results: ``a``, ``b``, ``inliers [k, 2]`` keypoint
+    indices, ``kp`` / ``bb`` poses, ``info``): those whose inliers are crowded on a small part
+    of either image, then those that contradict the triangles of the rest (see the module
+    docstring). ``uv(i)`` gives image ``i``'s keypoints ``[K, 2]``, ``sizes[i]`` its
+    ``(width, height)`` (``None``: unknown, no spread test), ``estimate`` the pose an edge
+    carries (``kp`` / ``bb``).
+
+    Each judged edge records its inlier spread and loop numbers in its ``info``; nothing else
+    changes: the caller books the rejections (status, reason, counts).
     """
-    rules = rules or frontend.verify
-    keys = sorted({(min(int(a), int(b)), max(int(a), int(b))) for a, b in pairs if a != b})
-    prs = [frontend.pair(a, b) for a, b in keys]
-    edge_prs = [p for p in prs if p.is_edge]
-    out = {"crowded": 0, "loop": 0, "triangles": 0}
+    rejected: list[tuple[Any, str]] = []
     kept = []
-    for p in edge_prs:
-        sp = _spread(frontend, p)
+    for p in edges:
+        sp = _spread(p, uv, sizes)
         if sp is not None:
             p.info["spread"] = round(sp, 4)
         if sp is not None and sp < rules.min_spread:
-            _reject(frontend, p, "crowded")
-            out["crowded"] += 1
+            rejected.append((p, "crowded"))
         else:
             kept.append(p)
-    poses = [_edge_pose(p, frontend.estimate) for p in kept]
+    poses = [_edge_pose(p, estimate) for p in kept]
     if rules.max_loop_deg <= 0 or len(kept) < 3 or any(q is None for q in poses):
-        return out
-    edges = np.array([(p.a, p.b) for p in kept], np.int64)
+        return Screening(tuple(rejected), 0)
+    pairs = np.array([(p.a, p.b) for p in kept], np.int64)
     R = np.stack([np.asarray(q[0], np.float64) for q in poses])
     weight = np.array([0 if p.inliers is None else len(p.inliers) for p in kept], np.float64)
     weight = np.where(weight > 0, weight, float(rules.min_inliers))
-    chk = loop_outliers(edges, R, weight, len(frontend.records), rules.max_loop_deg,
-                        rules.max_loop_share)
-    out["triangles"] = int(chk.tri.shape[0])
+    chk = loop_outliers(pairs, R, weight, len(sizes), rules.max_loop_deg, rules.max_loop_share)
     for k, p in enumerate(kept):
         if chk.triangles[k]:
             p.info["loop_triangles"] = int(chk.triangles[k])
             p.info["loop_inconsistent"] = int(chk.inconsistent[k])
         if chk.rejected[k]:
-            _reject(frontend, p, "loop")
-            out["loop"] += 1
-    return out
+            rejected.append((p, "loop"))
+    return Screening(tuple(rejected), int(chk.tri.shape[0]))
 
 
-def _spread(frontend: Any, p: Any) -> float | None:
+def _spread(p: Any, uv: Callable[[int], np.ndarray],
+            sizes: Sequence[tuple[int, int] | None]) -> float | None:
     """The smaller of the two images' inlier spreads of pair ``p`` (None: unknown)."""
     if p.inliers is None or len(p.inliers) < 3:
         return None
     vals = []
     for img, col in ((p.a, 0), (p.b, 1)):
-        size = frontend.records[img].size
+        size = sizes[img]
         if not size:
             return None
-        uv = frontend.image(img).features.uv[p.inliers[:, col]]
-        vals.append(inlier_spread(uv, size))
+        vals.append(inlier_spread(uv(img)[p.inliers[:, col]], size))
     return min(vals)
-
-
-def _reject(frontend: Any, p: Any, reason: str) -> None:
-    """Turn edge ``p`` into a rejected pair and book it in the front end's summary."""
-    s = frontend.summary
-    s.pairs["edge"] -= 1
-    boxes = p.box_a.size >= frontend.rules.min_boxes
-    if not boxes:  # an edge on fewer matched boxes than the paper's rule was counted apart
-        s.pairs["edge_few_boxes"] -= 1
-    p.status = f"{frontend.estimate}_failed" if boxes else "unmatched"
-    s.pairs[p.status] += 1
-    s.rejected[f"{frontend.estimate}:{reason}"] += 1
-    if p.rotation_only:
-        s.rotation_only -= 1
-    p.reason = reason
-    p.inliers = None

@@ -657,10 +657,42 @@ class ImageFrontend:
         matches and geometry with every image's features (whose keypoints they index)."""
         self.evaluate_pairs(pairs, progress=progress)
         if screen:
-            from .consistency import screen_edges
-
-            screen_edges(self, pairs)
+            self.screen(pairs)
         return self.match_result()
+
+    def screen(self, pairs: Sequence[tuple[int, int]],
+               rules: VerifyRules | None = None) -> dict[str, int]:
+        """Reject the edges among the evaluated ``pairs`` that crowd their inliers or break
+        triangles (:func:`~posernet.frontend.consistency.screen_edges`; ``rules`` default to
+        the front end's) and book each like any two-view rejection: it keeps its numbers,
+        gets reason ``crowded`` / ``loop``, loses its matches from the keypoint tracks (its
+        geometry is not trusted) and is counted as ``<estimate>:<reason>``. Returns the
+        counts (``crowded``, ``loop``, ``triangles``)."""
+        from .consistency import screen_edges
+
+        keys = sorted({(min(int(a), int(b)), max(int(a), int(b))) for a, b in pairs if a != b})
+        edges = [p for p in (self.pair(a, b) for a, b in keys) if p.is_edge]
+        found = screen_edges(edges, lambda i: self.image(i).features.uv,
+                             [r.size for r in self.records], self.estimate,
+                             rules or self.verify)
+        for p, reason in found.rejected:
+            self._reject_edge(p, reason)
+        return found.counts()
+
+    def _reject_edge(self, p: PairResult, reason: str) -> None:
+        """Turn edge ``p`` into a rejected pair and book it in the summary."""
+        s = self.summary
+        s.pairs["edge"] -= 1
+        boxes = p.box_a.size >= self.rules.min_boxes
+        if not boxes:  # an edge on fewer matched boxes than the paper's rule was counted apart
+            s.pairs["edge_few_boxes"] -= 1
+        p.status = f"{self.estimate}_failed" if boxes else "unmatched"
+        s.pairs[p.status] += 1
+        s.rejected[f"{self.estimate}:{reason}"] += 1
+        if p.rotation_only:
+            s.rotation_only -= 1
+        p.reason = reason
+        p.inliers = None
 
     def match_result(self) -> MatchResult:
         """Every pair evaluated so far and every image's features, as typed data."""
