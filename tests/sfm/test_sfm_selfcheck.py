@@ -148,16 +148,20 @@ def test_a_single_pair_whose_matches_do_not_join_the_points_fails(ring) -> None:
     pts, img, pid = structure(ring)
     seen = np.flatnonzero(img == 0)
     assert len(seen) >= w0  # camera 0 sees at least its one pair's inliers
-    out = check_reconstruction(ring.w2c, np.ones(12, bool), thin, pts, img, pid)
+    # the open ring's first pairs share no point with a third camera: their distances are
+    # free (the tied-scale check would fail cameras 0 and 1); this test is about the pair
+    opts = CheckOptions(scale_links=0)
+    out = check_reconstruction(ring.w2c, np.ones(12, bool), thin, pts, img, pid, options=opts)
     assert out.passed.all()
     # keep 40 % of the pair's inliers as camera 0's observations
     drop = seen[int(0.4 * w0):]
     kept = np.ones(len(img), bool)
     kept[drop] = False
-    out = check_reconstruction(ring.w2c, np.ones(12, bool), thin, pts, img[kept], pid[kept])
+    out = check_reconstruction(ring.w2c, np.ones(12, bool), thin, pts, img[kept], pid[kept],
+                               options=opts)
     assert out.failed.tolist() == [i == 0 for i in range(12)]
     assert "join the 3D points" in out.reason[0]
-    loose = CheckOptions(min_single_pair_kept=0.3)
+    loose = CheckOptions(min_single_pair_kept=0.3, scale_links=0)
     out = check_reconstruction(ring.w2c, np.ones(12, bool), thin, pts, img[kept], pid[kept],
                                options=loose)
     assert out.passed.all()
@@ -226,3 +230,62 @@ def test_options_are_checked() -> None:
         CheckOptions(min_agreeing_share=2)
     with pytest.raises(ValueError, match="max_epipolar_px"):
         CheckOptions(max_epipolar_px=0)
+
+
+def _two_view_tracks(sc):
+    """The scene's observations with every point cut to its first two views (points of
+    views matched by different matchers never join)."""
+    pts, img, pid = structure(sc)
+    order = np.lexsort((img, pid))
+    img, pid = img[order], pid[order]
+    first = np.r_[True, pid[1:] != pid[:-1]]
+    rank = np.arange(pid.size) - np.maximum.accumulate(np.where(first, np.arange(pid.size), 0))
+    keep = rank < 2
+    return pts, img[keep], pid[keep]
+
+
+def test_cameras_whose_distance_nothing_ties_fail(ring) -> None:
+    """On the ring (pairs between neighbours only, no triangle) the 3D points tie the pairs'
+    distances together: every camera passes, including the two at an untied joint (their pairs
+    into the block cross). Cut every point to two views and no pair is tied to another: only
+    the pair with the most inliers keeps its cameras, the rest fail with the reason; the
+    check off (scale_links=0) passes them all."""
+    ev = evidence(ring)
+    out = check_reconstruction(ring.w2c, np.ones(12, bool), ev, *structure(ring))
+    assert out.passed.all()
+    two = _two_view_tracks(ring)
+    assert np.bincount(two[2]).max() == 2
+    out = check_reconstruction(ring.w2c, np.ones(12, bool), ev, *two)
+    best = ev.pairs[np.argmax(ev.weight)]
+    assert out.passed.tolist() == [i in best for i in range(12)]
+    assert all("distance to the other cameras is not fixed" in out.reason[i]
+               for i in range(12) if i not in best)
+    out = check_reconstruction(ring.w2c, np.ones(12, bool), ev, *two,
+                               options=CheckOptions(scale_links=0))
+    assert out.passed.all()
+
+
+def test_a_triangle_or_crossing_pairs_tie_cameras_without_shared_points(ring) -> None:
+    """Two-view points only: a pair closing a triangle ties its three cameras' distances, and
+    a camera with pairs to two of them (not parallel) is fixed where the lines meet."""
+    ev = evidence(ring)
+    extra = [(0, 2)]  # closes the triangle 0-1-2
+    pairs = np.concatenate([ev.pairs, np.array(extra)])
+    R = np.concatenate([ev.R, [ring.w2c[2, :3, :3] @ ring.w2c[0, :3, :3].T]])
+    t = ring.w2c[2, :3, 3] - R[-1] @ ring.w2c[0, :3, 3]
+    tri = PairEvidence(pairs=pairs, R=R, t=np.concatenate([ev.t, [t / np.linalg.norm(t)]]),
+                       rotation_only=np.zeros(len(pairs), bool),
+                       weight=np.concatenate([ev.weight, [1000.0]]))
+    out = check_reconstruction(ring.w2c, np.ones(12, bool), tri, *_two_view_tracks(ring))
+    # the block {0, 1, 2}; camera 11 (pairs to 0 only) and 3 (to 2 only) hang on one line
+    assert out.passed.tolist() == [i in (0, 1, 2) for i in range(12)]
+    # camera 3 with a second pair into the block, to camera 1: it sits where the lines meet
+    pairs4 = np.concatenate([pairs, [(1, 3)]])
+    R13 = ring.w2c[3, :3, :3] @ ring.w2c[1, :3, :3].T
+    t13 = ring.w2c[3, :3, 3] - R13 @ ring.w2c[1, :3, 3]
+    cross = PairEvidence(pairs=pairs4, R=np.concatenate([R, [R13]]),
+                         t=np.concatenate([tri.t, [t13 / np.linalg.norm(t13)]]),
+                         rotation_only=np.zeros(len(pairs4), bool),
+                         weight=np.concatenate([tri.weight, [1000.0]]))
+    out = check_reconstruction(ring.w2c, np.ones(12, bool), cross, *_two_view_tracks(ring))
+    assert out.passed.tolist() == [i in (0, 1, 2, 3) for i in range(12)]

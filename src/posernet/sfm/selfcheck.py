@@ -28,6 +28,15 @@ pass these checks first (:func:`check_reconstruction`):
 * **structure** (with bundle adjustment): enough 3D points seen by the camera, and rays to
   them that meet the other views' rays at a useful angle; points seen only under tiny angles
   are explained by rotation alone and do not fix the camera's position.
+* **tied scales** (with bundle adjustment): a verified pair fixes the direction between its
+  cameras, not their distance. Two pairs that share a camera have their distances tied only
+  by a third pair closing the triangle or by 3D points all three cameras see
+  (``scale_links`` of them). On a chain of pairs whose points stop at two views (a sparse
+  ring, views matched by different matchers), the next camera's distance is free: the answer
+  there is whatever the solvers chose, right on an evenly spaced turntable, wrong elsewhere.
+  Only the largest block of tied pairs (most cameras, then most inliers) keeps its cameras,
+  with every camera whose pairs into the block cross (two known lines meet at it); a
+  rotation-only pair ties its cameras to one centre and so to any block.
 
 A camera that fails is reported unsolved with its reason. The run has verified itself when
 at least two cameras pass.
@@ -63,7 +72,9 @@ class CheckOptions:
     matches); ``min_triangulation_deg``: the median angle between a camera's rays and the
     other views' rays to the same points must reach it; ``coincide_ratio``: two cameras
     whose pair has a baseline count as collapsed when their centres are closer than this
-    times the median distance between verified pairs' centres.
+    times the median distance between verified pairs' centres; ``scale_links``: 3D points
+    seen by all three cameras of two pairs that share a camera tie the pairs' distances (a
+    triangle of pairs always does; 0: no check of tied scales).
     """
 
     max_epipolar_px: float = option(2.0, gt=0, help="a verified pair agrees when the final "
@@ -88,6 +99,9 @@ class CheckOptions:
                                           "and the other views' rays")
     coincide_ratio: float = option(0.02, ge=0, lt=1, help="centres closer than this x the median "
                                    "pair baseline: collapsed")
+    scale_links: int = option(1, ge=0, help="3D points all three cameras of two pairs sharing "
+                              "a camera must see to tie the pairs' distances (0: no check of "
+                              "tied scales)")
 
     def __post_init__(self) -> None:
         check_options(self)
@@ -409,6 +423,16 @@ def check_reconstruction(w2c: np.ndarray, placed: np.ndarray, evidence: PairEvid
                     reason[i] = (f"its centre coincides with camera {int(j)}'s although "
                                  "their verified pair has a baseline (collapsed)")
 
+    if opt.scale_links and E and points is not None:
+        live = ok[a] & ok[b]
+        block = _tied_block(w2c, evidence, live & agree, obs_image, obs_point,
+                            opt.scale_links, N)
+        for i in np.flatnonzero(ok & ~block):
+            ok[i] = False
+            reason[i] = ("its distance to the other cameras is not fixed: no triangle of "
+                         "verified pairs and no 3D point seen with a third camera ties its "
+                         "pair to the rest")
+
     share = np.where(placed, share, np.nan)
     if int(ok.sum()) < 2:
         for i in np.flatnonzero(ok):
@@ -417,3 +441,101 @@ def check_reconstruction(w2c: np.ndarray, placed: np.ndarray, evidence: PairEvid
     return SelfCheck(placed=placed, passed=ok, reason=reason, rotation_error_deg=rot_err,
                      direction_error_deg=dir_err, agreeing_share=share, points=n_pts,
                      triangulation_deg=tri, inlier_share=inl, options=opt)
+
+
+#: a camera outside the block joins when its pairs into the block cross at this angle or more
+_MIN_CROSSING_DEG = 10.0
+
+
+def _tied_block(w2c: np.ndarray, evidence: PairEvidence, use: np.ndarray,
+                obs_image: np.ndarray | None, obs_point: np.ndarray | None, links: int,
+                N: int) -> np.ndarray:
+    """``(N,)`` the cameras of the largest block of pairs ``use (E,)`` whose distances are
+    tied (see the module docstring): most cameras, then most inliers; then every camera whose
+    pairs into the block cross (the lines from two block cameras meet at it; final centres
+    of ``w2c``). All ``False`` when no pair is used."""
+    from ..frontend.consistency import triangles
+
+    ids = np.flatnonzero(use)
+    out = np.zeros(N, bool)
+    if not ids.size:
+        return out
+    pairs = evidence.pairs[ids]
+    # links between the used pairs (local ids): the pairs of each triangle, and a
+    # rotation-only pair with every pair at its cameras (one centre for both)
+    tri = triangles(pairs, N)
+    u, v = [tri[:, 0], tri[:, 1]], [tri[:, 1], tri[:, 2]]
+    for r in np.flatnonzero(evidence.rotation_only[ids]):
+        at = np.flatnonzero(np.isin(pairs, pairs[r]).any(1))
+        u.append(np.full(at.size, r))
+        v.append(at)
+    label = _components(ids.size, u, v)
+    if np.unique(label).size > 1 and obs_image is not None and obs_point is not None \
+            and len(obs_image):
+        # pairs sharing a camera whose three cameras see >= links common 3D points (only
+        # where the triangles left more than one block: dense sets never get here)
+        u2, v2 = _point_links(pairs, np.asarray(obs_image, np.int64),
+                              np.asarray(obs_point, np.int64), links, N)
+        label = _components(ids.size, [*u, u2], [*v, v2])
+    best, key = -1, (-1, -1.0)
+    for lab in np.unique(label):
+        cams = np.unique(pairs[label == lab])
+        k = (cams.size, float(evidence.weight[ids[label == lab]].sum()))
+        if k > key:
+            best, key = lab, k
+    out[np.unique(pairs[label == best])] = True
+    # A camera with pairs to two cameras of the block, in directions that are not parallel,
+    # sits where the two lines meet: it joins, and the block grows until none is left.
+    centre = -np.einsum("nji,nj->ni", w2c[:, :3, :3], w2c[:, :3, 3])
+    while True:
+        grew = False
+        for k in np.flatnonzero(~out & np.isin(np.arange(N), pairs)):
+            mine = (pairs == k).any(1)
+            others = pairs[mine].sum(1) - k
+            ends = np.unique(others[out[others]])
+            if ends.size < 2:
+                continue
+            d = centre[ends] - centre[k]
+            d /= np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-300)
+            cos = np.abs(d @ d.T)
+            if (cos < np.cos(np.radians(_MIN_CROSSING_DEG))).any():
+                out[k] = grew = True
+        if not grew:
+            return out
+
+
+def _components(K: int, u: list[np.ndarray], v: list[np.ndarray]) -> np.ndarray:
+    """Connected-component label ``(K,)`` of ``K`` nodes with the links ``u[k][i] - v[k][i]``."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    uu, vv = np.concatenate(u).astype(np.int64), np.concatenate(v).astype(np.int64)
+    graph = coo_matrix((np.ones(uu.size), (uu, vv)), shape=(K, K))
+    return connected_components(graph, directed=False)[1]
+
+
+def _point_links(pairs: np.ndarray, obs_image: np.ndarray, obs_point: np.ndarray, links: int,
+                 N: int) -> tuple[np.ndarray, np.ndarray]:
+    """Links ``(u, v)`` between pairs ``(K, 2)`` that share a camera and whose three cameras
+    see at least ``links`` common 3D points (observations ``obs_image``/``obs_point``)."""
+    from scipy.sparse import csc_matrix
+
+    P = int(obs_point.max()) + 1
+    vis = csc_matrix((np.ones(obs_point.size, bool), (obs_point, obs_image)), shape=(P, N))
+    index = {(int(i), int(j)): k for k, (i, j) in enumerate(pairs)}
+    index.update({(j, i): k for (i, j), k in list(index.items())})
+    partners: dict[int, list[int]] = {}
+    for i, j in pairs.tolist():
+        partners.setdefault(i, []).append(j)
+        partners.setdefault(j, []).append(i)
+    u, v = [], []
+    for j, nb in partners.items():
+        if len(nb) < 2:
+            continue
+        # points seen by j and each partner: (points, partners) counts of triples
+        both = vis[:, nb].multiply(vis[:, [j]]).tocsc().astype(np.int64)
+        common = (both.T @ both).toarray()  # points seen by j, x and y
+        x, y = np.nonzero(np.triu(common >= links, 1))
+        u += [index[(j, nb[q])] for q in x]
+        v += [index[(j, nb[q])] for q in y]
+    return np.asarray(u, np.int64), np.asarray(v, np.int64)
