@@ -99,6 +99,10 @@ class BundleOptions:
     anneal_step: float = option(4.0, gt=1, help="... and divide f_scale by this per stage")
     irls_tol: float = option(1e-5, gt=0, help="converged when a step lowers the robust cost by "
                              "less than this share")
+    camera_tol: float = option(1e-4, ge=0, help="also converged when a step lowers the robust "
+                               "cost by less than 10 x irls_tol and turns no camera by more "
+                               "than this (rad) nor moves it by more than this share of the "
+                               "cameras' spread (0: off)")
     max_reproj_px: float = option(4.0, gt=0, help="observations still above this after an "
                                   "adjustment are dropped")
     initial_reproj_factor: float = option(3.0, gt=0, help="first triangulation: tracks kept "
@@ -676,6 +680,27 @@ def _rescale(prob: _Problem, x: np.ndarray, spread: float) -> np.ndarray:
     return out
 
 
+def _camera_move(prob: _Problem, x: np.ndarray, x_new: np.ndarray, spread: float
+                 ) -> float:
+    """The largest change of a variable camera from ``x`` to ``x_new``: its rotation angle
+    (rad) or its centre's shift as a share of ``spread``, whichever is larger (inf without a
+    spread)."""
+    if not prob.var_cam.size:
+        return 0.0
+    if not spread > 0:
+        return float("inf")
+    _, R0, t0, _, _ = prob.unpack(x)
+    _, R1, t1, _, _ = prob.unpack(x_new)
+    v = prob.var_cam
+    R0, R1 = R0[v], R1[v]
+    # |R1 - R0|_F = 2 sqrt(2) sin(angle / 2): no arccos, which loses the small angles
+    turn = np.linalg.norm(R1 - R0, axis=(1, 2)).max() / np.sqrt(2)
+    c0 = -np.einsum("nji,nj->ni", R0, t0[v])
+    c1 = -np.einsum("nji,nj->ni", R1, t1[v])
+    shift = np.linalg.norm(c1 - c0, axis=1).max() / spread
+    return float(max(turn, shift))
+
+
 def _solve_lm(prob: _Problem, x0: np.ndarray, med0: float, opt: BundleOptions
               ) -> tuple[np.ndarray, np.ndarray, int, bool, str]:
     """Levenberg-Marquardt with exact Schur-complement steps and IRLS weights.
@@ -686,13 +711,24 @@ def _solve_lm(prob: _Problem, x0: np.ndarray, med0: float, opt: BundleOptions
     where rotation and translation nearly trade off) on which an iterative trust-region solve
     stalls. ``f`` anneals from ``anneal_factor`` x the median error to ``f_scale``, divided by
     ``anneal_step`` per stage (graduated robustness). Converged when a step at the final ``f``
-    lowers the cost by less than ``irls_tol`` of it (or the step is below ``xtol``). Returns
-    the parameters, the residuals, the evaluations used, whether it converged and why.
+    lowers the cost by less than ``irls_tol`` of it (or the step is below ``xtol``), or by
+    less than ten times that while no camera turns or moves by more than ``camera_tol``
+    (:func:`_camera_move`): on a well-posed problem the last steps of the reweighted solve
+    still lower the cost by about 1e-5 of it each while moving the cameras by a thousandth
+    of a degree, whereas a start that slides along a valley (centres collapsed onto one spot)
+    lowers the cost as little while its cameras move by a tenth of the spread. Returns the
+    parameters, the residuals, the evaluations used, whether it converged and why.
     """
     n_cam, n_pt = 6 * prob.var_cam.size, prob.var_pt.size
     x = x0
     hold = prob.gauge_centre is not None and prob.var_cam.size > 0
     spread0 = _spread(prob, x0) if hold else 0.0
+    if opt.camera_tol > 0 and not hold and prob.var_cam.size:
+        _, R, t, _, _ = prob.unpack(x0)
+        c = -np.einsum("nji,nj->ni", R, t)
+        spread_move = float(np.linalg.norm(c - c.mean(0), axis=1).mean())
+    else:
+        spread_move = spread0
     r = prob.residuals(x)
     fs = opt.f_scale
     if opt.anneal_factor > 0 and opt.loss != "linear":
@@ -731,7 +767,9 @@ def _solve_lm(prob: _Problem, x0: np.ndarray, med0: float, opt: BundleOptions
             continue
         gain = cost - cost_new
         small = (gain <= opt.irls_tol * cost_new
-                 or np.linalg.norm(dx) <= opt.xtol * (np.linalg.norm(x) + opt.xtol))
+                 or np.linalg.norm(dx) <= opt.xtol * (np.linalg.norm(x) + opt.xtol)
+                 or (gain <= 10 * opt.irls_tol * cost_new and opt.camera_tol > 0
+                     and _camera_move(prob, x, x_new, spread_move) <= opt.camera_tol))
         x, r, cost = (_rescale(prob, x_new, spread0) if hold else x_new), r_new, cost_new
         lam = max(lam / 5.0, 1e-12)
         if fs > opt.f_scale:
