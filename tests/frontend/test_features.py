@@ -149,6 +149,21 @@ def test_two_nearest_neighbours_match_brute_force(k, l, block):
         np.testing.assert_array_equal(g, e)
 
 
+@pytest.mark.parametrize("rows", [1, 5, 2**16 + 3])
+def test_column_minima_match_the_transposed_row_search(rows):
+    """The column search (no transposed copy; 16-bit row keys below 2**16 rows, 64-bit
+    above) gives what the row search gives on the transpose, ties to the first row, and
+    leaves the matrix as it was."""
+    rng = np.random.default_rng(rows)
+    d = rng.integers(0, 4, (rows, 7)).astype(np.float32)
+    d[-1, 0] = -1.0  # the last row holds a column's minimum
+    before = d.copy()
+    got = F._two_smallest_per_column(d)
+    for g, e in zip(got, F._two_smallest(np.ascontiguousarray(d.T)), strict=True):
+        np.testing.assert_array_equal(g, e)
+    np.testing.assert_array_equal(d, before)
+
+
 def test_mutual_matching_is_symmetric(pair):
     m = SiftMatcher()
     fa, fb = m.extract(pair[0]), m.extract(pair[1])

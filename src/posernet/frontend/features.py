@@ -303,6 +303,24 @@ def _two_smallest(d: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return v1, i1, v2
 
 
+def _two_smallest_per_column(d: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`_two_smallest` of the columns of ``d`` (R, C), the same numbers, without
+    transposing ``d``: column minima are fast (reductions along rows), column argmins and
+    transposed copies are not (each costs about as much as the distance product). The argmin
+    is the first row holding the minimum: the largest ``R - row`` over the rows equal to it
+    (a masked product in the narrowest integer type). ``d`` is restored."""
+    R = d.shape[0]
+    cols = np.arange(d.shape[1])
+    v1 = d.min(0)
+    kind = np.uint16 if R < 2**16 else np.int64
+    rev = (R - np.arange(R)).astype(kind)[:, None]
+    i1 = R - np.multiply(d == v1, rev, dtype=kind).max(0).astype(np.int64)
+    d[i1, cols] = np.inf
+    v2 = d.min(0)
+    d[i1, cols] = v1
+    return v1, i1, v2
+
+
 def _nn2(x: torch.Tensor, y: torch.Tensor, block: int = 2048) -> tuple[np.ndarray, ...]:
     """Two nearest neighbours (squared L2) of each row of x in y, and of each row of y in x.
 
@@ -329,8 +347,7 @@ def _nn2(x: torch.Tensor, y: torch.Tensor, block: int = 2048) -> tuple[np.ndarra
         d.add_(ny[None, :]).clamp_min_(0.0)
         e = slice(s, s + d.shape[0])
         d1_xy[e], i_xy[e], d2_xy[e] = _two_smallest(d.numpy())
-        # columns as rows of the transpose (torch copies it faster than numpy)
-        b1, bi, b2 = _two_smallest(d.T.contiguous().numpy())
+        b1, bi, b2 = _two_smallest_per_column(d.numpy())
         # merge with the earlier blocks (their rows come first: they win ties)
         new = b1 < d1_yx
         d2_yx = np.where(new, np.minimum(d1_yx, b2), np.minimum(d2_yx, b1))
