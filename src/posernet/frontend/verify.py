@@ -290,11 +290,14 @@ def verify_two_view(
         inl[np.flatnonzero(e_in)[rot_ok]] = True
         why = enough(inl)
         return reject(why, inl) if why else TwoView(R_rot, t, inl, "rotation", info)
-    H_sol = _homography_pose(x1[e_in], x2[e_in], 2.0 * thr)
-    h_ratio = H_sol[3] if H_sol is not None else 0.0
+    H_fit = _homography_fit(x1[e_in], x2[e_in], 2.0 * thr)
+    h_ratio = H_fit[1] if H_fit is not None else 0.0
     info["homography_ratio"] = round(h_ratio, 4)
     planar = h_ratio >= rules.max_rotation_ratio
     info["planar"] = planar
+    # the plane's poses are only wanted on a planar pair (their cheirality tests cost four
+    # triangulations of every inlier)
+    H_sol = _homography_pose(x1[e_in], x2[e_in], *H_fit) if planar and H_fit else None
     inl = pmask.reshape(-1).astype(bool) & e_in
     if planar and H_sol is not None and H_sol[2] > inl.sum():
         # the plane's decomposition puts more points in front than the essential matrix did
@@ -317,9 +320,10 @@ def verify_two_view(
     return TwoView(R, t, inl, "ok", info)
 
 
-def _homography_pose(x1: np.ndarray, x2: np.ndarray, thr: float) -> tuple | None:
-    """For normalised correspondences ``(M, 2)``: the homography's best decomposition
-    ``(R, unit t, points in front, support ratio, front mask)``, or ``None``."""
+def _homography_fit(x1: np.ndarray, x2: np.ndarray, thr: float
+                    ) -> tuple[np.ndarray, float] | None:
+    """For normalised correspondences ``(M, 2)``: the RANSAC homography and the share of the
+    correspondences it explains, or ``None``."""
     if x1.shape[0] < 4:
         return None
     try:
@@ -329,7 +333,14 @@ def _homography_pose(x1: np.ndarray, x2: np.ndarray, thr: float) -> tuple | None
         return None
     if H is None or hmask is None or not np.isfinite(H).all():
         return None
-    ratio = float(hmask.mean())
+    return H, float(hmask.mean())
+
+
+def _homography_pose(x1: np.ndarray, x2: np.ndarray, H: np.ndarray, ratio: float
+                     ) -> tuple | None:
+    """The best decomposition of the homography ``H`` of normalised correspondences
+    ``(M, 2)`` (``ratio``: the share it explains): ``(R, unit t, points in front, ratio, front
+    mask)``, or ``None``."""
     try:
         _, Rs, ts, _ = cv2.decomposeHomographyMat(H, np.eye(3))
     except cv2.error:
