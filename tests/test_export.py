@@ -254,3 +254,31 @@ def test_tum_header_names_the_image_of_every_row(tmp_path):
     for row, name in zip(rows, names, strict=True):
         c2w = np.asarray(cams[name]["camera_to_world"])
         np.testing.assert_allclose([float(v) for v in row[1:4]], c2w[:3, 3], atol=1e-7)
+
+
+@pytest.mark.parametrize("workers", [1, 3])
+def test_point_colours_are_the_pixels_under_each_first_observation(tmp_path, workers):
+    """Each point takes the colour (RGB) under its first observation, whichever thread read
+    that image; an image that cannot be read leaves its points grey."""
+    import cv2
+
+    from posernet.export import point_colours
+
+    rng = np.random.default_rng(0)
+    paths, uv = [], []
+    for i in range(4):
+        img = rng.integers(0, 256, (20, 30, 3), dtype=np.uint8)
+        paths.append(tmp_path / f"{i}.png")
+        cv2.imwrite(str(paths[-1]), img)
+        uv.append(rng.uniform(0, [29, 19], (6, 2)))
+    paths[3] = tmp_path / "missing.png"
+    obs_image = np.array([2, 0, 1, 3, 0, 2])
+    obs_keypoint = np.array([1, 4, 0, 2, 3, 5])
+    obs_point = np.array([0, 1, 2, 3, 0, 1])  # points 0 and 1 are seen twice: first wins
+    got = point_colours(paths, uv, obs_image, obs_keypoint, obs_point, 5, workers=workers)
+    for o in range(4):
+        x, y = np.rint(uv[obs_image[o]][obs_keypoint[o]]).astype(int)
+        i = obs_image[o]
+        expect = [128] * 3 if i == 3 else cv2.imread(str(paths[i]))[y, x, ::-1]
+        np.testing.assert_array_equal(got[obs_point[o]], expect)
+    np.testing.assert_array_equal(got[4], [128] * 3)  # no observation

@@ -540,7 +540,7 @@ def _start_record(start: dict[str, Any] | None, keys: list[str]) -> dict[str, An
 def poses_json(rec: Reconstruction, info: dict[str, Any] | None = None) -> dict[str, Any]:
     """JSON-ready record (format ``posernet-poses``, version 1), see docs/formats.md."""
     from .geometry import pose_vec_to_matrix
-    from .records import camera_record, pose_record
+    from .records import camera_record, pose_records
 
     g, res, stage = rec.graph, rec.result, rec.stage
     cams: dict[str, Any] = {}
@@ -568,15 +568,18 @@ def poses_json(rec: Reconstruction, info: dict[str, Any] | None = None) -> dict[
         cams[r.key] = cam
     keys = [r.key for r in rec.frontend.records]
     edges = []
+    rows_per_edge = torch.bincount(g.pair_edge, minlength=g.num_edges).tolist()
+    edge_records = {s: pose_records(pose_vec_to_matrix(p[0].double()), digits=9)
+                    for s, p in res.edge_pose.items()}
     for e, (i, j) in enumerate(g.edge_index.T.tolist()):
-        rows = int((g.pair_edge == e).sum())
+        rows = rows_per_edge[e]
         pr = rec.frontend.pair(i, j)
         item: dict[str, Any] = {"source": keys[i], "target": keys[j], "matched_boxes": rows,
                                 "rotation_only": bool(pr.rotation_only),
                                 "track_matches": 0 if pr.inliers is None else len(pr.inliers),
                                 "verification": dict(pr.info)}
-        for s, p in res.edge_pose.items():
-            item[s] = pose_record(pose_vec_to_matrix(p[0][e].double()), digits=9)
+        for s, recs in edge_records.items():
+            item[s] = recs[e]
         edges.append(item)
     bundle = {s: [sfm_record(r, keys) for r in runs] for s, runs in rec.sfm.items()}
     return {"format": "posernet-poses", "version": 1, **(info or {}), "stage": stage,
@@ -642,7 +645,8 @@ def write_colmap_models(folder: str | os.PathLike[str], rec: Reconstruction) -> 
         folder_k = Path(folder) / str(len(out))
         write_colmap_model(folder_k, names, [x.path for x in recs], [x.size for x in recs],
                            r.K, dist, fixed.numpy(), cams, uv, pts, r.obs_image,
-                           r.obs_keypoint, r.obs_point, err, binary=binary)
+                           r.obs_keypoint, r.obs_point, err, binary=binary,
+                           workers=rec.frontend.workers)
         out.append(folder_k)
     return out
 
@@ -658,7 +662,8 @@ def largest_point_cloud(
     if r is None:
         return None
     colours = point_colours([x.path for x in rec.frontend.records], _keypoints(rec),
-                            r.obs_image, r.obs_keypoint, r.obs_point, pts.shape[0])
+                            r.obs_image, r.obs_keypoint, r.obs_point, pts.shape[0],
+                            rec.frontend.workers)
     return cams, pts, colours
 
 

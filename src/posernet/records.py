@@ -16,11 +16,14 @@ from torch import Tensor
 
 from .geometry import invert_se3, matrix_to_pose_vec
 
-__all__ = ["camera_record", "pose_record"]
+__all__ = ["camera_record", "pose_record", "pose_records"]
 
 
 def _matrix(T: Tensor, digits: int | None) -> list[list[float]]:
-    rows = T.double().tolist()
+    return _rows(T.double().tolist(), digits)
+
+
+def _rows(rows: list[list[float]], digits: int | None) -> list[list[float]]:
     if digits is None:
         return rows
     return [[float(f"{v:.{digits}g}") for v in row] for row in rows]
@@ -29,9 +32,16 @@ def _matrix(T: Tensor, digits: int | None) -> list[list[float]]:
 def pose_record(T: Tensor, digits: int | None = None) -> dict[str, Any]:
     """``{"q_wxyz", "t", "matrix"}`` of a 4x4 pose ``T``; ``digits``: significant digits of
     the matrix entries (None: as computed)."""
+    return pose_records(T[None], digits)[0]
+
+
+def pose_records(T: Tensor, digits: int | None = None) -> list[dict[str, Any]]:
+    """:func:`pose_record` of each pose of ``T [E, 4, 4]``, converted in one batch (an
+    output with thousands of edges)."""
     T = T.double()
-    p = matrix_to_pose_vec(T)
-    return {"q_wxyz": p[:4].tolist(), "t": p[4:].tolist(), "matrix": _matrix(T, digits)}
+    p = matrix_to_pose_vec(T).tolist()
+    return [{"q_wxyz": q[:4], "t": q[4:], "matrix": _rows(m, digits)}
+            for q, m in zip(p, T.tolist(), strict=True)]
 
 
 def camera_record(T: Tensor | None, component: int | None = None,

@@ -191,7 +191,7 @@ def result_to_json(result: RefineResult, info: dict[str, Any] | None = None) -> 
     level ``cameras_placed`` gives ``{stage: {"placed": k, "cameras": n}}`` over all graphs.
     """
     from .geometry import pose_vec_to_matrix
-    from .records import camera_record, pose_record
+    from .records import camera_record, pose_records
 
     graphs_out = []
     totals = {s: {"placed": 0, "cameras": 0} for s in result.absolute}
@@ -199,14 +199,15 @@ def result_to_json(result: RefineResult, info: dict[str, Any] | None = None) -> 
         ids = g.meta.get("camera_ids")
         if not (isinstance(ids, list) and len(ids) == g.num_nodes):
             ids = [str(i) for i in range(g.num_nodes)]
-        mats = {s: pose_vec_to_matrix(p[k].double()) for s, p in result.edge_pose.items()}
+        mats = {s: pose_records(pose_vec_to_matrix(p[k].double()))
+                for s, p in result.edge_pose.items()}
         edges = []
         conf = result.confidence[k].double().tolist() if result.confidence else None
         gate = result.gate[k].double().tolist() if result.gate else None
         kept = result.kept_input[k].tolist() if result.kept_input else None
         for e, (i, j) in enumerate(g.edge_index.T.tolist()):
             rec: dict[str, Any] = {"source": str(ids[i]), "target": str(ids[j])}
-            rec.update({s: pose_record(m[e]) for s, m in mats.items()})
+            rec.update({s: m[e] for s, m in mats.items()})
             if conf is not None:  # the model's predicted errors (degrees)
                 rec["confidence"] = dict(zip(CONFIDENCE_KEYS, conf[e], strict=True))
             if gate is not None:  # 0: the input kept, 1: the network's prediction

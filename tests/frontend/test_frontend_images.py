@@ -210,8 +210,16 @@ def test_guessed_intrinsics_from_exif_or_the_prior(tmp_path):
     assert [r.intrinsics_source for r in records] == ["prior"]
 
 
-def test_unusable_images_are_named_or_skipped(tmp_path):
-    from posernet.frontend.images import image_problem, records_for_images
+@pytest.mark.parametrize("workers", [1, 3])
+def test_unusable_images_are_named_or_skipped(tmp_path, workers):
+    """The same verdicts, in file order, whether the files are checked on one thread or
+    several."""
+    from functools import partial
+
+    from posernet.frontend.images import image_problem
+    from posernet.frontend.images import records_for_images as plain
+
+    records_for_images = partial(plain, workers=workers)
 
     good = np.full((32, 48, 3), 128, np.uint8)
     good[8:24, 8:40] = 30

@@ -153,7 +153,8 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     skipped: list[tuple[str, str]] | None = None if cfg.get("strict", False) else []
     records = records_for_images(cfg.images, OmegaConf.to_object(cfg.intrinsics)
                                  if OmegaConf.is_config(cfg.intrinsics) else cfg.intrinsics,
-                                 cfg.get("pattern"), cfg.get("gt_poses"), skipped=skipped)
+                                 cfg.get("pattern"), cfg.get("gt_poses"), skipped=skipped,
+                                 workers=int(cfg.workers) or available_cores())
     for name, why in skipped or []:
         print(f"posernet-reconstruct: skipped {name}: {why} (strict=true to stop instead)",
               file=sys.stderr)

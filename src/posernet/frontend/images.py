@@ -23,6 +23,7 @@ from __future__ import annotations
 import json
 import os
 from collections.abc import Mapping, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -542,12 +543,13 @@ def records_for_images(
     pattern: str | None = None,
     gt_poses: str | None = "auto",
     skipped: list[tuple[str, str]] | None = None,
+    workers: int = 1,
 ) -> list[ImageRecord]:
     """Records of the images in ``folder`` with their intrinsics and, optionally, poses.
 
-    Every file is checked first (:func:`image_problem`): with a ``skipped`` list, unusable
-    files are left out and appended to it as ``(name, reason)``; without one, they raise
-    :class:`ImageError` naming each of them.
+    Every file is checked first (:func:`image_problem`, on ``workers`` threads): with a
+    ``skipped`` list, unusable files are left out and appended to it as ``(name, reason)``;
+    without one, they raise :class:`ImageError` naming each of them.
 
     ``intrinsics``: a spec for :func:`parse_intrinsics`, or ``"auto"`` / ``None`` to guess
     them per image (:func:`guess_intrinsics`).
@@ -562,7 +564,11 @@ def records_for_images(
     """
     root = Path(folder)
     files = list_images(root, pattern)
-    problems = [image_problem(p) for p in files]
+    if workers > 1 and len(files) > 1:  # decoding releases the GIL
+        with ThreadPoolExecutor(min(workers, len(files))) as pool:
+            problems = list(pool.map(image_problem, files))
+    else:
+        problems = [image_problem(p) for p in files]
     listed = [str(p.relative_to(root)) for p in files]  # skipped ones too (intrinsics files)
     bad = [(str(p.relative_to(root)), why) for p, why in zip(files, problems, strict=True)
            if why]
