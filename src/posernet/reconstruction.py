@@ -614,12 +614,14 @@ def _keypoints(rec: Reconstruction) -> list[np.ndarray]:
     return rec.frontend.keypoints()
 
 
-def write_colmap_models(folder: str | os.PathLike[str], rec: Reconstruction) -> list[Path]:
+def write_colmap_models(folder: str | os.PathLike[str], rec: Reconstruction,
+                        workers: int = 1) -> list[Path]:
     """The final bundle-adjusted stage as COLMAP models, one per component of two or more
     refined cameras, largest first: ``folder/0``, ``folder/1``, ... (:mod:`posernet.export`), in
     the frame of ``poses.json``. Text models, or binary ones (every model of the run) when an
     exported image's name holds whitespace, which COLMAP's text format cannot carry. Returns
-    the model folders (none without bundle adjustment)."""
+    the model folders (none without bundle adjustment). ``workers``: threads reading the
+    images for the points' colours."""
     from .export import colmap_text_name_ok, write_colmap_model
     from .sfm import reprojection_errors, undistort_keypoints
 
@@ -646,16 +648,16 @@ def write_colmap_models(folder: str | os.PathLike[str], rec: Reconstruction) -> 
         write_colmap_model(folder_k, names, [x.path for x in recs], [x.size for x in recs],
                            r.K, dist, fixed.numpy(), cams, uv, pts, r.obs_image,
                            r.obs_keypoint, r.obs_point, err, binary=binary,
-                           workers=rec.frontend.workers)
+                           workers=workers)
         out.append(folder_k)
     return out
 
 
-def largest_point_cloud(
-        rec: Reconstruction) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+def largest_point_cloud(rec: Reconstruction, workers: int = 1
+                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """The largest bundle-adjusted component: its cameras ``(C,)`` (image indices), points
     ``(P, 3)`` in the frame of ``poses.json`` and their image colours ``(P, 3)`` RGB; None
-    without bundle adjustment."""
+    without bundle adjustment. ``workers``: threads reading the images."""
     from .export import point_colours
 
     r, cams, pts = next(_component_models(rec), (None, None, None))
@@ -663,7 +665,7 @@ def largest_point_cloud(
         return None
     colours = point_colours([x.path for x in rec.frontend.records], _keypoints(rec),
                             r.obs_image, r.obs_keypoint, r.obs_point, pts.shape[0],
-                            rec.frontend.workers)
+                            workers)
     return cams, pts, colours
 
 
@@ -674,12 +676,13 @@ def write_poses_json(path: str | os.PathLike[str], rec: Reconstruction,
 
 
 def write_camera_view(path: str | os.PathLike[str], rec: Reconstruction,
-                      record: dict[str, Any] | None = None) -> Path | None:
+                      record: dict[str, Any] | None = None, workers: int = 1) -> Path | None:
     """``cameras.html``: the largest component's cameras and points, interactive and offline
     (:mod:`posernet.viewer`); with ground truth for each of its cameras (3 or more), moved onto
     it by the similarity of the camera centres (:func:`posernet.ground_truth.align_cameras`)
-    and shown with it. ``record``: :func:`poses_json` of ``rec`` (made when None). None when no
-    camera is placed."""
+    and shown with it. ``record``: :func:`poses_json` of ``rec`` (made when None);
+    ``workers``: threads reading the images for the points' colours. None when no camera is
+    placed."""
     from .export import largest_component
     from .ground_truth import align_cameras
     from .viewer import write_html_view
@@ -689,7 +692,7 @@ def write_camera_view(path: str | os.PathLike[str], rec: Reconstruction,
     if not names:
         return None
     cams = {n: dict(record["cameras"][n]) for n in names}
-    cloud = largest_point_cloud(rec)
+    cloud = largest_point_cloud(rec, workers)
     points = colours = None
     keys = [r.key for r in rec.records]
     if cloud is not None and {keys[i] for i in cloud[0]} <= set(names):

@@ -603,8 +603,8 @@ def test_html_view_title_and_status_count_the_same_points(scene, tmp_path, monke
     real = reconstruct_module.largest_point_cloud
     seen = {}
 
-    def with_far_points(rec):
-        cams, pts, colours = real(rec)
+    def with_far_points(rec, workers=1):
+        cams, pts, colours = real(rec, workers)
         far = pts.mean(0) + 1e5 * np.array([[1.0, 0, 0], [0, 1.0, 0], [0, 0, -1.0]])
         seen["points"] = len(pts) + 3
         return cams, np.concatenate([pts, far]), np.concatenate([colours, colours[:3]])

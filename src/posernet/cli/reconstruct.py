@@ -151,10 +151,11 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     out = Path(cfg.out_dir)
     replace = _claim_out_dir(out, bool(cfg.get("overwrite", False)))
     skipped: list[tuple[str, str]] | None = None if cfg.get("strict", False) else []
+    workers = int(cfg.workers) or available_cores()
     records = records_for_images(cfg.images, OmegaConf.to_object(cfg.intrinsics)
                                  if OmegaConf.is_config(cfg.intrinsics) else cfg.intrinsics,
                                  cfg.get("pattern"), cfg.get("gt_poses"), skipped=skipped,
-                                 workers=int(cfg.workers) or available_cores())
+                                 workers=workers)
     for name, why in skipped or []:
         print(f"posernet-reconstruct: skipped {name}: {why} (strict=true to stop instead)",
               file=sys.stderr)
@@ -175,7 +176,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
         verify=instantiate(cfg.verify), estimate=str(cfg.estimate),
         edge_rule=str(cfg.edge_rule),
         kp_top_pairs=int(cfg.kp_top_pairs), seed=int(cfg.seed),
-        workers=int(cfg.workers) or available_cores(),
+        workers=workers,
         cache=out / "cache" if cfg.get("cache", True) else None,
         max_image_size=cfg.get("max_image_size"))
     has_gt = all(r.c2w is not None for r in records)
@@ -220,7 +221,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
         record = poses_json(rec, info)  # built once: poses.json and the summary share it
         files: dict[str, Any] = {"poses": atomic_write_json(out / "poses.json", record,
                                                             indent=1)}
-        files["colmap"] = write_colmap_models(out / "sparse", rec)
+        files["colmap"] = write_colmap_models(out / "sparse", rec, workers)
         if _solved_any(record):
             from ..export import write_nerfstudio, write_tum
 
@@ -254,7 +255,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
             "seconds_total": round(time.perf_counter() - t0, 2)})
         files["pictures"] = _pictures(rec, out, int(cfg.pictures))
         files["cameras_png"] = _camera_plot(rec, out) if int(cfg.pictures) > 0 else None
-        files["html"] = (write_camera_view(out / "cameras.html", rec, record)
+        files["html"] = (write_camera_view(out / "cameras.html", rec, record, workers)
                          if int(cfg.pictures) > 0 else None)
         if has_gt:
             ev = evaluate_result(rec.result)
