@@ -266,6 +266,33 @@ def test_schur_step_is_the_damped_gauss_newton_step(focal: str, dense: bool) -> 
     np.testing.assert_allclose(dx, ref, rtol=0, atol=1e-9 * np.abs(ref).max())
 
 
+@pytest.mark.parametrize("cameras", [5, 70, 300])
+def test_the_grouped_symmetric_product_is_the_whole_product(cameras: int) -> None:
+    """``W V^-1 W^T`` from the camera groups ``i <= j`` (mirrored) equals the whole block
+    product, for one group (few cameras) and several (uneven ones included)."""
+    from scipy.sparse import bsr_matrix
+
+    from posernet.sfm.bundle import _upper_product
+
+    rng = np.random.default_rng(cameras)
+    npt = 3 * cameras
+    cam = np.repeat(np.arange(cameras), 9)
+    pt = (cam * 3 + rng.integers(0, 40, cam.size)) % npt  # nearby cameras share points
+    pt[::17] = rng.integers(0, npt, pt[::17].size)  # and a few far ones
+    key = np.unique(cam * npt + pt)  # one observation per camera and point
+    cam, pt = key // npt, key % npt
+    W = rng.normal(size=(cam.size, 6, 3))
+    A = rng.normal(size=(npt, 3, 3))
+    Vinv = A @ A.transpose(0, 2, 1)
+    Y = np.matmul(W, Vinv[pt])
+    indptr = np.searchsorted(cam, np.arange(cameras + 1))
+    shape = (6 * cameras, 3 * npt)
+    whole = (bsr_matrix((Y, pt, indptr), shape=shape)
+             @ bsr_matrix((W, pt, indptr), shape=shape).T).toarray()
+    got = _upper_product(Y, W, pt, indptr, npt)
+    np.testing.assert_allclose(got, whole, rtol=0, atol=1e-12 * np.abs(whole).max())
+
+
 @pytest.mark.parametrize("focal", ["none", "shared", "per_camera"])
 def test_pcg_schur_step_equals_the_direct_step(focal: str) -> None:
     """Conjugate gradients on the implicit reduced camera system (``iterative=True``) reach

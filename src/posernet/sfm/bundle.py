@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
+from itertools import pairwise
 
 import numpy as np
 from scipy.linalg import cho_factor, cho_solve
@@ -411,6 +412,32 @@ def _gram(A: np.ndarray, B: np.ndarray) -> np.ndarray:
     return np.matmul(A.transpose(0, 2, 1), B)
 
 
+def _upper_product(Y: np.ndarray, W: np.ndarray, cols: np.ndarray, indptr: np.ndarray,
+                   npt: int) -> np.ndarray:
+    """Dense ``Y W^T`` ``(6 nc, 6 nc)`` of two block-sparse matrices with one ``(6, 3)`` block
+    per observation (``Y``, ``W (O, 6, 3)``; block row: the camera, ``indptr (nc + 1,)``;
+    block column: the point, ``cols (O,)``), known to be symmetric (``Y = W V^-1``, ``V``
+    symmetric per point). Only the block rows of camera groups ``i <= j`` are multiplied
+    and the rest mirrored: about 0.6 of the block products of the whole product."""
+    nc = indptr.size - 1
+    bounds = np.unique(np.linspace(0, nc, max(1, min(8, nc // 32)) + 1).astype(np.int64))
+    parts = []
+    for a, b in pairwise(bounds.tolist()):
+        lo, hi = indptr[a], indptr[b]
+        shape = (6 * (b - a), 3 * npt)
+        ip = indptr[a:b + 1] - lo
+        parts.append((6 * a, 6 * b, bsr_matrix((Y[lo:hi], cols[lo:hi], ip), shape=shape),
+                      bsr_matrix((W[lo:hi], cols[lo:hi], ip), shape=shape)))
+    S = np.empty((6 * nc, 6 * nc))
+    for i, (a, b, Yi, _) in enumerate(parts):
+        for c, d, _, Wj in parts[i:]:
+            P = (Yi @ Wj.T).toarray()
+            S[a:b, c:d] = P
+            if c != a:
+                S[c:d, a:b] = P.T
+    return S
+
+
 class _Schur:
     """The normal equations of one weighted Jacobian, reduced onto the camera parameters.
 
@@ -532,7 +559,8 @@ class _Schur:
             else:
                 Wc_bsr = bsr_matrix((self.Wc, self.pj_c, self.indptr), shape=shape)
                 Yc_bsr = bsr_matrix((Y, self.pj_c, self.indptr), shape=shape)
-                S[:6 * nc, :6 * nc] -= (Yc_bsr @ Wc_bsr.T).toarray()
+                S[:6 * nc, :6 * nc] -= _upper_product(Y, self.Wc, self.pj_c, self.indptr,
+                                                      npt)
             b[:6 * nc] += Wc_bsr @ Vg.ravel()
         if nf:
             VWf = csr_matrix(bsr_matrix((Vinv, np.arange(npt), np.arange(npt + 1)),
