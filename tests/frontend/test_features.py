@@ -182,6 +182,35 @@ def test_xfeat_mutual_matching_is_symmetric(pair):
 # ------------------------------------------------------------------------------ determinism
 
 
+@pytest.mark.parametrize("rootsift", [True, False])
+def test_sift_keeps_its_descriptor_bytes_and_matches_as_before(pair, rootsift):
+    """SIFT features hold OpenCV's descriptor bytes (uint8); the vectors matching compares are
+    (Root)SIFT float32 formed from them, and features holding those float32 vectors (an older
+    cache) give the same matches."""
+    import dataclasses
+
+    from posernet.frontend.features import descriptor_array
+
+    m = SiftMatcher(rootsift=rootsift)
+    fa, fb = m.extract(pair[0]), m.extract(pair[1])
+    assert fa.desc.dtype == np.uint8 and fa.desc.shape == (len(fa), 128)
+    x = descriptor_array(fa)
+    assert x.dtype == np.float32
+    if rootsift:  # L1-normalised, then the square root: unit L2 norm
+        expect = np.sqrt(fa.desc / fa.desc.astype(np.float32).sum(1, keepdims=True))
+        np.testing.assert_allclose(x, expect, rtol=1e-6)
+        np.testing.assert_allclose(np.linalg.norm(x, axis=1), 1.0, rtol=1e-5)
+    else:
+        np.testing.assert_array_equal(x, fa.desc)
+    old_a = dataclasses.replace(fa, desc=descriptor_array(fa))
+    old_b = dataclasses.replace(fb, desc=descriptor_array(fb))
+    np.testing.assert_array_equal(descriptor_array(old_a), x)  # float32 passes through
+    new, old = m.match(fa, fb), m.match(old_a, old_b)
+    np.testing.assert_array_equal(new.idx_a, old.idx_a)
+    np.testing.assert_array_equal(new.idx_b, old.idx_b)
+    np.testing.assert_array_equal(new.score, old.score)
+
+
 @pytest.mark.parametrize("kind", ["sift", "xfeat", "xfeat+lighterglue"])
 def test_same_images_give_the_same_matches(pair, kind):
     def run() -> tuple[Features, Matches]:

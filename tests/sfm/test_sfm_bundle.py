@@ -266,6 +266,22 @@ def test_schur_step_is_the_damped_gauss_newton_step(focal: str, dense: bool) -> 
     np.testing.assert_allclose(dx, ref, rtol=0, atol=1e-9 * np.abs(ref).max())
 
 
+@pytest.mark.parametrize("chunk", [1, 7, 64, 10**6])
+def test_per_camera_normal_blocks_in_slices_are_the_same_sums(monkeypatch, chunk: int) -> None:
+    """The cameras' 6x6 blocks summed slice by slice (memory bounded) equal the one-shot
+    segment sums bit for bit, whatever the slice length (shorter than a camera's
+    observations included)."""
+    import posernet.sfm.bundle as B
+
+    rng = np.random.default_rng(chunk)
+    counts = rng.integers(1, 30, 40)
+    starts = np.r_[0, np.cumsum(counts)[:-1]]
+    A = rng.normal(size=(int(counts.sum()), 2, 6))
+    monkeypatch.setattr(B, "_GRAM_CHUNK", chunk)
+    np.testing.assert_array_equal(B._segment_grams(A, starts),
+                                  np.add.reduceat(B._gram(A, A), starts, axis=0))
+
+
 @pytest.mark.parametrize("cameras", [5, 70, 300])
 def test_the_grouped_symmetric_product_is_the_whole_product(cameras: int) -> None:
     """``W V^-1 W^T`` from the camera groups ``i <= j`` (mirrored) equals the whole block

@@ -67,6 +67,7 @@ __all__ = [
     "XFeatMatcher",
     "XFeatOptions",
     "clear_cache",
+    "descriptor_array",
     "make_matcher",
     "xfeat_available",
 ]
@@ -95,8 +96,10 @@ class Features:
 
     Attributes:
         uv: (K, 2) float64 pixel coordinates (x, y); OpenCV convention (pixel centres at integers).
-        desc: descriptors, opaque to callers: (K, 128) float32 array (SIFT) or (K, 64) tensor
-            (XFeat, on the matcher's device).
+        desc: descriptors, opaque to callers (:func:`descriptor_array` gives them as float32):
+            (K, 128) uint8 array (SIFT's own bytes, a quarter of the memory of float32; the
+            (Root)SIFT vectors are formed when matching) or float32 array (SIFT features made
+            by an older version) or (K, 64) tensor (XFeat, on the matcher's device).
         size: image (width, height).
         extra: what a matcher needs besides; ``extra["kind"]`` names the descriptor type
             ("sift", "rootsift", "xfeat") so features of different matchers are never mixed.
@@ -290,6 +293,25 @@ def _options(cls: type, args: dict[str, Any]) -> Any:
 # SIFT
 
 
+def descriptor_array(f: Features) -> np.ndarray:
+    """``f``'s SIFT descriptors as the float32 vectors matching compares ``(K, 128)``: RootSIFT
+    (L1-normalised, square root) for ``kind="rootsift"``, else as they are; float32 ones
+    (features of an older cache) pass through."""
+    d = np.asarray(f.desc)
+    if d.dtype != np.uint8:
+        return np.ascontiguousarray(d, dtype=np.float32)
+    return _sift_vectors(d, f.extra.get("kind") == "rootsift")
+
+
+def _sift_vectors(desc: np.ndarray, root: bool) -> np.ndarray:
+    """float32 copy of SIFT descriptors ``(K, 128)``, RootSIFT when ``root``."""
+    x = desc.astype(np.float32)
+    if root:
+        x /= np.maximum(x.sum(1, keepdims=True), 1e-12)
+        np.sqrt(x, out=x)
+    return x
+
+
 def _two_smallest(d: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per row of the C-contiguous float32 ``d`` (R, C): the smallest value, its column (the
     first on ties) and the second smallest (inf when C = 1). Row-wise numpy reductions: about
@@ -432,21 +454,21 @@ class SiftMatcher:
         scale = np.array([kp.size for kp in kps], dtype=np.float64)
         # canonical order (strongest first, then position), whatever order OpenCV's threads produce
         order = np.lexsort((scale, uv[:, 1], uv[:, 0], -response))
-        desc = desc[order].astype(np.float32)
-        if self.rootsift:
-            desc /= np.maximum(desc.sum(1, keepdims=True), 1e-12)
-            np.sqrt(desc, out=desc)
+        desc = desc[order]
         extra = {"kind": self.kind, "response": response[order], "scale": scale[order],
                  "first_pass": first_pass}
-        return Features(uv[order], desc, (w, h), extra)
+        raw = desc.astype(np.uint8)
+        if np.array_equal(raw, desc):  # OpenCV's SIFT values are bytes: keep those
+            return Features(uv[order], raw, (w, h), extra)
+        return Features(uv[order], _sift_vectors(desc, self.rootsift), (w, h), extra)
 
     def match(self, a: Features, b: Features) -> Matches:
         """Ratio-test (+ mutual) matches from a to b; scores are ``1 - distance ratio``."""
         _check_pair(a, b, (self.kind,), self.name)
         if len(a) == 0 or len(b) == 0:
             return Matches.empty()
-        da = torch.from_numpy(np.ascontiguousarray(a.desc, dtype=np.float32))
-        db = torch.from_numpy(np.ascontiguousarray(b.desc, dtype=np.float32))
+        da = torch.from_numpy(descriptor_array(a))
+        db = torch.from_numpy(descriptor_array(b))
         with torch.inference_mode():
             i_ab, d1_ab, d2_ab, i_ba, d1_ba, d2_ba = _nn2(da, db)
         r_ab = _distance_ratio(d1_ab, d2_ab)

@@ -33,7 +33,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from ..options import check_options, option
-from .features import Features
+from .features import Features, descriptor_array
 
 __all__ = ["PAIR_MODES", "PairOptions", "PairSelection", "global_descriptors", "select_pairs"]
 
@@ -162,15 +162,36 @@ def _check_kinds(features: Sequence[Features]) -> None:
             )
 
 
-def _descriptor_list(features: Sequence[Features]) -> tuple[list[np.ndarray], int]:
-    """Per-image (K_i, D) float32 descriptors and D (0 when no image has any)."""
-    descs = [_as_numpy(f.desc) for f in features]
-    dims = {d.shape[1] for d in descs if d.shape[0] > 0}
-    if len(dims) > 1:
-        raise ValueError(f"descriptors of different lengths: {sorted(dims)}")
-    if dims:
-        return descs, dims.pop()
-    return descs, max((d.shape[1] for d in descs), default=0)
+def _desc_shape(desc: Any) -> tuple[int, int]:
+    """``(K, D)`` of a descriptor array or tensor (None or empty: ``(0, 0)``)."""
+    shape = () if desc is None else tuple(desc.shape)
+    if len(shape) == 2:
+        return int(shape[0]), int(shape[1])
+    if desc is None or int(np.prod(shape)) == 0:
+        return 0, 0
+    raise ValueError(f"descriptors must be a (K, D) array, got shape {shape}")
+
+
+class _Descriptors:
+    """Per-image ``(K_i, D)`` float32 descriptors, formed when an image's are read (SIFT
+    features keep their bytes: converting every image at once would hold a float32 copy of
+    all of them). ``counts (N,)`` rows per image, ``dim`` D (0 when no image has any)."""
+
+    def __init__(self, features: Sequence[Features]) -> None:
+        self._features = list(features)
+        shapes = [_desc_shape(f.desc) for f in self._features]
+        self.counts = np.array([sh[0] for sh in shapes], np.int64)
+        dims = {sh[1] for sh in shapes if sh[0] > 0}
+        if len(dims) > 1:
+            raise ValueError(f"descriptors of different lengths: {sorted(dims)}")
+        self.dim = dims.pop() if dims else max((sh[1] for sh in shapes), default=0)
+
+    def __len__(self) -> int:
+        return len(self._features)
+
+    def __getitem__(self, i: int) -> np.ndarray:
+        f = self._features[i]
+        return descriptor_array(f) if isinstance(f.desc, np.ndarray) else _as_numpy(f.desc)
 
 
 def _assign(x: np.ndarray, centres: np.ndarray, centre_sq: np.ndarray) -> np.ndarray:
@@ -224,9 +245,9 @@ def _kmeans(x: np.ndarray, words: int, rng: np.random.Generator) -> np.ndarray:
     return centres
 
 
-def _sample(descs: list[np.ndarray], sample: int, rng: np.random.Generator) -> np.ndarray:
+def _sample(descs: _Descriptors, sample: int, rng: np.random.Generator) -> np.ndarray:
     """Up to ``sample`` descriptors drawn uniformly without replacement over all images."""
-    counts = np.array([d.shape[0] for d in descs], np.int64)
+    counts = descs.counts
     offsets = np.r_[0, np.cumsum(counts)]
     total = int(offsets[-1])
     picks = np.sort(rng.choice(total, size=min(sample, total), replace=False))
@@ -273,13 +294,12 @@ def global_descriptors(
         features: N images' :class:`Features` of one kind; ``desc`` (K, D) numpy or torch.
         words, sample, seed: codebook size, codebook sample size, random seed.
     """
-    descs, dim = _descriptor_list(features)
-    return _vlad(descs, dim, words, sample, seed)
+    return _vlad(_Descriptors(features), words, sample, seed)
 
 
-def _vlad(descs: list[np.ndarray], dim: int, words: int, sample: int, seed: int) -> np.ndarray:
-    n = len(descs)
-    counts = np.array([d.shape[0] for d in descs], np.int64)
+def _vlad(descs: _Descriptors, words: int, sample: int, seed: int) -> np.ndarray:
+    n, dim = len(descs), descs.dim
+    counts = descs.counts
     if counts.sum() == 0:
         return np.zeros((n, words * dim), np.float32)
     rng = np.random.default_rng(seed)
@@ -468,16 +488,16 @@ def select_pairs(features: Sequence[Features], options: PairOptions | None = Non
         elif mode == "sequential":
             pairs = {(i, j) for i in range(n) for j in range(i + 1, min(n, i + opts.window + 1))}
             if opts.loop_k > 0 and opts.window < n - 1:  # else nothing lies outside a window
-                descs, dim = _descriptor_list(features)
-                valid = np.flatnonzero([d.shape[0] > 0 for d in descs])
+                descs = _Descriptors(features)
+                valid = np.flatnonzero(descs.counts > 0)
                 if valid.size >= 2:
-                    g = _vlad(descs, dim, opts.words, opts.sample, opts.seed)
+                    g = _vlad(descs, opts.words, opts.sample, opts.seed)
                     pairs |= _loop_pairs(g, valid, opts.window, opts.loop_k)
         else:
-            descs, dim = _descriptor_list(features)
-            valid = np.flatnonzero([d.shape[0] > 0 for d in descs])
+            descs = _Descriptors(features)
+            valid = np.flatnonzero(descs.counts > 0)
             if valid.size >= 2:
-                g = _vlad(descs, dim, opts.words, opts.sample, opts.seed)
+                g = _vlad(descs, opts.words, opts.sample, opts.seed)
                 pairs = _knn_pairs(g, valid, opts.k)
                 pairs.update(_repair(n, pairs, g, valid, opts.repair_links))
             for i in np.setdiff1d(np.arange(n), valid).tolist():  # no keypoints: file order

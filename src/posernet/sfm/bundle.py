@@ -412,6 +412,26 @@ def _gram(A: np.ndarray, B: np.ndarray) -> np.ndarray:
     return np.matmul(A.transpose(0, 2, 1), B)
 
 
+#: observations per slice of :func:`_segment_grams` (its ``(n, 6, 6)`` products, 9 MB)
+_GRAM_CHUNK = 32768
+
+
+def _segment_grams(A: np.ndarray, starts: np.ndarray) -> np.ndarray:
+    """``np.add.reduceat(_gram(A, A), starts, axis=0)`` for ``A (O, 2, m)`` without the
+    ``(O, m, m)`` products at once: slices of about :data:`_GRAM_CHUNK` observations cut at
+    segment starts (the same sums, in the same order)."""
+    bounds = np.r_[starts, A.shape[0]]
+    out = np.empty((starts.size, A.shape[2], A.shape[2]))
+    k = 0
+    while k < starts.size:
+        stop = max(k + 1, int(np.searchsorted(bounds, bounds[k] + _GRAM_CHUNK, "right")) - 1)
+        stop = min(stop, starts.size)
+        a, b = bounds[k], bounds[stop]
+        out[k:stop] = np.add.reduceat(_gram(A[a:b], A[a:b]), starts[k:stop] - a, axis=0)
+        k = stop
+    return out
+
+
 def _upper_product(Y: np.ndarray, W: np.ndarray, cols: np.ndarray, indptr: np.ndarray,
                    npt: int) -> np.ndarray:
     """Dense ``Y W^T`` ``(6 nc, 6 nc)`` of two block-sparse matrices with one ``(6, 3)`` block
@@ -481,15 +501,15 @@ class _Schur:
         self.pj_c = pj[cv]
         self.Wc = np.zeros((0, 6, 3))
         if nc:
-            A = d_cam[cv]
+            A = d_cam if cv.all() else d_cam[cv]
             starts = np.flatnonzero(np.r_[True, self.ci[1:] != self.ci[:-1]])
-            blocks = np.add.reduceat(_gram(A, A), starts, axis=0)
+            blocks = _segment_grams(A, starts)
             self.Ucc[self.ci[starts]] = blocks
             for k, c in enumerate([] if self.iterative else self.ci[starts]):
                 U[6 * c:6 * c + 6, 6 * c:6 * c + 6] = blocks[k]  # one dense 6x6 per camera
             g[:6 * nc] = np.add.reduceat(_gram(A, r[cv][:, :, None])[..., 0], starts,
                                          axis=0).ravel()
-            self.Wc = _gram(A, d_pt[cv])
+            self.Wc = _gram(A, d_pt if cv.all() else d_pt[cv])
             self.indptr = np.searchsorted(self.ci, np.arange(nc + 1))
             # Few cameras: W V^-1 W^T as one dense BLAS product beats the block-sparse one
             # (whose cost grows with the observations per point squared, not with cameras).
@@ -766,11 +786,15 @@ def _solve_lm(prob: _Problem, x0: np.ndarray, med0: float, opt: BundleOptions
     while nfev < opt.max_nfev:
         e2 = (r.reshape(-1, 2) ** 2).sum(1)
         sw = np.repeat(np.sqrt(_rho(e2 / fs**2, opt.loss)[1]), 2)
+        system = None  # the previous system and blocks go before the new ones are made
         d_cam, d_pt, d_f = prob.blocks(x)
         w_obs = sw[::2, None]  # one weight per observation (both rows)
-        system = _Schur(prob, d_cam * w_obs[:, :, None], d_pt * w_obs[:, :, None],
-                        d_f * w_obs, sw * r,
+        d_cam *= w_obs[:, :, None]  # fresh arrays: weighted in place
+        d_pt *= w_obs[:, :, None]
+        d_f *= w_obs
+        system = _Schur(prob, d_cam, d_pt, d_f, sw * r,
                         iterative=prob.var_cam.size >= opt.pcg_min_cameras)
+        del d_cam, d_pt, d_f
         while nfev < opt.max_nfev:
             dc, dp = system.step(lam)
             dx = np.zeros_like(x)
