@@ -703,10 +703,16 @@ def _stats(err: np.ndarray) -> tuple[float, float]:
     return float(np.median(err)), float(np.mean(err))
 
 
+def _variable_cameras(prob: _Problem, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rotations ``(V, 3, 3)`` and centres ``(V, 3)`` of the variable cameras in ``x``."""
+    _, R, t, _, _ = prob.unpack(x)
+    R, t = R[prob.var_cam], t[prob.var_cam]
+    return R, -np.einsum("nji,nj->ni", R, t)
+
+
 def _spread(prob: _Problem, x: np.ndarray) -> float:
     """Mean distance of the variable cameras' centres from the gauge camera's."""
-    _, R, t, _, _ = prob.unpack(x)
-    c = -np.einsum("nji,nj->ni", R[prob.var_cam], t[prob.var_cam])
+    c = _variable_cameras(prob, x)[1]
     return float(np.linalg.norm(c - prob.gauge_centre, axis=1).mean())
 
 
@@ -737,14 +743,10 @@ def _camera_move(prob: _Problem, x: np.ndarray, x_new: np.ndarray, spread: float
         return 0.0
     if not spread > 0:
         return float("inf")
-    _, R0, t0, _, _ = prob.unpack(x)
-    _, R1, t1, _, _ = prob.unpack(x_new)
-    v = prob.var_cam
-    R0, R1 = R0[v], R1[v]
+    R0, c0 = _variable_cameras(prob, x)
+    R1, c1 = _variable_cameras(prob, x_new)
     # |R1 - R0|_F = 2 sqrt(2) sin(angle / 2): no arccos, which loses the small angles
     turn = np.linalg.norm(R1 - R0, axis=(1, 2)).max() / np.sqrt(2)
-    c0 = -np.einsum("nji,nj->ni", R0, t0[v])
-    c1 = -np.einsum("nji,nj->ni", R1, t1[v])
     shift = np.linalg.norm(c1 - c0, axis=1).max() / spread
     return float(max(turn, shift))
 
@@ -772,8 +774,7 @@ def _solve_lm(prob: _Problem, x0: np.ndarray, med0: float, opt: BundleOptions
     hold = prob.gauge_centre is not None and prob.var_cam.size > 0
     spread0 = _spread(prob, x0) if hold else 0.0
     if opt.camera_tol > 0 and not hold and prob.var_cam.size:
-        _, R, t, _, _ = prob.unpack(x0)
-        c = -np.einsum("nji,nj->ni", R, t)
+        c = _variable_cameras(prob, x0)[1]
         spread_move = float(np.linalg.norm(c - c.mean(0), axis=1).mean())
     else:
         spread_move = spread0
