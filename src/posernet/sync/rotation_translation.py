@@ -449,7 +449,10 @@ def translation_stage(prob: PaddedProblem, R: Tensor, o: RotationTranslationOpti
     4. direction outliers (angle between ``c_j - c_i`` and ``d_e`` above
        ``max_direction_residual_deg``, MAD-aware) are dropped and the positions re-solved.
 
-    A pruning that would cost a component its parallel rigidity is not applied there.
+    A pruning that would cost a component its parallel rigidity is not applied there. A
+    component that the kept edges leave non-rigid has no direction pruning and gets the one
+    weighted linear solve: its positions are then one choice among many, the same on every
+    device.
     """
     u = _world_baselines(prob, R)
     un = u.norm(dim=-1)
@@ -496,8 +499,10 @@ def translation_stage(prob: PaddedProblem, R: Tensor, o: RotationTranslationOpti
         th = mad_threshold(ang, keep, float(o.max_direction_residual_deg), o.outlier_mad)
         cand = keep & (ang > th[:, None])
         if bool(cand.any()):
-            # only where the rest still fixes the positions (or never did)
-            ok = cand.any(1) & (rigid_of(keep & ~cand) | ~rigid_of(keep))
+            # only where the rest still fixes the positions: where the kept edges never did,
+            # the robust residuals measure one arbitrary choice among many (round-off picks
+            # it, so CPU and CUDA would prune different edges)
+            ok = cand.any(1) & rigid_of(keep & ~cand)
             if bool(ok.any()):
                 dir_out = cand & ok[:, None]
                 keep2 = keep & ~dir_out
