@@ -16,6 +16,7 @@ from types import MappingProxyType
 import cv2
 import numpy as np
 import pytest
+import torch
 
 from posernet.frontend.features import Matches
 from posernet.frontend.images import ImageRecord
@@ -33,6 +34,7 @@ from posernet.reconstruction import (
     bundle_stage,
     poses_json,
     solve_view_graph,
+    stage_choice_line,
     trajectory_errors_table,
     write_camera_view,
 )
@@ -145,6 +147,43 @@ def test_stages_after_the_front_end_run_on_its_result_alone(tmp_path) -> None:
     table = trajectory_errors_table(rec, record)
     assert table is not None and f"{N} cameras in name order" in table
     json.dumps(record)  # JSON-ready
+
+
+class _Refiner(torch.nn.Module):
+    """A stand-in refiner: the input edge poses, or with ``scramble`` random ones."""
+
+    def __init__(self, scramble: bool) -> None:
+        super().__init__()
+        self.scramble = scramble
+
+    def forward(self, batch) -> torch.Tensor:
+        pose = batch.edge_pose.clone()
+        if self.scramble:
+            g = torch.Generator().manual_seed(0)
+            pose = torch.nn.functional.normalize(
+                torch.randn(pose.shape, generator=g, dtype=pose.dtype), dim=-1)
+            pose[:, 4:] = torch.nn.functional.normalize(pose[:, 4:], dim=-1)
+        return pose
+
+
+@pytest.mark.parametrize("scramble", [False, True])
+def test_the_refined_stage_is_final_only_where_it_passes_the_check(scramble: bool) -> None:
+    """A refiner whose poses fail the self-check where the unrefined ones pass gives way to
+    them; one that passes as many is kept."""
+    view, _ = _hand_made()
+    rec = solve_view_graph(view, _Refiner(scramble), get_backend("rotation_translation"),
+                           bundle_adjust=False)
+    assert rec.stage_checks is not None and rec.stage_checks["initial"] == N
+    if scramble:
+        assert rec.stage_checks["refined"] < N and rec.stage == "initial"
+    else:
+        assert rec.stage_checks["refined"] == N and rec.stage == "refined"
+    assert rec.check is not None and int(rec.check.passed.sum()) == N
+    record = poses_json(rec)
+    assert record["stage"] == rec.stage and record["stage_checks"] == rec.stage_checks
+    assert all(c["solved"] for c in record["cameras"].values())
+    line = stage_choice_line(rec)
+    assert line is not None and ("unrefined" in line) == scramble
 
 
 def test_a_graph_without_edges_is_refused() -> None:

@@ -59,7 +59,8 @@ from .sfm.selfcheck import CheckOptions, PairEvidence, SelfCheck, check_reconstr
 
 __all__ = ["NothingPlaced", "Reconstruction", "bundle_stage", "edge_weights", "focal_mode",
            "gauge_fixed", "largest_point_cloud", "main_first_line", "pair_evidence",
-           "poses_json", "reconstruct", "self_check", "solve_view_graph", "trajectory_errors_table",
+           "poses_json", "reconstruct", "self_check", "solve_view_graph", "stage_choice_line",
+           "trajectory_errors_table",
            "unplaced_json", "write_camera_view", "write_colmap_models", "write_poses_json"]
 
 
@@ -82,6 +83,12 @@ class Reconstruction:
     #: matcher alone placed (``placed``, ``images``, ``main_first``) and whether the
     #: fallback then ``"ran"`` or was ``"not needed"``. None elsewhere.
     main_first: dict[str, Any] | None = None
+    #: with a refiner and the self-check: each stage's cameras that passed
+    #: (``{"initial+ba": k, "refined+ba": k}``); the final stage is the one with more
+    #: (the refined one on a tie). None elsewhere.
+    stage_checks: dict[str, int] | None = None
+    #: the final stage when chosen by :attr:`stage_checks` (None: :attr:`stage` decides)
+    chosen: str | None = None
 
     @property
     def graph(self) -> ViewGraph:
@@ -104,7 +111,10 @@ class Reconstruction:
     @property
     def stage(self) -> str:
         """The final stage: ``refined`` when PoserNet ran, else ``initial``; with ``+ba`` when
-        bundle adjustment ran."""
+        bundle adjustment ran. With the self-check, the refined stage must pass at least as
+        many cameras as the initial one (:attr:`stage_checks`), else the initial one is final."""
+        if self.chosen is not None:
+            return self.chosen
         s = "refined" if "refined" in self.result.edge_pose else "initial"
         return f"{s}+ba" if f"{s}+ba" in self.result.absolute else s
 
@@ -235,12 +245,16 @@ def final_intrinsics(rec: Reconstruction) -> list[np.ndarray]:
     return K
 
 
-def self_check(rec: Reconstruction, options: CheckOptions | None = None) -> SelfCheck:
-    """Hold the final stage of ``rec`` against its verified pairs and (after bundle
-    adjustment) its 3D points, one connected component at a time
+def self_check(rec: Reconstruction, options: CheckOptions | None = None,
+               stage: str | None = None) -> SelfCheck:
+    """Hold ``stage`` (default: the final stage) of ``rec`` against its verified pairs and
+    (after bundle adjustment) its 3D points, one connected component at a time
     (:func:`posernet.sfm.selfcheck.check_reconstruction`). The cameras that fail become
-    unsolved in ``rec.result.solved[rec.stage]``; the outcome is stored in ``rec.check``."""
-    res, stage = rec.result, rec.stage
+    unsolved in ``rec.result.solved[stage]``; the outcome of the final stage is stored in
+    ``rec.check``."""
+    res = rec.result
+    final = stage is None or stage == rec.stage
+    stage = rec.stage if stage is None else stage
     poses = res.absolute[stage][0].double().numpy()
     solved = res.solved[stage][0].bool()
     comp = res.component[stage][0]
@@ -276,7 +290,8 @@ def self_check(rec: Reconstruction, options: CheckOptions | None = None) -> Self
                       points=pts, triangulation_deg=tri, inlier_share=inl,
                       options=options or CheckOptions())
     res.solved[stage][0] = torch.from_numpy(passed).to(res.solved[stage][0].dtype)
-    rec.check = check
+    if final:
+        rec.check = check
     return check
 
 
@@ -342,6 +357,16 @@ def reconstruct(
     rec = _solve(frontend, selection, clock, *args)
     rec.main_first = {**main, "fallback": "ran"}
     return rec
+
+
+def stage_choice_line(rec: Reconstruction) -> str | None:
+    """One line on :attr:`Reconstruction.stage_checks` (None without a choice)."""
+    if rec.stage_checks is None:
+        return None
+    counts = ", ".join(f"{s} {k}" for s, k in rec.stage_checks.items())
+    kept = "the refined poses" if rec.stage.startswith("refined") else \
+        "the unrefined poses (the refiner did not pay its way here)"
+    return f"cameras passing the self-check: {counts}; kept {kept}"
 
 
 def main_first_line(record: dict[str, Any]) -> str:
@@ -414,7 +439,19 @@ def _solve_view(view: FrontendResult, clock: _StageClock, model: torch.nn.Module
             rec.sfm[f"{s}+ba"] = bundle_stage(view, result, s, bundle, weights)
         clock.done("bundle_adjustment", n)
     if check is not False and result.absolute:
-        self_check(rec, check if isinstance(check, CheckOptions) else None)
+        opts = check if isinstance(check, CheckOptions) else None
+        final = rec.stage
+        if final.startswith("refined"):
+            # The refiner must pay its way on this run: where its stage leaves fewer cameras
+            # that agree with the evidence than the unrefined one, the unrefined one is final.
+            initial = final.replace("refined", "initial")
+            checks = {s: self_check(rec, opts, s) for s in (initial, final)}
+            rec.stage_checks = {s: int(c.passed.sum()) for s, c in checks.items()}
+            better = rec.stage_checks[final] >= rec.stage_checks[initial]
+            rec.chosen = final if better else initial
+            rec.check = checks[rec.chosen]
+        else:
+            self_check(rec, opts)
         clock.done("self_check", n)
     return rec
 
@@ -590,7 +627,7 @@ def poses_json(rec: Reconstruction, info: dict[str, Any] | None = None) -> dict[
             "stages": rec.stages,
             "bundle_adjustment": bundle,
             "self_check": None if rec.check is None else rec.check.to_dict(keys),
-            "main_first": rec.main_first,
+            "main_first": rec.main_first, "stage_checks": rec.stage_checks,
             "cameras": cams, "edges": edges,
             "rejected_pairs": rec.frontend.rejected_pairs()}
 

@@ -138,6 +138,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
         main_first_line,
         poses_json,
         reconstruct,
+        stage_choice_line,
         trajectory_errors_table,
         write_camera_view,
         write_colmap_models,
@@ -238,6 +239,8 @@ def run(cfg: DictConfig) -> dict[str, Any]:
                       + "\n      ".join(line for line in r.lines()[-4:] if line))
         if rec.check is not None:
             print("      " + rec.check.line([r.key for r in records]))
+        if (choice := stage_choice_line(rec)) is not None:
+            print("      " + choice)
         print("      seconds: " + ", ".join(
             f"{k.replace('_', ' ')} {v['seconds']:.2f}"
             + (f" ({1000 * v['seconds'] / v['items']:.1f} ms x {v['items']})"

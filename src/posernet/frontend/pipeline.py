@@ -96,9 +96,13 @@ class ImageFrontend:
         edge_rule: ``"boxes"`` (the paper's: an edge needs ``rules.min_boxes`` matched box
             pairs) or ``"verified"`` (with ``estimate="kp"``, every pair whose two-view
             geometry is verified is an edge; its matched boxes, fewer or none, ride along, and
-            PoserNet keeps the pose of an edge without any).
-        kp_top_pairs: KP input from the keypoints of the ``kp_top_pairs`` box pairs sharing the
-            most matches (0: every matched box pair, the paper's rule).
+            PoserNet keeps the pose of an edge without any). The KP estimate is then fitted on
+            every keypoint match of the pair, as the tracks use them; with ``"boxes"``, on the
+            matches inside matched boxes (the paper's input), which on a few far-apart views
+            can be a small subset that fits a pose 10-50 deg off.
+        kp_top_pairs: with ``edge_rule="boxes"``, the KP estimate from the keypoints of the
+            ``kp_top_pairs`` box pairs sharing the most matches (0: every matched box pair, the
+            paper's rule).
         seed: RANSAC seed base (per pair: :func:`pair_seed`).
         workers: threads for the per-image and per-pair stages.
         keep_matches: keep every pair's keypoint matches (for pictures).
@@ -172,7 +176,13 @@ class ImageFrontend:
                 "rules": _describe(self.rules), "pose": _describe(self.pose),
                 "verify": _describe(self.verify), "estimate": self.estimate,
                 "edge_rule": self.edge_rule, "kp_top_pairs": self.kp_top_pairs,
-                "seed": self.seed, "max_image_size": self.max_image_size}
+                "kp_fit": self.kp_fit, "seed": self.seed, "max_image_size": self.max_image_size}
+
+    @property
+    def kp_fit(self) -> str:
+        """Which matches the KP estimate of a pair with matched boxes is fitted on: ``"all"``
+        (``edge_rule="verified"``) or ``"boxes"`` (the paper's, in matched boxes)."""
+        return "all" if self.edge_rule == "verified" and self.estimate == "kp" else "boxes"
 
     # ------------------------------------------------------------------ images
 
@@ -584,6 +594,25 @@ class ImageFrontend:
         common = {"prob": q.ransac_prob, "max_iters": q.max_iters, "seed": s, "method": q.method}
         geo = {"K2": rb.K, "dist1": ra.dist, "dist2": rb.dist}
         track_geo = {"K1": ra.K, **geo}
+        if self.kp_fit == "all" and ia.size >= rules.min_boxes:
+            # Every verified pair is an edge: its geometry (and the tracks) from all its
+            # matches, however many boxes they share; the box-centre estimate rides along.
+            tv = verify_two_view(m.uv_a, m.uv_b, ra.K, rules=self.verify,
+                                 threshold=q.kp_threshold, **geo, **common)
+            bb = five_point(box_centres(A.boxes[ia]), box_centres(B.boxes[ib]), ra.K,
+                            q.bb_threshold, **geo, **common)
+            sec["five_point"] += time.perf_counter() - t2
+            if bb is None:
+                summary.rejected["bb:five_point"] += 1
+            inliers = self._track_matches(m, tv, np.ones(len(m), bool), track_geo)
+            if not tv.accepted:
+                summary.rejected[f"kp:{tv.status}"] += 1
+                return PairResult(a, b, ia, ib, wrong, 0, 0, None, bb, "unmatched",
+                                  reason=tv.status, rotation_only=tv.rotation_only,
+                                  inliers=inliers, info=tv.info)
+            summary.rotation_only += bool(tv.rotation_only)
+            return PairResult(a, b, ia, ib, wrong, len(m), 0, tv.pose, bb, "edge",
+                              rotation_only=tv.rotation_only, inliers=inliers, info=tv.info)
         if ia.size < rules.min_boxes:
             # Too few matched boxes for the paper's edge rule: verified on all its matches,
             # it is an edge under edge_rule="verified" (KP input), and its matches join the
