@@ -87,8 +87,6 @@ class Reconstruction:
     #: (``{"initial+ba": k, "refined+ba": k}``); the final stage is the one with more
     #: (the refined one on a tie). None elsewhere.
     stage_checks: dict[str, int] | None = None
-    #: the final stage when chosen by :attr:`stage_checks` (None: :attr:`stage` decides)
-    chosen: str | None = None
 
     @property
     def graph(self) -> ViewGraph:
@@ -113,10 +111,14 @@ class Reconstruction:
         """The final stage: ``refined`` when PoserNet ran, else ``initial``; with ``+ba`` when
         bundle adjustment ran. With the self-check, the refined stage must pass at least as
         many cameras as the initial one (:attr:`stage_checks`), else the initial one is final."""
-        if self.chosen is not None:
-            return self.chosen
         s = "refined" if "refined" in self.result.edge_pose else "initial"
-        return f"{s}+ba" if f"{s}+ba" in self.result.absolute else s
+        s = f"{s}+ba" if f"{s}+ba" in self.result.absolute else s
+        checks = self.stage_checks
+        if checks is not None and s.startswith("refined"):
+            initial = s.replace("refined", "initial")
+            if checks.get(s, 0) < checks.get(initial, 0):
+                return initial
+        return s
 
 
 def edge_weights(frontend: FrontendResult, graph: ViewGraph | None = None) -> Tensor:
@@ -447,9 +449,7 @@ def _solve_view(view: FrontendResult, clock: _StageClock, model: torch.nn.Module
             initial = final.replace("refined", "initial")
             checks = {s: self_check(rec, opts, s) for s in (initial, final)}
             rec.stage_checks = {s: int(c.passed.sum()) for s, c in checks.items()}
-            better = rec.stage_checks[final] >= rec.stage_checks[initial]
-            rec.chosen = final if better else initial
-            rec.check = checks[rec.chosen]
+            rec.check = checks[rec.stage]
         else:
             self_check(rec, opts)
         clock.done("self_check", n)
