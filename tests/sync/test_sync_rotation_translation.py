@@ -158,3 +158,28 @@ def test_sparse_position_solve_equals_the_dense_one(monkeypatch, robust):
         assert float(none.abs().max()) == 0.0  # no edge: every centre at 0
     assert float(out[8].abs().max()) > 0.1
     torch.testing.assert_close(out[8], out[10**9], atol=1e-9, rtol=0)
+
+
+def test_sparse_laplacian_solve_equals_the_dense_one(monkeypatch):
+    """Large CPU components solve the Laplacian least squares of BATA / the rotation
+    refinement sparsely (bordered gauge row): the dense solve's centres, with two padded
+    components, zero weights that cut one in two (the ridge places the pieces) and an
+    edge-free component."""
+    import posernet.sync.translation as tr
+
+    b = GraphBatch.from_graphs([make_graph(30, 60, seed=33), make_graph(18, 20, seed=34)])
+    st = graph_structure(b)
+    comps = connected_components(st["edge_index"], st["num_nodes"], st["node_batch"], 2)
+    prob = build_padded(st["edge_index"], edge_rotations(b.edge_pose), b.edge_pose[:, 4:], comps)
+    gen = torch.Generator().manual_seed(3)
+    w = (torch.rand(prob.G, prob.m, generator=gen, dtype=torch.float64) + 0.5) * prob.edge_mask
+    cut = prob.edge_mask[0] & (prob.src[0] < 15) & (prob.dst[0] >= 15)
+    w[0, cut] = 0.0
+    target = torch.randn(prob.G, prob.m, 3, generator=gen, dtype=torch.float64)
+    out = {}
+    for limit in (10**9, 8):  # dense everywhere / sparse above 8 cameras
+        monkeypatch.setattr(tr, "SPARSE_MIN_NODES", limit)
+        out[limit] = tr.laplacian_solve(prob, w, target)
+        assert float(tr.laplacian_solve(prob, torch.zeros_like(w), target).abs().max()) == 0.0
+    assert float(out[8].abs().max()) > 0.1
+    torch.testing.assert_close(out[8], out[10**9], atol=1e-7, rtol=1e-7)

@@ -148,8 +148,7 @@ def solve_padded(prob: PaddedProblem, opts: EigSE3Options,
                  w0: Tensor | None = None) -> tuple[Tensor, Tensor, dict]:
     """EIG-SE3 on every component of ``prob``: ``(R [G, n, 3, 3], t [G, n, 3], info)``.
 
-    ``w0 [G, m]``: optional starting weights of the IRLS (:mod:`posernet.sync.weighted`;
-    dense solver)."""
+    ``w0 [G, m]``: optional starting weights of the IRLS (:mod:`posernet.sync.weighted`)."""
     G, n, m = prob.G, prob.n, prob.m
     dt, dev = prob.R.dtype, prob.R.device
     R = torch.eye(3, dtype=dt, device=dev).expand(G, n, 3, 3).clone()
@@ -158,13 +157,12 @@ def solve_padded(prob: PaddedProblem, opts: EigSE3Options,
     iters = torch.zeros(G, dtype=torch.long, device=dev)
     conv = torch.zeros(G, dtype=torch.bool, device=dev)
     eig_ok = torch.ones(G, dtype=torch.bool, device=dev)
-    groups = (split_by_size(prob, opts.solver, opts.dense_max_nodes) if w0 is None
-              else [(torch.arange(G, device=dev), False)])
-    for idx, krylov in groups:
+    for idx, krylov in split_by_size(prob, opts.solver, opts.dense_max_nodes):
         sub = prob.select(idx) if idx.numel() < G else prob
         if w0 is not None:
             sol = weighted_rotation_irls(sub, w0[idx, :sub.m], opts.robust, opts.max_iters,
-                                         opts.tol, opts.theta, opts.weight_mode)
+                                         opts.tol, opts.theta, opts.weight_mode, krylov,
+                                         opts.krylov_tol, opts.krylov_max_cycles, opts.seed)
         else:
             sol = rotation_irls(sub, opts.robust, opts.max_iters, opts.tol, opts.theta, krylov,
                                 opts.krylov_tol, opts.krylov_max_cycles, opts.seed)

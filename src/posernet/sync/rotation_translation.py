@@ -557,13 +557,11 @@ class RotationTranslation(SyncBackend):
         conv = torch.zeros(G, dtype=torch.bool, device=dev)
         w = struct.get("edge_weight")
         w_rot = None if w is None else padded_weights(prob, w[:, 0])
-        groups = (split_by_size(prob, o.solver, o.dense_max_nodes) if w_rot is None
-                  else [(torch.arange(G, device=dev), False)])
-        for idx, krylov in groups:
+        for idx, krylov in split_by_size(prob, o.solver, o.dense_max_nodes):
             sub = prob.select(idx) if idx.numel() < G else prob
             if w_rot is not None:
                 sol = weighted_rotation_irls(sub, w_rot[idx, :sub.m], o.robust, o.max_iters,
-                                             o.tol, o.theta, o.weight_mode)
+                                             o.tol, o.theta, o.weight_mode, krylov, seed=o.seed)
             else:
                 sol = rotation_irls(sub, o.robust, o.max_iters, o.tol, o.theta, krylov,
                                     seed=o.seed)

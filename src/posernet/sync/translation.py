@@ -101,6 +101,11 @@ def laplacian_solve(prob: PaddedProblem, w: Tensor, target: Tensor) -> Tensor:
     """
     G, n = prob.G, prob.n
     dt, dev = w.dtype, w.device
+    if use_sparse(n, dev) and not (w.requires_grad or target.requires_grad):
+        vm = prob.node_mask.to(dt)
+        deg = _mean_degree(prob, w)
+        return _laplacian_solve_sparse(prob, w, incidence_rhs(prob, w, target), deg) \
+            * vm[..., None]
     gi = torch.arange(G, device=dev)[:, None].expand(G, prob.m)
     L = torch.zeros(G, n, n, dtype=dt, device=dev)
     L.index_put_((gi, prob.src, prob.dst), -w, accumulate=True)
@@ -120,6 +125,48 @@ def laplacian_solve(prob: PaddedProblem, w: Tensor, target: Tensor) -> Tensor:
     c = torch.linalg.lu_solve(LU, piv, rhs)
     c = c + torch.linalg.lu_solve(LU, piv, rhs - L @ c)
     return c * vm[..., None]
+
+
+def _mean_degree(prob: PaddedProblem, w: Tensor) -> Tensor:
+    """``[G]``: the mean weighted degree of each component (1 where no edge is left), the
+    scale of :func:`laplacian_solve`'s gauge and ridge."""
+    total = 2 * torch.where(prob.edge_mask, w, torch.zeros_like(w)).sum(1)
+    deg = total / prob.count.to(w.dtype)
+    return torch.where(deg > 0, deg, torch.ones_like(deg))
+
+
+def _laplacian_solve_sparse(prob: PaddedProblem, w: Tensor, rhs: Tensor, deg: Tensor) -> Tensor:
+    """The system of :func:`laplacian_solve` (same gauge, ridge and refinement step) for large
+    components on the CPU, one component at a time: scipy's sparse LU of the Laplacian with
+    its rank-one gauge term as one bordered row and column (``[L_r, a^1/2 v; a^1/2 v^T, -1]``
+    eliminates to ``L_r + a v v^T``), where the dense form is an ``n^3`` LU."""
+    import numpy as np
+    import scipy.sparse as sp
+    from scipy.sparse.linalg import splu
+
+    out = torch.zeros_like(rhs)
+    for g in range(prob.G):
+        em, vm = prob.edge_mask[g], prob.node_mask[g].to(w.dtype)
+        i, j, ww = prob.src[g, em].numpy(), prob.dst[g, em].numpy(), w[g, em].numpy()
+        n, a = prob.n, float(deg[g]) / float(prob.count[g])
+        v = vm.numpy()
+        L = sp.coo_matrix((np.concatenate([-ww, -ww, ww, ww]),
+                           (np.concatenate([i, j, i, j]), np.concatenate([j, i, i, j]))),
+                          shape=(n, n)).tocsc()
+        L = L + sp.diags(1.0 - v)  # identity on padded nodes
+        ridge = sp.diags(RIDGE * float(deg[g]) * v)
+        border = sp.csc_matrix(np.sqrt(a) * v[:, None])
+        K = sp.bmat([[L + ridge, border], [border.T, sp.csc_matrix([[-1.0]])]], format="csc")
+        lu = splu(K, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.1)
+        b = rhs[g].numpy()
+
+        def solve(r: np.ndarray, lu=lu, n=n) -> np.ndarray:
+            return lu.solve(np.vstack([r, np.zeros((1, r.shape[1]))]))[:n]
+
+        c = solve(b)
+        c = c + solve(b - (L @ c + a * np.outer(v, v @ c)))  # refine against the unridged one
+        out[g] = torch.from_numpy(c)
+    return out
 
 
 def mad_threshold(x: Tensor, mask: Tensor, floor: float, k: float) -> Tensor:

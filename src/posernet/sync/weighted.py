@@ -13,8 +13,9 @@ good edges and the Cauchy re-weighting starts from a better solution.
 
 With uniform weights both modes are exactly the published IRLS (:func:`weighted_rotation_irls`
 then gives bit-identical results to :func:`posernet.sync.spectral.rotation_irls` with the
-dense solver; tested). Weighted problems always use the dense eigen-solver (components of a
-few hundred nodes at most in this project).
+dense solver; tested). Weighted problems take the same solver as unweighted ones (dense eigh
+on small components, block Krylov on large ones: a 3072x3072 ``eigh`` per IRLS round made a
+1024-camera graph take minutes).
 
 **Weight rule** (``edge_weight`` given to :meth:`~posernet.sync.backend.SyncBackend.solve`):
 ``[E]`` (one weight for both parts) or ``[E, 2]`` (rotation, translation), finite. Weights are
@@ -72,15 +73,19 @@ def padded_weights(prob: PaddedProblem, w: Tensor, keep_zero: bool = False) -> T
 
 
 def weighted_rotation_irls(prob: PaddedProblem, w0: Tensor, robust: bool, max_iters: int,
-                           tol: float, theta: float, mode: str = "start") -> RotationSolution:
+                           tol: float, theta: float, mode: str = "start", krylov: bool = False,
+                           krylov_tol: float = 1e-12, krylov_max_cycles: int = 500,
+                           seed: int = 0) -> RotationSolution:
     """Spectral rotation synchronisation with EIG-SE3's IRLS started from weights ``w0``.
 
     ``w0 [G, m]`` (from :func:`padded_weights`; 0 on pads). The loop is the published one,
-    :func:`posernet.sync.spectral.rotation_irls` with the dense solver: Cauchy weights with a
-    MAD threshold, diagonal weight ``max(w)``, stop when ``|W_old - W|_F / (|W|_F n) <= tol``
-    or after ``max_iters`` solves; ``mode="prior"`` keeps multiplying by ``w0``.
+    :func:`posernet.sync.spectral.rotation_irls`: Cauchy weights with a MAD threshold,
+    diagonal weight ``max(w)``, stop when ``|W_old - W|_F / (|W|_F n) <= tol`` or after
+    ``max_iters`` solves; ``mode="prior"`` keeps multiplying by ``w0``. ``krylov`` (with its
+    tolerance, restarts and seed) picks the eigen-solver, as
+    :func:`~posernet.sync.spectral.split_by_size` decides per component.
     """
     if mode not in WEIGHT_MODES:
         raise ValueError(f"weight mode must be one of {list(WEIGHT_MODES)}, got {mode!r}")
-    return rotation_irls(prob, robust, max_iters, tol, theta, krylov=False, w0=w0,
-                         prior=mode == "prior")
+    return rotation_irls(prob, robust, max_iters, tol, theta, krylov, krylov_tol,
+                         krylov_max_cycles, seed, w0=w0, prior=mode == "prior")
