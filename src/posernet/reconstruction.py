@@ -173,6 +173,7 @@ def bundle_stage(frontend: FrontendResult, result: RefineResult, stage: str,
     edges = graph.edge_index.T.numpy().astype(np.int64)
     strength = np.asarray([frontend.pair(i, j).num_inliers for i, j in edges.tolist()],
                           np.float64)
+    rotation_only = [(i, j) for i, j in edges.tolist() if frontend.pair(i, j).rotation_only]
     out = poses.clone()
     solved_ba = solved.clone()
     runs = []
@@ -183,7 +184,7 @@ def bundle_stage(frontend: FrontendResult, result: RefineResult, stage: str,
         anchored = anchored_cameras(edges, weights[:, 1].numpy(), members.numpy(), strength)
         sfm = bundle_adjust_reconstruction(uv, matches, K, dist, poses.numpy(),
                                            members.numpy(), options, anchored=anchored,
-                                           seed=frontend.seed)
+                                           seed=frontend.seed, rotation_only=rotation_only)
         idx = torch.from_numpy(np.flatnonzero(members.numpy()))
         out[idx] = torch.from_numpy(sfm.w2c[idx.numpy()]).to(out.dtype)
         solved_ba[torch.from_numpy(np.flatnonzero(sfm.undetermined))] = False

@@ -1,5 +1,6 @@
 """The mapper's doubt about a start: a camera collapsed onto its neighbour is one, a long
-regular sequence is not."""
+regular sequence is not, nor a spot the sequence revisits where the two views saw no
+baseline."""
 
 from __future__ import annotations
 
@@ -9,7 +10,7 @@ import numpy as np
 
 from posernet.pinhole import look_at
 from posernet.sfm.bundle import BundleOptions
-from posernet.sfm.mapper import _doubts
+from posernet.sfm.mapper import _doubts, baseline_pairs
 
 
 def _result(centres: np.ndarray, pairs: np.ndarray) -> SimpleNamespace:
@@ -51,3 +52,23 @@ def test_a_long_regular_sequence_is_no_doubt() -> None:
     r, pairs = _result(c, pairs)
     r.w2c = look_at(c, c + np.array([0.0, 0.0, 4.0]), up=np.array([0.0, 1.0, 0.0]))
     assert "camera centres coincide" not in _doubts(r, np.ones(n, bool), BundleOptions(), pairs)
+
+
+def test_a_revisited_spot_with_a_rotation_only_pair_is_no_doubt() -> None:
+    """A sequence that passes one spot twice (frames 10 and 30, 5 mm apart, as in a rendered
+    room sequence): their pair, verified as rotation-only, leaves the start alone; the same
+    pair with a baseline in its two-view geometry is a collapse."""
+    n = 40
+    a = 2 * np.pi * np.arange(n) / n * 0.9
+    c = np.stack([4 * np.sin(a), 0.01 * np.arange(n), 4 * np.cos(a)], 1)
+    c[30] = c[10] + np.array([0.005, 0.0, 0.0])
+    seq = {(i, i + 1): np.zeros((30, 2), np.int64) for i in range(n - 1)}
+    matches = {**seq, (30, 10): np.zeros((300, 2), np.int64), (3, 5): np.zeros((0, 2))}
+    r, _ = _result(c, np.zeros((0, 2), np.int64))
+    opt = BundleOptions()
+    with_baseline = baseline_pairs(matches)
+    assert len(with_baseline) == n  # the empty pair (3, 5) is not matched
+    assert "camera centres coincide" in _doubts(r, np.ones(n, bool), opt, with_baseline)
+    no_baseline = baseline_pairs(matches, rotation_only=[(10, 30)])  # either order
+    assert len(no_baseline) == n - 1
+    assert "camera centres coincide" not in _doubts(r, np.ones(n, bool), opt, no_baseline)

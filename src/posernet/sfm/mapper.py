@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -134,7 +134,8 @@ def bundle_adjust_reconstruction(uv: Sequence[np.ndarray],
                                  w2c: np.ndarray, placed: np.ndarray,
                                  options: BundleOptions | None = None,
                                  anchored: np.ndarray | None = None,
-                                 seed: int = 0) -> SfmResult:
+                                 seed: int = 0,
+                                 rotation_only: Iterable[tuple[int, int]] = ()) -> SfmResult:
     """Tracks, triangulation and robust bundle adjustment of the placed images.
 
     ``uv[i] (K_i, 2)`` keypoint pixels of image i (distorted as detected), ``pair_matches``
@@ -145,12 +146,16 @@ def bundle_adjust_reconstruction(uv: Sequence[np.ndarray],
     whose averaged position is trustworthy (see
     :func:`~posernet.sfm.resection.anchored_cameras`; None: all); the others are first
     re-placed by PnP on points triangulated from the anchored ones (``seed``: its RANSAC), and
-    those that fail are kept out of the adjustment (weak). Malformed shapes raise ValueError; a
-    failed bundle adjustment keeps the previous (ultimately the input) poses.
+    those that fail are kept out of the adjustment (weak). ``rotation_only``: image pairs
+    whose two-view geometry found no baseline (a revisited spot): their cameras may share a
+    centre, which the choice of start does not then take for a collapse. Malformed shapes
+    raise ValueError; a failed bundle adjustment keeps the previous (ultimately the input)
+    poses.
     """
     opt = options or BundleOptions()
     if opt.start != "averaged":
-        return _best_start(uv, pair_matches, K, dist, w2c, placed, opt, anchored, seed)
+        return _best_start(uv, pair_matches, K, dist, w2c, placed, opt, anchored, seed,
+                           rotation_only)
     t_all = time.perf_counter()
     seconds: dict[str, float] = {}
     K = np.asarray(K, np.float64)
@@ -366,13 +371,26 @@ def _restart(uv: Sequence[np.ndarray], pair_matches: Mapping[tuple[int, int], np
     return res
 
 
+def baseline_pairs(pair_matches: Mapping[tuple[int, int], np.ndarray],
+                   rotation_only: Iterable[tuple[int, int]] = ()) -> np.ndarray:
+    """``(E, 2)`` the matched image pairs whose two-view geometry has a baseline: those with
+    matches, less the ``rotation_only`` ones (either order). Two cameras of such a pair on one
+    spot contradict their own matches; of a rotation-only pair (the same spot revisited, as
+    at frames 403 and 417 of a 1024-frame room sequence) they agree with them."""
+    skip = {(min(a, b), max(a, b)) for a, b in ((int(a), int(b)) for a, b in rotation_only)}
+    keep = [(int(a), int(b)) for (a, b), m in pair_matches.items()
+            if len(m) and (min(int(a), int(b)), max(int(a), int(b))) not in skip]
+    return np.array(keep, np.int64).reshape(-1, 2)
+
+
 def _doubts(r: SfmResult, members: np.ndarray, opt: BundleOptions,
             pairs: np.ndarray) -> list[str]:
     """Why an adjustment of the ``members`` may have kept a wrong start (empty: no doubt):
     cameras left unrefined, too few track observations explained, a camera whose points are
     seen only under tiny angles (explained by rotation alone), or two centres on one spot
     (a collapse that bundle adjustment keeps): two refined cameras of a matched image pair
-    ``pairs (E, 2)`` closer than a tenth of the typical spacing, the median over cameras of
+    with a baseline (``pairs (E, 2)``, :func:`baseline_pairs`) closer than a tenth of the
+    typical spacing, the median over cameras of
     the distance to their nearest matched partner. Not the median over all camera pairs:
     along a long sequence the next frame is always within 2% of that; and not 2% of the
     median over matched pairs: a turntable camera collapsed onto its neighbour (6% of the
@@ -420,7 +438,7 @@ def _score(r: SfmResult) -> tuple[int, int]:
 def _best_start(uv: Sequence[np.ndarray], pair_matches: Mapping[tuple[int, int], np.ndarray],
                 K: np.ndarray, dist: Sequence[np.ndarray | None] | None, w2c: np.ndarray,
                 placed: np.ndarray, opt: BundleOptions, anchored: np.ndarray | None,
-                seed: int) -> SfmResult:
+                seed: int, rotation_only: Iterable[tuple[int, int]] = ()) -> SfmResult:
     """:func:`bundle_adjust_reconstruction` from the start ``opt.start`` names (see
     :data:`~posernet.sfm.bundle.STARTS`); ``stats["start"]`` says which start was kept, why,
     and what each start tried kept (refined cameras seeing their points at a useful angle,
@@ -431,8 +449,7 @@ def _best_start(uv: Sequence[np.ndarray], pair_matches: Mapping[tuple[int, int],
     members = np.asarray(placed, bool).reshape(-1) & np.isfinite(w2c).all((1, 2))
     _check_inputs(uv, K, dist, w2c, members)
     small = int(members.sum()) <= opt.incremental_max_cameras
-    pairs = np.array([(int(a), int(b)) for (a, b), m in pair_matches.items() if len(m)],
-                     np.int64).reshape(-1, 2)
+    pairs = baseline_pairs(pair_matches, rotation_only)
 
     def averaged() -> SfmResult:
         return bundle_adjust_reconstruction(uv, pair_matches, K, dist, w2c, placed,
