@@ -31,11 +31,15 @@ $(STAMP): pyproject.toml
 
 install: $(STAMP)  ## create .venv and install posernet (editable) with dev tools
 
+# Test processes: two keep both cores of the CI box busy while the other one waits on a
+# command's start-up (subprocess tests import torch single-threaded); --dist loadfile keeps
+# each file's shared fixtures in one process. TEST_JOBS=0 runs in this process only.
+TEST_JOBS ?= 2
 test: $(STAMP)  ## run the whole test suite (unit + slow end-to-end)
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -n $(TEST_JOBS) --dist loadfile
 
 test-fast: $(STAMP)  ## run the unit tests only (skips tests marked slow)
-	$(PY) -m pytest -q -m "not slow"
+	$(PY) -m pytest -q -n $(TEST_JOBS) --dist loadfile -m "not slow"
 
 lint: $(STAMP)  ## ruff check (style and common bugs)
 	$(VENV)/bin/ruff check src tests benchmarks

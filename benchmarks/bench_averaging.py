@@ -4,10 +4,16 @@
 Each graph is what ``posernet-reconstruct pairs.mode=sequential`` builds from a video: every
 camera paired with its next 5, plus one loop closure per 4 cameras between random far-apart
 cameras; relative rotations 3 deg off at most, directions a little noisy. The backend runs
-twice on each graph in one process: as shipped (components over
-``posernet.sync.translation.SPARSE_MIN_NODES`` cameras test parallel rigidity and solve their
-position system with scipy's sparse solvers), and with every component on the dense batched
-eigen- and LU solves (the earlier code path), whose time grows as n^3.
+four times on each graph in one process:
+
+* without edge weights: as shipped (components over
+  ``posernet.sync.translation.SPARSE_MIN_NODES`` cameras test parallel rigidity, solve their
+  position systems with scipy's sparse solvers and find rotations by Lanczos on the shifted
+  inverse), and with every component on the dense batched eigen- and LU solves and plain
+  block Krylov (the earlier code path), whose time grows as n^3;
+* with the per-edge weights ``posernet-reconstruct`` passes (translation weight 0 on 2 % of
+  the edges, rotation-only pairs): as shipped, and with ``solver=dense``, the eigen-solver
+  every weighted problem took before (a ``3n x 3n`` ``eigh`` per IRLS round).
 
     python benchmarks/bench_averaging.py                 # 256, 512, 1024 cameras
     python benchmarks/bench_averaging.py --quick         # 256 and 512
@@ -58,6 +64,15 @@ def run(n: int, threads: int, seed: int) -> dict:
             rt.SPARSE_MIN_NODES = shipped
         out[label + "_poses"] = poses
     out["diff"] = float((out["sparse_poses"] - out["dense_poses"]).abs().max())
+    w = torch.ones(graph.num_edges, 2, dtype=torch.float64)
+    w[torch.randperm(graph.num_edges, generator=torch.Generator().manual_seed(seed))
+      [:graph.num_edges // 50], 1] = 0.0
+    for label, solver in (("weighted", "auto"), ("weighted_dense", "dense")):
+        t0 = time.perf_counter()
+        poses = get_backend("rotation_translation", solver=solver).solve(graph, edge_weight=w)
+        out[label] = time.perf_counter() - t0
+        out[label + "_poses"] = poses
+    out["wdiff"] = float((out["weighted_poses"] - out["weighted_dense_poses"]).abs().max())
     return out
 
 
@@ -75,21 +90,29 @@ def main() -> None:
         r = run(n, args.threads, args.seed)
         print(f"{n} cameras, {r['edges']} edges: sparse {fmt_s(r['sparse'])}, dense "
               f"{fmt_s(r['dense'])} ({r['dense'] / r['sparse']:.1f}x), largest pose "
-              f"difference {r['diff']:.1e}", flush=True)
+              f"difference {r['diff']:.1e}; weighted {fmt_s(r['weighted'])}, weighted with "
+              f"solver=dense {fmt_s(r['weighted_dense'])} "
+              f"({r['weighted_dense'] / r['weighted']:.1f}x), difference {r['wdiff']:.1e}",
+              flush=True)
         rows.append([str(n), str(r["edges"]), fmt_s(r["sparse"]), fmt_s(r["dense"]),
-                     f"{r['dense'] / r['sparse']:.1f}x", f"{r['diff']:.1e}"])
+                     f"{r['dense'] / r['sparse']:.1f}x", f"{r['diff']:.1e}",
+                     fmt_s(r["weighted"]), fmt_s(r["weighted_dense"]),
+                     f"{r['weighted_dense'] / r['weighted']:.1f}x", f"{r['wdiff']:.1e}"])
     body = [
         "One sequence view graph per size (each camera with its next 5, one loop closure per 4 "
         "cameras), relative rotations up to 3 deg off; `rotation_translation` with its "
         "defaults (robust rotations, BATA positions from triangle-weighted directions), as "
-        "shipped (sparse rigidity test and position solve above "
+        "shipped (sparse rigidity test, position solves and shifted-inverse Lanczos above "
         "`posernet.sync.translation.SPARSE_MIN_NODES` cameras) and with the dense batched "
-        "eigen- and LU solves everywhere, in one process, "
-        f"{args.threads} torch thread(s). Difference: largest absolute difference between "
-        "the two runs' world-to-camera matrices.",
+        "eigen- and LU solves and plain block Krylov everywhere; then with "
+        "`posernet-reconstruct`'s per-edge weights (translation weight 0 on 2 % of the "
+        "edges) as shipped and with `solver=dense` (the eigen-solver weighted problems took "
+        f"before); in one process, {args.threads} torch thread(s). Difference: largest "
+        "absolute difference between two runs' world-to-camera matrices.",
         "",
         *table(["cameras", "edges", "sparse (shipped)", "dense", "dense / sparse",
-                "difference"], rows),
+                "difference", "weighted (shipped)", "weighted, solver=dense",
+                "dense / shipped", "difference"], rows),
     ]
     write_results("averaging", "Rotation + translation averaging of long sequences", body,
                   args.quick, "cpu", args.out)
