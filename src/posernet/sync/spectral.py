@@ -8,7 +8,10 @@ matrices: the backends run the IRLS iterations in :mod:`posernet.sync.filtered` 
 Chebyshev-filtered subspace per iteration instead of an ``eigh``, the eigenvectors of the last
 solve by batched ``eigh``: the same result); large ones a batched restarted block-Krylov
 (Lanczos with full reorthogonalisation) applying ``N`` as a sparse block-diagonal matrix
-(O(E) per product), warm-started across IRLS iterations. Also the operators themselves
+(O(E) per product), warm-started across IRLS iterations; on the CPU, components over
+``posernet.sync.translation.SPARSE_MIN_NODES`` cameras run that Lanczos on the shifted inverse
+``(sigma I - N)^-1`` (one sparse LU per iteration), whose top-3 eigenvalues stand far apart
+where ``N``'s do not (a long chain of cameras). Also the operators themselves
 (:func:`dense_N`, :func:`sparse_N`), batched conjugate gradients and the dense/Krylov split by
 component size (:func:`split_by_size`).
 """
