@@ -171,9 +171,10 @@ def bundle_stage(frontend: FrontendResult, result: RefineResult, stage: str,
                                                                    options.refine_focal))
     # Which cameras the averaging pinned: the graph's edges with a usable direction.
     edges = graph.edge_index.T.numpy().astype(np.int64)
-    strength = np.asarray([frontend.pair(i, j).num_inliers for i, j in edges.tolist()],
-                          np.float64)
-    rotation_only = [(i, j) for i, j in edges.tolist() if frontend.pair(i, j).rotation_only]
+    prs = [frontend.pair(i, j) for i, j in edges.tolist()]
+    strength = np.asarray([p.num_inliers for p in prs], np.float64)
+    rotation_only = [tuple(e) for e, p in zip(edges.tolist(), prs, strict=True)
+                     if p.rotation_only]
     out = poses.clone()
     solved_ba = solved.clone()
     runs = []

@@ -82,7 +82,7 @@ from .spectral import (
     sparse_N,
     split_by_size,
 )
-from .weighted import padded_weights, weight_mode_option, weighted_rotation_irls
+from .weighted import padded_weights, weight_mode_option
 
 __all__ = ["EigSE3", "EigSE3Options", "eig_translations", "solve_padded"]
 
@@ -159,13 +159,10 @@ def solve_padded(prob: PaddedProblem, opts: EigSE3Options,
     eig_ok = torch.ones(G, dtype=torch.bool, device=dev)
     for idx, krylov in split_by_size(prob, opts.solver, opts.dense_max_nodes):
         sub = prob.select(idx) if idx.numel() < G else prob
-        if w0 is not None:
-            sol = weighted_rotation_irls(sub, w0[idx, :sub.m], opts.robust, opts.max_iters,
-                                         opts.tol, opts.theta, opts.weight_mode, krylov,
-                                         opts.krylov_tol, opts.krylov_max_cycles, opts.seed)
-        else:
-            sol = rotation_irls(sub, opts.robust, opts.max_iters, opts.tol, opts.theta, krylov,
-                                opts.krylov_tol, opts.krylov_max_cycles, opts.seed)
+        sol = rotation_irls(sub, opts.robust, opts.max_iters, opts.tol, opts.theta, krylov,
+                            opts.krylov_tol, opts.krylov_max_cycles, opts.seed,
+                            w0=None if w0 is None else w0[idx, :sub.m],
+                            prior=opts.weight_mode == "prior")
         ts = eig_translations(sub, sol, krylov)
         R[idx, :sub.n], t[idx, :sub.n] = sol.R, ts
         w_edge[idx, :sub.m] = sol.w_edge

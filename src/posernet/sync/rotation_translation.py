@@ -80,7 +80,7 @@ from .translation import (
     triangle_weights,
     use_sparse,
 )
-from .weighted import padded_weights, weight_mode_option, weighted_rotation_irls
+from .weighted import padded_weights, weight_mode_option
 
 __all__ = ["TRANSLATION_METHODS", "RotationTranslation", "RotationTranslationOptions",
            "TranslationStage", "refine_rotations", "translation_stage",
@@ -559,12 +559,9 @@ class RotationTranslation(SyncBackend):
         w_rot = None if w is None else padded_weights(prob, w[:, 0])
         for idx, krylov in split_by_size(prob, o.solver, o.dense_max_nodes):
             sub = prob.select(idx) if idx.numel() < G else prob
-            if w_rot is not None:
-                sol = weighted_rotation_irls(sub, w_rot[idx, :sub.m], o.robust, o.max_iters,
-                                             o.tol, o.theta, o.weight_mode, krylov, seed=o.seed)
-            else:
-                sol = rotation_irls(sub, o.robust, o.max_iters, o.tol, o.theta, krylov,
-                                    seed=o.seed)
+            sol = rotation_irls(sub, o.robust, o.max_iters, o.tol, o.theta, krylov, seed=o.seed,
+                                w0=None if w_rot is None else w_rot[idx, :sub.m],
+                                prior=o.weight_mode == "prior")
             R[idx, :sub.n] = sol.R
             w_edge[idx, :sub.m] = sol.w_edge
             iters[idx], conv[idx] = sol.iterations, sol.converged

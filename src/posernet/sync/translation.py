@@ -101,9 +101,9 @@ def laplacian_solve(prob: PaddedProblem, w: Tensor, target: Tensor) -> Tensor:
     """
     G, n = prob.G, prob.n
     dt, dev = w.dtype, w.device
+    vm = prob.node_mask.to(dt)
+    deg = _mean_degree(prob, w)
     if use_sparse(n, dev) and not (w.requires_grad or target.requires_grad):
-        vm = prob.node_mask.to(dt)
-        deg = _mean_degree(prob, w)
         return _laplacian_solve_sparse(prob, w, incidence_rhs(prob, w, target), deg) \
             * vm[..., None]
     gi = torch.arange(G, device=dev)[:, None].expand(G, prob.m)
@@ -111,10 +111,7 @@ def laplacian_solve(prob: PaddedProblem, w: Tensor, target: Tensor) -> Tensor:
     L.index_put_((gi, prob.src, prob.dst), -w, accumulate=True)
     L.index_put_((gi, prob.dst, prob.src), -w, accumulate=True)
     L = L + torch.diag_embed(-L.sum(-1))
-    vm = prob.node_mask.to(dt)
     cnt = prob.count.to(dt)
-    deg = L.diagonal(dim1=-2, dim2=-1).sum(-1) / cnt
-    deg = torch.where(deg > 0, deg, torch.ones_like(deg))  # no edge left: any scale will do
     # gauge (mean 0) with the strength of a typical node, identity on padded nodes
     L = L + deg.clamp_min(1e-300)[:, None, None] * vm[:, :, None] * vm[:, None, :] / cnt[:, None,
                                                                                        None]
@@ -128,8 +125,8 @@ def laplacian_solve(prob: PaddedProblem, w: Tensor, target: Tensor) -> Tensor:
 
 
 def _mean_degree(prob: PaddedProblem, w: Tensor) -> Tensor:
-    """``[G]``: the mean weighted degree of each component (1 where no edge is left), the
-    scale of :func:`laplacian_solve`'s gauge and ridge."""
+    """``[G]``: the mean weighted degree of each component, the scale of
+    :func:`laplacian_solve`'s gauge and ridge (1 where no edge is left: any scale will do)."""
     total = 2 * torch.where(prob.edge_mask, w, torch.zeros_like(w)).sum(1)
     deg = total / prob.count.to(w.dtype)
     return torch.where(deg > 0, deg, torch.ones_like(deg))

@@ -11,11 +11,11 @@ good edges and the Cauchy re-weighting starts from a better solution.
   weights as published (the prior only picks the starting point).
 * ``prior``: every solve multiplies the Cauchy weights by the given weights (the prior stays).
 
-With uniform weights both modes are exactly the published IRLS (:func:`weighted_rotation_irls`
-then gives bit-identical results to :func:`posernet.sync.spectral.rotation_irls` with the
-dense solver; tested). Weighted problems take the same solver as unweighted ones (dense eigh
-on small components, block Krylov on large ones: a 3072x3072 ``eigh`` per IRLS round made a
-1024-camera graph take minutes).
+The backends pass the weights as ``w0`` (and ``prior`` for that mode) to the one spectral
+IRLS, :func:`posernet.sync.irls.rotation_irls`; with uniform weights both modes are exactly
+the published IRLS (tested). Weighted problems take the same eigen-solver as unweighted ones
+(dense on small components, block Krylov on large ones: a 3072x3072 ``eigh`` per IRLS round
+made a 1024-camera graph take minutes).
 
 **Weight rule** (``edge_weight`` given to :meth:`~posernet.sync.backend.SyncBackend.solve`):
 ``[E]`` (one weight for both parts) or ``[E, 2]`` (rotation, translation), finite. Weights are
@@ -39,11 +39,9 @@ import torch
 from torch import Tensor
 
 from ..options import option
-from .irls import rotation_irls
 from .padding import PaddedProblem
-from .spectral import RotationSolution
 
-__all__ = ["WEIGHT_MODES", "padded_weights", "weight_mode_option", "weighted_rotation_irls"]
+__all__ = ["WEIGHT_MODES", "padded_weights", "weight_mode_option"]
 
 WEIGHT_MODES = ("start", "prior")
 
@@ -70,22 +68,3 @@ def padded_weights(prob: PaddedProblem, w: Tensor, keep_zero: bool = False) -> T
     keep = prob.edge_mask & (wp > 0) if keep_zero else prob.edge_mask
     wp = (wp / top).clamp_min(MIN_PRIOR)
     return torch.where(keep, wp, torch.zeros_like(wp))
-
-
-def weighted_rotation_irls(prob: PaddedProblem, w0: Tensor, robust: bool, max_iters: int,
-                           tol: float, theta: float, mode: str = "start", krylov: bool = False,
-                           krylov_tol: float = 1e-12, krylov_max_cycles: int = 500,
-                           seed: int = 0) -> RotationSolution:
-    """Spectral rotation synchronisation with EIG-SE3's IRLS started from weights ``w0``.
-
-    ``w0 [G, m]`` (from :func:`padded_weights`; 0 on pads). The loop is the published one,
-    :func:`posernet.sync.spectral.rotation_irls`: Cauchy weights with a MAD threshold,
-    diagonal weight ``max(w)``, stop when ``|W_old - W|_F / (|W|_F n) <= tol`` or after
-    ``max_iters`` solves; ``mode="prior"`` keeps multiplying by ``w0``. ``krylov`` (with its
-    tolerance, restarts and seed) picks the eigen-solver, as
-    :func:`~posernet.sync.spectral.split_by_size` decides per component.
-    """
-    if mode not in WEIGHT_MODES:
-        raise ValueError(f"weight mode must be one of {list(WEIGHT_MODES)}, got {mode!r}")
-    return rotation_irls(prob, robust, max_iters, tol, theta, krylov, krylov_tol,
-                         krylov_max_cycles, seed, w0=w0, prior=mode == "prior")
