@@ -284,11 +284,12 @@ def test_per_camera_normal_blocks_in_slices_are_the_same_sums(monkeypatch, chunk
 
 @pytest.mark.parametrize("cameras", [5, 70, 300])
 def test_the_grouped_symmetric_product_is_the_whole_product(cameras: int) -> None:
-    """``W V^-1 W^T`` from the camera groups ``i <= j`` (mirrored) equals the whole block
-    product, for one group (few cameras) and several (uneven ones included)."""
+    """``W V^-1 W^T`` from the camera groups ``i <= j`` (mirrored, ``Y = W V^-1`` one group
+    at a time), subtracted in place, equals the whole block product, for one group (few
+    cameras) and several (uneven ones included)."""
     from scipy.sparse import bsr_matrix
 
-    from posernet.sfm.bundle import _upper_product
+    from posernet.sfm.bundle import _subtract_upper_product
 
     rng = np.random.default_rng(cameras)
     npt = 3 * cameras
@@ -305,8 +306,10 @@ def test_the_grouped_symmetric_product_is_the_whole_product(cameras: int) -> Non
     shape = (6 * cameras, 3 * npt)
     whole = (bsr_matrix((Y, pt, indptr), shape=shape)
              @ bsr_matrix((W, pt, indptr), shape=shape).T).toarray()
-    got = _upper_product(Y, W, pt, indptr, npt)
-    np.testing.assert_allclose(got, whole, rtol=0, atol=1e-12 * np.abs(whole).max())
+    start = rng.normal(size=whole.shape)
+    got = start.copy()
+    _subtract_upper_product(got, W, Vinv, pt, indptr, npt)
+    np.testing.assert_allclose(start - got, whole, rtol=0, atol=1e-12 * np.abs(whole).max())
 
 
 @pytest.mark.parametrize("focal", ["none", "shared", "per_camera"])

@@ -432,30 +432,31 @@ def _segment_grams(A: np.ndarray, starts: np.ndarray) -> np.ndarray:
     return out
 
 
-def _upper_product(Y: np.ndarray, W: np.ndarray, cols: np.ndarray, indptr: np.ndarray,
-                   npt: int) -> np.ndarray:
-    """Dense ``Y W^T`` ``(6 nc, 6 nc)`` of two block-sparse matrices with one ``(6, 3)`` block
-    per observation (``Y``, ``W (O, 6, 3)``; block row: the camera, ``indptr (nc + 1,)``;
-    block column: the point, ``cols (O,)``), known to be symmetric (``Y = W V^-1``, ``V``
-    symmetric per point). Only the block rows of camera groups ``i <= j`` are multiplied
-    and the rest mirrored: about 0.6 of the block products of the whole product."""
+def _subtract_upper_product(S: np.ndarray, W: np.ndarray, Vinv: np.ndarray, cols: np.ndarray,
+                            indptr: np.ndarray, npt: int) -> None:
+    """``S -= Y W^T`` in place, ``Y = W V^-1``: ``S (6 nc, 6 nc)``, ``W (O, 6, 3)`` one block
+    per observation (block row: the camera, ``indptr (nc + 1,)``; block column: the point,
+    ``cols (O,)``), ``Vinv (npt, 3, 3)`` symmetric per point, so that ``Y W^T`` is symmetric.
+    Cameras go in groups; only the block rows of groups ``i <= j`` are multiplied (scipy BSR
+    products) and the rest mirrored: about 0.6 of the block products of the whole product.
+    ``Y`` is formed one group at a time, never whole (it and its gather of ``Vinv`` are as
+    large as ``W``: tens of MB at a few hundred thousand observations)."""
     nc = indptr.size - 1
     bounds = np.unique(np.linspace(0, nc, max(1, min(8, nc // 32)) + 1).astype(np.int64))
-    parts = []
+    groups = []
     for a, b in pairwise(bounds.tolist()):
         lo, hi = indptr[a], indptr[b]
-        shape = (6 * (b - a), 3 * npt)
         ip = indptr[a:b + 1] - lo
-        parts.append((6 * a, 6 * b, bsr_matrix((Y[lo:hi], cols[lo:hi], ip), shape=shape),
-                      bsr_matrix((W[lo:hi], cols[lo:hi], ip), shape=shape)))
-    S = np.empty((6 * nc, 6 * nc))
-    for i, (a, b, Yi, _) in enumerate(parts):
-        for c, d, _, Wj in parts[i:]:
+        groups.append((a, b, lo, hi, ip,
+                       bsr_matrix((W[lo:hi], cols[lo:hi], ip), shape=(6 * (b - a), 3 * npt))))
+    for i, (a, b, lo, hi, ip, _) in enumerate(groups):
+        Y = np.matmul(W[lo:hi], Vinv[cols[lo:hi]])
+        Yi = bsr_matrix((Y, cols[lo:hi], ip), shape=(6 * (b - a), 3 * npt))
+        for c, d, *_, Wj in groups[i:]:
             P = (Yi @ Wj.T).toarray()
-            S[a:b, c:d] = P
+            S[6 * a:6 * b, 6 * c:6 * d] -= P
             if c != a:
-                S[c:d, a:b] = P.T
-    return S
+                S[6 * c:6 * d, 6 * a:6 * b] -= P.T
 
 
 class _Schur:
@@ -569,18 +570,19 @@ class _Schur:
         b = -self.g.copy()
         Wc_bsr = Yc_bsr = None
         if nc:
-            Y = np.matmul(self.Wc, Vinv[self.pj_c])  # W V^-1, one 6x3 block per observation
             shape = (6 * nc, 3 * npt)
             if self.dense:
+                Y = np.matmul(self.Wc, Vinv[self.pj_c])  # W V^-1, a 6x3 block per observation
                 Wc_bsr = self.Wd
                 Yc_bsr = np.zeros(shape)
                 Yc_bsr[self.rows, self.cols] = Y
                 S[:6 * nc, :6 * nc] -= Yc_bsr @ self.Wd.T
             else:
                 Wc_bsr = bsr_matrix((self.Wc, self.pj_c, self.indptr), shape=shape)
-                Yc_bsr = bsr_matrix((Y, self.pj_c, self.indptr), shape=shape)
-                S[:6 * nc, :6 * nc] -= _upper_product(Y, self.Wc, self.pj_c, self.indptr,
-                                                      npt)
+                _subtract_upper_product(S, self.Wc, Vinv, self.pj_c, self.indptr, npt)
+                if nf:  # the focal rows need W V^-1 whole
+                    Yc_bsr = bsr_matrix((np.matmul(self.Wc, Vinv[self.pj_c]), self.pj_c,
+                                         self.indptr), shape=shape)
             b[:6 * nc] += Wc_bsr @ Vg.ravel()
         if nf:
             VWf = csr_matrix(bsr_matrix((Vinv, np.arange(npt), np.arange(npt + 1)),
