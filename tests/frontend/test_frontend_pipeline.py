@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import re
 import shutil
 from pathlib import Path
 
@@ -227,3 +228,20 @@ def test_boxes_leave_the_verified_keypoint_geometry_alone(scene, reference) -> N
     # the comparison covers edges that share enough matched boxes for the paper's rule
     enough = BoxMatchRules().min_boxes
     assert any(st == "edge" and len(ba) >= enough for _, _, st, _, ba, *_ in reference[0])
+
+
+def test_released_descriptors_keep_evaluated_pairs_and_refuse_new_matching(scene) -> None:
+    fe = _frontend(scene)
+    done = PAIRS[:3]
+    fe.evaluate_pairs(done, progress=False)
+    before = [fe.pair(a, b) for a, b in done]
+    fe.release_descriptors()
+    assert all(fe.image(i).features.desc is None for i in range(N))
+    assert [fe.pair(a, b) for a, b in done] == before  # evaluated pairs stay
+    assert len(fe.features(0).keypoints) == len(fe.image(0).features.uv) > 0  # keypoints stay
+    a, b = PAIRS[-1]
+    name = f"pair ({fe.records[a].key}, {fe.records[b].key})"
+    with pytest.raises(RuntimeError, match=re.escape(name) + ".*released"):
+        fe.pair(a, b)
+    with pytest.raises(RuntimeError, match="selecting pairs.*released"):
+        fe.select_pairs()

@@ -201,7 +201,8 @@ def run(cfg: DictConfig) -> dict[str, Any]:
                           estimate=str(cfg.estimate), progress=bool(cfg.progress), guard=guard,
                           bundle_adjust=bool(cfg.ba), bundle=bundle,
                           pairs=instantiate(cfg.pairs),
-                          check=instantiate(cfg.check) if cfg.self_check else False)
+                          check=instantiate(cfg.check) if cfg.self_check else False,
+                          release_descriptors=True)  # the front end is not used again
     except NothingPlaced as err:
         if replace:
             _clear_outputs(out)

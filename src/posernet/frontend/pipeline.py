@@ -25,7 +25,7 @@ import threading
 import time
 from collections.abc import Iterable, Sequence
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import asdict, dataclass, is_dataclass
+from dataclasses import asdict, dataclass, is_dataclass, replace
 from pathlib import Path
 from types import MappingProxyType
 from typing import Any
@@ -151,6 +151,7 @@ class ImageFrontend:
         self.workers = max(1, int(workers))
         self.keep_matches = bool(keep_matches)
         self._images: dict[int, _ImageData] = {}
+        self._released = False  # release_descriptors() was called
         self._pairs: dict[tuple[int, int], PairResult] = {}
         self.matches: dict[tuple[int, int], Any] = {}
         self.summary = FrontendSummary(images=len(self.records), boxes=proposals is not None)
@@ -270,6 +271,8 @@ class ImageFrontend:
         bar.close()
 
     def _store(self, i: int, data: _ImageData, secs: dict[str, float]) -> None:
+        if self._released:  # an image first needed after release_descriptors
+            data = replace(data, features=replace(data.features, desc=None))
         self._images[i] = data
         self.summary.seconds.update(secs)
         if "cached" in secs:
@@ -300,6 +303,7 @@ class ImageFrontend:
     def select_pairs(self, options: PairOptions | None = None) -> PairSelection:
         """The image pairs to match (:func:`~posernet.frontend.pairs.select_pairs` on every
         image's descriptors, which stay inside the front end)."""
+        self._check_descriptors("selecting pairs")
         return select_pairs([self.image(i).features for i in range(len(self.records))],
                             options)
 
@@ -316,8 +320,25 @@ class ImageFrontend:
             raise ValueError(f"a pair needs two different images, got {a} twice")
         hit = self._pairs.get((a, b))
         if hit is None:
+            self._check_descriptors(f"pair ({self.records[a].key}, {self.records[b].key})")
             hit = self._store_pair(*self._evaluate(a, b))
         return hit
+
+    def release_descriptors(self) -> None:
+        """Free every image's descriptors once its pairs are evaluated: the stages after
+        matching use keypoints, boxes and matches only, and the descriptors are the image
+        stage's largest part (about 45 MB at 256 images with SIFT). Evaluating a new pair or
+        selecting pairs afterwards raises :class:`RuntimeError`; pairs already evaluated stay
+        available."""
+        for i, data in self._images.items():
+            self._images[i] = replace(data, features=replace(data.features, desc=None))
+        self._released = True
+
+    def _check_descriptors(self, what: str) -> None:
+        if self._released:
+            raise RuntimeError(f"{what}: this front end's descriptors were released "
+                               "(release_descriptors) after its pairs were matched; make a "
+                               "new ImageFrontend to match more pairs")
 
     def _store_pair(self, hit: PairResult, delta: FrontendSummary) -> PairResult:
         self._pairs[(hit.a, hit.b)] = hit
