@@ -282,3 +282,29 @@ def test_point_colours_are_the_pixels_under_each_first_observation(tmp_path, wor
         expect = [128] * 3 if i == 3 else cv2.imread(str(paths[i]))[y, x, ::-1]
         np.testing.assert_array_equal(got[obs_point[o]], expect)
     np.testing.assert_array_equal(got[4], [128] * 3)  # no observation
+    # the image stage's keypoint colours (keypoint_colours) replace reading the files: images
+    # 1 and 3 (missing) have them, 0 and 2 do not and are read
+    from posernet.frontend.images import keypoint_colours
+
+    known = [None, keypoint_colours(cv2.imread(str(paths[1])), uv[1]), None,
+             rng.integers(0, 256, (6, 3), dtype=np.uint8)]
+    cv2.imwrite(str(paths[1]), np.zeros((20, 30, 3), np.uint8))  # the file no longer agrees
+    mixed = point_colours(paths, uv, obs_image, obs_keypoint, obs_point, 5, workers=workers,
+                          keypoint_colours=known)
+    np.testing.assert_array_equal(mixed[:3], got[:3])  # from the files (0, 2), known (1)
+    np.testing.assert_array_equal(mixed[3], known[3][2])  # point 3: image 3, keypoint 2
+    only = point_colours(None, uv, obs_image, obs_keypoint, obs_point, 5,
+                         keypoint_colours=known)  # no paths: the rest stays grey
+    np.testing.assert_array_equal(only[2], got[2])
+    np.testing.assert_array_equal(only[0], [128] * 3)
+
+
+def test_keypoint_colours_are_rgb_under_each_keypoint_of_colour_and_grey_images() -> None:
+    from posernet.frontend.images import keypoint_colours
+
+    bgr = np.zeros((4, 5, 3), np.uint8)
+    bgr[1, 3] = (10, 20, 30)  # B, G, R at x=3, y=1
+    uv = np.array([[2.6, 0.8], [-5.0, 9.0]])  # rounds to (3, 1); clipped to (0, 3)
+    np.testing.assert_array_equal(keypoint_colours(bgr, uv), [[30, 20, 10], [0, 0, 0]])
+    grey = np.arange(20, dtype=np.uint8).reshape(4, 5)
+    np.testing.assert_array_equal(keypoint_colours(grey, uv), [[8, 8, 8], [15, 15, 15]])

@@ -73,12 +73,15 @@ def colmap_camera(K: np.ndarray, dist: np.ndarray | None) -> tuple[str, list[flo
 
 def point_colours(image_paths: Sequence[str | os.PathLike[str]] | None,
                   uv: Sequence[np.ndarray], obs_image: np.ndarray, obs_keypoint: np.ndarray,
-                  obs_point: np.ndarray, num_points: int, workers: int = 1) -> np.ndarray:
+                  obs_point: np.ndarray, num_points: int, workers: int = 1,
+                  keypoint_colours: Sequence[np.ndarray | None] | None = None) -> np.ndarray:
     """RGB colour ``(P, 3)`` int64 of each point: the pixel under its first observation
-    (``obs_* (O,)`` as in :func:`write_colmap_text`); grey where no image can be read or
-    ``image_paths`` is None. Each image is read once, on ``workers`` threads."""
+    (``obs_* (O,)`` as in :func:`write_colmap_text`). ``keypoint_colours[i] (K_i, 3)``: image
+    ``i``'s keypoint colours from the image stage (``None``, or an image without them: the
+    image is read once, on ``workers`` threads); grey where neither gives one (no colours,
+    ``image_paths`` None or the image unreadable)."""
     colour = np.full((num_points, 3), 128, np.int64)
-    if image_paths is None or not len(obs_point):
+    if not len(obs_point) or (image_paths is None and keypoint_colours is None):
         return colour
     is_first = np.zeros(obs_point.size, bool)  # one observation per point gives its colour
     is_first[np.unique(obs_point, return_index=True)[1]] = True
@@ -87,22 +90,31 @@ def point_colours(image_paths: Sequence[str | os.PathLike[str]] | None,
     ims, starts = np.unique(obs_image[order], return_index=True)
     groups = np.split(order, starts[1:])
 
+    def known(i: int) -> np.ndarray | None:
+        return None if keypoint_colours is None else keypoint_colours[i]
+
     def sample(i: int, sel: np.ndarray) -> np.ndarray | None:
+        kc = known(i)
+        if kc is not None:
+            return np.asarray(kc)[obs_keypoint[sel]]
+        if image_paths is None:
+            return None
         img = cv2.imread(str(image_paths[i]), cv2.IMREAD_COLOR)
         if img is None:
             return None
         h, w = img.shape[:2]
         xy = np.rint(uv[i][obs_keypoint[sel]]).astype(np.int64)
-        return img[np.clip(xy[:, 1], 0, h - 1), np.clip(xy[:, 0], 0, w - 1)]
+        return img[np.clip(xy[:, 1], 0, h - 1), np.clip(xy[:, 0], 0, w - 1)][:, ::-1]
 
-    if workers > 1 and len(ims) > 1:  # decoding releases the GIL
-        with ThreadPoolExecutor(min(workers, len(ims))) as pool:
-            bgrs = list(pool.map(sample, ims.tolist(), groups))
+    reads = sum(known(i) is None for i in ims.tolist())
+    if workers > 1 and reads > 1:  # decoding releases the GIL
+        with ThreadPoolExecutor(min(workers, reads)) as pool:
+            rgbs = list(pool.map(sample, ims.tolist(), groups))
     else:
-        bgrs = [sample(i, sel) for i, sel in zip(ims.tolist(), groups, strict=True)]
-    for sel, bgr in zip(groups, bgrs, strict=True):
-        if bgr is not None:
-            colour[obs_point[sel]] = bgr[:, ::-1]
+        rgbs = [sample(i, sel) for i, sel in zip(ims.tolist(), groups, strict=True)]
+    for sel, rgb in zip(groups, rgbs, strict=True):
+        if rgb is not None:
+            colour[obs_point[sel]] = rgb
     return colour
 
 
@@ -137,7 +149,8 @@ def _colmap_model(names: Sequence[str], image_paths: Sequence[str | os.PathLike[
                   dist: Sequence[np.ndarray | None], w2c: np.ndarray, images: np.ndarray,
                   uv: Sequence[np.ndarray], points: np.ndarray, obs_image: np.ndarray,
                   obs_keypoint: np.ndarray, obs_point: np.ndarray,
-                  errors: np.ndarray | None, workers: int = 1) -> _ColmapModel:
+                  errors: np.ndarray | None, workers: int = 1,
+                  keypoint_colours: Sequence[np.ndarray | None] | None = None) -> _ColmapModel:
     images = np.asarray(images, np.int64).reshape(-1)
     keep = np.isin(obs_image, images)
     # a point left with one view because its others were not exported is not triangulated
@@ -154,7 +167,8 @@ def _colmap_model(names: Sequence[str], image_paths: Sequence[str | os.PathLike[
     # position of each observation within its image's POINTS2D list
     starts = np.searchsorted(oi, oi, side="left")
     p2d_idx = np.arange(oi.size) - starts
-    colour = point_colours(image_paths, uv, oi, ok, op, points.shape[0], workers)
+    colour = point_colours(image_paths, uv, oi, ok, op, points.shape[0], workers,
+                           keypoint_colours)
     cameras, poses, xy, xy_point = [], [], [], []
     for i in images.tolist():
         model, params = colmap_camera(K[i], dist[i])
@@ -265,6 +279,7 @@ def write_colmap_model(
     errors: np.ndarray | None = None,
     binary: bool | None = None,
     workers: int = 1,
+    keypoint_colours: Sequence[np.ndarray | None] | None = None,
 ) -> list[Path]:
     """Write a COLMAP model of ``images`` (indices into the ``N`` inputs) to ``folder``.
 
@@ -277,13 +292,15 @@ def write_colmap_model(
     ``binary``: ``False`` the text model (``cameras.txt``, ``images.txt``, ``points3D.txt``;
     a name with whitespace is a ``ValueError``, see :func:`colmap_text_name_ok`), ``True`` the
     binary one (``cameras.bin``, ``images.bin``, ``points3D.bin``), ``None`` the text model
-    unless an exported image's name needs the binary one. ``workers``: threads reading the
-    images for the points' colours. Files are written atomically.
+    unless an exported image's name needs the binary one. ``keypoint_colours[i] (K_i, 3)``
+    uint8 RGB: image ``i``'s keypoint colours (:attr:`posernet.frontend.ImageFeatures.colours`;
+    ``None``: the images are read for the points' colours, on ``workers`` threads). Files are
+    written atomically.
     """
     out = Path(folder)
     out.mkdir(parents=True, exist_ok=True)
     m = _colmap_model(names, image_paths, sizes, K, dist, w2c, images, uv, points, obs_image,
-                      obs_keypoint, obs_point, errors, workers)
+                      obs_keypoint, obs_point, errors, workers, keypoint_colours)
     if binary is None:
         binary = not all(colmap_text_name_ok(n) for n in m.names)
     return _colmap_binary(out, m) if binary else _colmap_text(out, m)

@@ -713,7 +713,7 @@ def write_colmap_models(folder: str | os.PathLike[str], rec: Reconstruction,
         write_colmap_model(folder_k, names, [x.path for x in recs], [x.size for x in recs],
                            r.K, dist, fixed.numpy(), cams, uv, pts, r.obs_image,
                            r.obs_keypoint, r.obs_point, err, binary=binary,
-                           workers=workers)
+                           workers=workers, keypoint_colours=rec.frontend.keypoint_colours())
         out.append(folder_k)
     return out
 
@@ -730,7 +730,7 @@ def largest_point_cloud(rec: Reconstruction, workers: int = 1
         return None
     colours = point_colours([x.path for x in rec.frontend.records], _keypoints(rec),
                             r.obs_image, r.obs_keypoint, r.obs_point, pts.shape[0],
-                            workers)
+                            workers, rec.frontend.keypoint_colours())
     return cams, pts, colours
 
 

@@ -110,6 +110,11 @@ def test_interrupted_run_resumes_from_the_cache(scene, reference, tmp_path) -> N
     assert third.summary.reused == {"images": N, "pairs": len(PAIRS)}
     assert _outcome(third) == reference[0] and _counts(third) == reference[1]
     assert set(third.matches) == set(PAIRS)
+    # the keypoint colours (for the exports) come back from the cache too
+    for i in range(N):
+        got, made = third.features(i), fe.features(i)
+        assert got.colours is not None and got.colours.shape == (len(got), 3)
+        np.testing.assert_array_equal(got.colours, made.colours)
     assert "reused from the cache: 6 images, 15 pairs" in "\n".join(third.summary.lines())
 
 

@@ -182,6 +182,16 @@ def read_image(path: str | os.PathLike[str]) -> np.ndarray:
     return img
 
 
+def keypoint_colours(img: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """``(K, 3)`` uint8 RGB of the pixels under keypoints ``uv (K, 2)`` (x, y; rounded, clipped
+    to the image) of a BGR ``(H, W, 3)`` or grey ``(H, W)`` image: the colours of the points
+    they triangulate, kept from the image stage so that no export reads the image again."""
+    h, w = img.shape[:2]
+    xy = np.rint(np.asarray(uv, np.float64).reshape(-1, 2)).astype(np.int64)
+    px = img[np.clip(xy[:, 1], 0, h - 1), np.clip(xy[:, 0], 0, w - 1)]
+    return np.repeat(px[:, None], 3, axis=1) if img.ndim == 2 else px[:, ::-1].copy()
+
+
 def intrinsics_matrix(
     value: Any, where: str = "intrinsics"
 ) -> tuple[np.ndarray, np.ndarray | None]:

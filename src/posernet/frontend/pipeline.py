@@ -40,7 +40,7 @@ from .assembly import GraphStats, PairResult, assemble_view_graph
 from .boxmatch import BoxMatchRules, box_centres, keypoints_in_matched_boxes, match_boxes
 from .cache import FrontendCache, file_digest
 from .features import Features, Matches
-from .images import ImageRecord, read_image
+from .images import ImageRecord, keypoint_colours, read_image
 from .pairs import PairOptions, PairSelection, select_pairs
 from .relpose import PoseOptions, five_point
 from .results import (
@@ -77,6 +77,7 @@ class _ImageData:
     scores: np.ndarray  # (B,)
     features: Any
     textured: np.ndarray  # (K,) bool: keypoint on a patch with contrast (not a flat region)
+    colours: np.ndarray | None = None  # (K, 3) uint8 RGB under each keypoint
 
 
 class ImageFrontend:
@@ -222,7 +223,7 @@ class ImageFrontend:
         r.size = (int(w), int(h))
         data = _ImageData(np.asarray(boxes, np.float64).reshape(-1, 4),
                           np.asarray(scores, np.float64).reshape(-1), feats,
-                          contrast >= self.verify.min_contrast)
+                          contrast >= self.verify.min_contrast, keypoint_colours(img, feats.uv))
         if self.cache is not None:
             self.cache.save("images", self._digest_of(i), *_image_to_cache(data, r.size))
         return i, data, {"read": t1 - t0, "proposals": t2 - t1, "features": t3 - t2}
@@ -293,7 +294,7 @@ class ImageFrontend:
     def features(self, i: int) -> ImageFeatures:
         """The image stage's result for image ``i`` (computed once)."""
         d = self.image(i)
-        return ImageFeatures(d.features.uv, tuple(d.features.size), d.boxes)
+        return ImageFeatures(d.features.uv, tuple(d.features.size), d.boxes, d.colours)
 
     def extract(self, progress: bool = True) -> tuple[ImageFeatures, ...]:
         """The image stage on every image (:meth:`prepare`): their features, in image order."""
@@ -480,7 +481,8 @@ class ImageFrontend:
             feats = fm.with_fallback(data.features, g)
             n = int(data.features.extra.get("primary", len(data.features)))
             textured = np.concatenate([data.textured[:n], contrast >= self.verify.min_contrast])
-            new = _ImageData(data.boxes, data.scores, feats, textured)
+            new = _ImageData(data.boxes, data.scores, feats, textured,
+                             keypoint_colours(img, feats.uv))
             self._images[i] = new
             if self.cache is not None:
                 self.cache.save("images", self._digest_of(i), *_image_to_cache(new, r.size))
@@ -897,6 +899,8 @@ def _image_to_cache(data: _ImageData, size: tuple[int, int] | None
     f = data.features
     arrays = {"boxes": data.boxes, "scores": data.scores, "textured": data.textured,
               "uv": f.uv, "desc": _numpy(f.desc)}
+    if data.colours is not None:
+        arrays["colours"] = data.colours
     meta: dict[str, Any] = {"size": list(f.size), "image_size": list(size) if size else None,
                             "desc_torch": not isinstance(f.desc, np.ndarray), "extra": {},
                             "extra_arrays": {}}
@@ -920,7 +924,8 @@ def _image_from_cache(arrays: dict[str, np.ndarray], meta: dict[str, Any],
     feats = Features(arrays["uv"], restore(arrays["desc"], meta["desc_torch"]),
                      tuple(meta["size"]), extra)
     size = tuple(meta["image_size"]) if meta["image_size"] else None
-    return _ImageData(arrays["boxes"], arrays["scores"], feats, arrays["textured"]), size
+    return _ImageData(arrays["boxes"], arrays["scores"], feats, arrays["textured"],
+                      arrays.get("colours")), size
 
 
 def _numpy(x: Any) -> np.ndarray:

@@ -123,11 +123,14 @@ class ImageFeatures:
         keypoints: ``(K, 2)`` float64 pixel coordinates (x, y), pixel centres at integers.
         size: the image's (width, height) in pixels.
         boxes: ``(B, 4)`` ROI proposals as pixel xyxy; ``(0, 4)`` without proposals.
+        colours: ``(K, 3)`` uint8 RGB of the image under each keypoint (the colours of the
+            points they triangulate), or ``None``: the exports then read the image.
     """
 
     keypoints: np.ndarray
     size: tuple[int, int]
     boxes: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))
+    colours: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.keypoints.shape[0])
@@ -272,6 +275,10 @@ class FrontendResult:
     def keypoints(self) -> list[np.ndarray]:
         """Every image's ``(K_i, 2)`` keypoints."""
         return [f.keypoints for f in self.matches.images]
+
+    def keypoint_colours(self) -> list[np.ndarray | None]:
+        """Every image's ``(K_i, 3)`` uint8 RGB keypoint colours (``None`` where unknown)."""
+        return [f.colours for f in self.matches.images]
 
     def intrinsics(self) -> np.ndarray:
         """``(N, 3, 3)`` float64: every image's ``K``."""
