@@ -40,6 +40,7 @@ import cv2
 import numpy as np
 import torch
 
+from .frontend.images import keypoint_colours as pixels_under
 from .geometry import matrix_to_pose_vec
 from .io import atomic_write_bytes, atomic_write_text
 
@@ -100,11 +101,7 @@ def point_colours(image_paths: Sequence[str | os.PathLike[str]] | None,
         if image_paths is None:
             return None
         img = cv2.imread(str(image_paths[i]), cv2.IMREAD_COLOR)
-        if img is None:
-            return None
-        h, w = img.shape[:2]
-        xy = np.rint(uv[i][obs_keypoint[sel]]).astype(np.int64)
-        return img[np.clip(xy[:, 1], 0, h - 1), np.clip(xy[:, 0], 0, w - 1)][:, ::-1]
+        return None if img is None else pixels_under(img, uv[i][obs_keypoint[sel]])
 
     reads = sum(known(i) is None for i in ims.tolist())
     if workers > 1 and reads > 1:  # decoding releases the GIL

@@ -273,7 +273,7 @@ class ImageFrontend:
 
     def _store(self, i: int, data: _ImageData, secs: dict[str, float]) -> None:
         if self._released:  # an image first needed after release_descriptors
-            data = replace(data, features=replace(data.features, desc=None))
+            data = _without_descriptors(data)
         self._images[i] = data
         self.summary.seconds.update(secs)
         if "cached" in secs:
@@ -332,7 +332,7 @@ class ImageFrontend:
         selecting pairs afterwards raises :class:`RuntimeError`; pairs already evaluated stay
         available."""
         for i, data in self._images.items():
-            self._images[i] = replace(data, features=replace(data.features, desc=None))
+            self._images[i] = _without_descriptors(data)
         self._released = True
 
     def _check_descriptors(self, what: str) -> None:
@@ -892,6 +892,11 @@ def _describe(obj: Any) -> dict[str, Any]:
         elif k == "device":
             out[k] = str(v)
     return out
+
+
+def _without_descriptors(data: _ImageData) -> _ImageData:
+    """``data`` with its features' descriptors dropped (keypoints and the rest kept)."""
+    return replace(data, features=replace(data.features, desc=None))
 
 
 def _image_to_cache(data: _ImageData, size: tuple[int, int] | None
