@@ -29,6 +29,7 @@ from posernet.sync.robust import mad_cauchy_weights
 from posernet.sync.spectral import (
     RotationSolution,
     _orthonormal_columns,
+    batched_eigh,
     degrees,
     dense_N,
     rotation_residuals,
@@ -339,6 +340,38 @@ def test_orth_rows_is_gram_schmidt() -> None:
     torch.testing.assert_close(Q, ref, atol=1e-12, rtol=0)
     torch.testing.assert_close(Q @ Q.mT, torch.eye(3, dtype=F64).expand(50, 3, 3), atol=1e-15,
                                rtol=0)
+
+
+@pytest.mark.parametrize("threads", [1, 3])
+def test_batched_eigh_is_eigh_bit_for_bit(threads: int, monkeypatch) -> None:
+    """Split between threads or not, each matrix is solved alone: the very same output."""
+    g = torch.Generator().manual_seed(11)
+    A = torch.randn(200, 12, 12, generator=g, dtype=F64)
+    A = A + A.mT
+    monkeypatch.setattr(torch, "get_num_threads", lambda: threads)
+    lam, vec = batched_eigh(A)
+    ref = torch.linalg.eigh(A)
+    assert torch.equal(lam, ref.eigenvalues) and torch.equal(vec, ref.eigenvectors)
+
+
+def test_rotations_take_more_newton_steps_where_the_first_ones_fall_short() -> None:
+    """Blocks far from a rotation fail the few-step polar test and are finished by the full
+    iteration (or the SVD): every output is the nearest rotation."""
+    g = torch.Generator().manual_seed(12)
+    G, n = 6, 4
+    R = axis_angle_to_rotation_matrix(torch.randn(G, n, 3, generator=g, dtype=F64))
+    noise = torch.full((G, n, 1, 1), 0.002, dtype=F64)
+    noise[:2] = 0.3  # two components far off: the first two steps do not reach round-off
+    B = R + noise * torch.randn(G, n, 3, 3, generator=g, dtype=F64)
+    # basis rows Qt[c, k, a n + j] = B_j[a, k]; s = 1
+    Qt = B.permute(0, 3, 2, 1).reshape(G, 3, 3 * n)
+    Qt = filtered.orth_rows(Qt, passes=2)
+    mask = torch.ones(G, n, dtype=torch.bool)
+    a = Qt.view(G, 3, 3, n).permute(2, 1, 0, 3).reshape(9, G * n)
+    assert not bool(filtered.polar9(a, filtered._POLAR_FIRST)[1].all())  # the retry runs
+    out = filtered._rotations(Qt, torch.ones(G, n, dtype=F64), mask)
+    ref = project_to_so3(a.T.reshape(-1, 3, 3))
+    torch.testing.assert_close(out.T.reshape(-1, 3, 3), ref, atol=1e-14, rtol=0)
 
 
 def test_polar9_is_project_to_so3() -> None:

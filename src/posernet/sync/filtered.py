@@ -22,7 +22,9 @@ eigenvectors: rotations built from any orthonormal basis of it differ by one glo
 * re-weights and stops by the published rules (:func:`~posernet.sync.robust.mad_cauchy_weights`,
   the relative weight change); stopped components are dropped from the batch in bulk.
 
-Components run in chunks (:func:`_chunk`), so that their work arrays stay in the cache.
+The filter runs on chunks of components (:func:`_chunk`), so that its work arrays stay in the
+cache; the rotations, residuals and weights run on the whole batch at once (elementwise
+operations that large are split between threads; per chunk they would run on one).
 When every component has stopped, the eigenvectors of its *last* solve come from
 :func:`~posernet.sync.spectral.top3_dense` on exactly the matrix the eigh-per-iteration loop
 solved then (:func:`~posernet.sync.spectral.dense_N` of the same weights, padded to the size
@@ -56,6 +58,9 @@ _FIRST = 5  # products before the first test (from the previous iteration's basi
 _PASSES = 5  # most refinement passes (two products each) before the dense fallback
 _CHUNK = 2048 * 24 * 24  # entries of a chunk's [C, 3n, 3n] work array (2048 8-node graphs)
 _POLAR_ITERS = 4  # Newton steps of the polar factor before its test
+#: steps tried first on an IRLS iteration's blocks (within ~1 % of a rotation: 2 scaled steps
+#: and the last one reach round-off); the blocks that fail the test get ``_POLAR_ITERS``
+_POLAR_FIRST = 2
 _TOL = 1e-15  # accepted invariance residual |N Q - Q Q^T N Q|_F, times sqrt(3n)
 
 
@@ -156,8 +161,9 @@ def edge_residuals(R9: Tensor, Re9: Tensor, src: Tensor, dst: Tensor) -> Tensor:
     """``|R_dst R_src^T - R_e|_F`` ``[E]`` from the absolute rotations ``R9 [9, K]`` and the
     edge rotations ``Re9 [9, E]`` (entry-major), ``src``/``dst [E]`` column indices into
     ``R9``."""
-    Rj = R9.index_select(1, dst).view(3, 3, -1)
-    Ri = R9.index_select(1, src).view(3, 3, -1)
+    # gather over an expanded index: a copy like index_select along dim 1, several times faster
+    Rj = R9.gather(1, dst.expand(9, -1)).view(3, 3, -1)
+    Ri = R9.gather(1, src.expand(9, -1)).view(3, 3, -1)
     est = Rj[:, None, 0] * Ri[None, :, 0]
     est += Rj[:, None, 1] * Ri[None, :, 1]
     est += Rj[:, None, 2] * Ri[None, :, 2]
@@ -178,7 +184,7 @@ def _residual_ok(Z0: Tensor, Qt: Tensor, tol: float) -> Tensor:
     Q)|_F <= tol`` and ``tr(Q^T N Q) > 2 + _HI``, evaluated on ``Z0``."""
     ZQ = Qt @ Z0  # rows: (Z0 Q)^T, Z0 symmetric
     H = ZQ @ Qt.mT
-    E = ZQ - (H[..., None] * Qt[:, None]).sum(2)
+    E = torch.baddbmm(ZQ, H, Qt, alpha=-1.0)  # Z0 Q - Q H, as rows
     res = (E * E).sum((1, 2)).sqrt()
     trace = H.diagonal(dim1=-2, dim2=-1).sum(-1)
     return (res <= tol * _C1) & (trace > _C1 * (2.0 + _HI) + 3.0 * _C0)
@@ -306,28 +312,34 @@ def _rotations(Qt: Tensor, s: Tensor, node_mask: Tensor) -> Tensor:
     flip = (det * node_mask).sum(1) < 0
     if bool(flip.any()):  # the first basis vector: column 0 of every block
         a[0::3] *= torch.where(flip, -1.0, 1.0).to(a.dtype).repeat_interleave(n)
-    R9, ok = polar9(a)
-    if not bool(ok.all()):
+    R9, ok = polar9(a, _POLAR_FIRST)
+    if not bool(ok.all()):  # farther from a rotation: more Newton steps, then an SVD
         bad = (~ok).nonzero().squeeze(1)
-        R9[:, bad] = project_to_so3(a[:, bad].T.reshape(-1, 3, 3)).reshape(-1, 9).T
+        R9[:, bad], okb = polar9(a[:, bad])
+        bad = bad[~okb]
+        if bad.numel():
+            R9[:, bad] = project_to_so3(a[:, bad].T.reshape(-1, 3, 3)).reshape(-1, 9).T
     eye = torch.eye(3, dtype=R9.dtype, device=R9.device).reshape(9, 1)
     return torch.where(node_mask.reshape(1, -1), R9, eye)
 
 
-def _round(pat: Tensor, src: Tensor, dst: Tensor, edge_mask: Tensor, node_mask: Tensor,
-           count: Tensor, we: Tensor, wd: Tensor, wp: Tensor | None, Vt: Tensor, Re9: Tensor,
-           first: int, theta: float, tol: float,
-           bufs: tuple[Tensor, Tensor]) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """One IRLS iteration of ``C`` components: ``pat [C, 3n, 3n]`` (:func:`_pattern`),
-    ``src``/``dst``/``edge_mask [C, m]``, ``node_mask [C, n]``, ``count [C]``, weights ``we
-    [C, m]``, ``wd [C]``, prior ``wp [C, m]`` or ``None``, start rows ``Vt [C, 3, 3n]``, edge
-    rotations ``Re9 [9, C m]``. Returns the basis rows ``[C, 3, 3n]``, the new weights ``[C,
-    m]``, ``[C]`` and the stop flags ``[C]`` (relative weight change ``<= tol``)."""
+def _node_scales(src: Tensor, dst: Tensor, node_mask: Tensor, we: Tensor,
+                 wd: Tensor) -> Tensor:
+    """``D3^{-1/2}`` per node ``[C, n]`` (1 on padded nodes) from the weights ``we [C, m]``,
+    ``wd [C]`` and the edges ``src``/``dst [C, m]``."""
     C, n = node_mask.shape
-    m = src.shape[1]
     deg = wd[:, None].expand(C, n).clone()
     deg.scatter_add_(1, src, we).scatter_add_(1, dst, we)  # padded edges add 0 to node 0
-    s = torch.where(node_mask, deg, torch.ones_like(deg)).rsqrt()
+    return torch.where(node_mask, deg, torch.ones_like(deg)).rsqrt()
+
+
+def _subspace(pat: Tensor, src: Tensor, dst: Tensor, node_mask: Tensor, s: Tensor, we: Tensor,
+              wd: Tensor, Vt: Tensor, first: int, bufs: tuple[Tensor, Tensor]) -> Tensor:
+    """The top-3 eigenspace of ``N`` for one chunk of ``C`` components: orthonormal rows
+    ``[C, 3, 3n]`` from ``pat [C, 3n, 3n]`` (:func:`_pattern`), ``src``/``dst [C, m]``,
+    ``node_mask [C, n]``, node scales ``s [C, n]`` (:func:`_node_scales`), weights ``we [C,
+    m]``, ``wd [C]`` and start rows ``Vt [C, 3, 3n]``; the filter, or ``eigh`` where it fails."""
+    C, n = node_mask.shape
     # N: block (j, i) scaled by s_i s_j w_e, the diagonal by s_j^2 w_diag, padded nodes 0
     coef = s.gather(1, src) * s.gather(1, dst) * we
     W = torch.zeros(C, n * n, dtype=s.dtype, device=s.device)
@@ -345,6 +357,19 @@ def _round(pat: Tensor, src: Tensor, dst: Tensor, edge_mask: Tensor, node_mask: 
         Nb.diagonal(dim1=-2, dim2=-1).add_(
             torch.where(node_mask[bad], 0.0, -2.0).to(Nb.dtype).repeat(1, 3))
         Qt[bad] = top3_dense(Nb).mT
+    return Qt
+
+
+def _reweight(Qt: Tensor, s: Tensor, src: Tensor, dst: Tensor, edge_mask: Tensor,
+              node_mask: Tensor, count: Tensor, we: Tensor, wd: Tensor, wp: Tensor | None,
+              Re9: Tensor, theta: float, tol: float) -> tuple[Tensor, Tensor, Tensor]:
+    """The rest of an IRLS iteration of ``C`` components, given the basis rows ``Qt [C, 3,
+    3n]`` and the node scales ``s [C, n]``: rotations, residuals against the edge rotations
+    ``Re9 [9, C m]``, the new weights ``[C, m]``, ``[C]`` (times the prior ``wp [C, m]`` if
+    given) and the stop flags ``[C]`` (relative weight change ``<= tol``). Run on the whole
+    batch at once: its elementwise work is then large enough to be split between threads."""
+    C, n = node_mask.shape
+    m = src.shape[1]
     R9 = _rotations(Qt, s, node_mask)
     base = (torch.arange(C, device=src.device) * n)[:, None]
     res = edge_residuals(R9, Re9, (base + src).flatten(), (base + dst).flatten()).view(C, m)
@@ -357,7 +382,7 @@ def _round(pat: Tensor, src: Tensor, dst: Tensor, edge_mask: Tensor, node_mask: 
     # |W_old - W|_F / (|W|_F n) over the full symmetric n x n weight matrix.
     num = (2 * ((we - w_new) ** 2).sum(1) + cnt * (wd - wd_new) ** 2).sqrt()
     den = (2 * (w_new ** 2).sum(1) + cnt * wd_new ** 2).sqrt() * cnt
-    return Qt, w_new, wd_new, num / den.clamp_min(1e-300) <= tol
+    return w_new, wd_new, num / den.clamp_min(1e-300) <= tol
 
 
 def dense_irls(prob: PaddedProblem, w_edge: Tensor, w_diag: Tensor, max_iters: int,
@@ -368,10 +393,10 @@ def dense_irls(prob: PaddedProblem, w_edge: Tensor, w_diag: Tensor, max_iters: i
     Cauchy weight, or ``None``). Returns the
     :class:`~posernet.sync.spectral.RotationSolution` (see the module docstring).
 
-    Each iteration runs a chunk of components at a time (:func:`_chunk`; their work arrays
-    stay in the cache). Components that stop stay in the batch (frozen: their weights no
-    longer change) until they are :data:`_COMPACT` of it, then the batch is rebuilt without
-    them and trimmed to the largest remaining component.
+    Each iteration filters a chunk of components at a time (:func:`_chunk`; their work arrays
+    stay in the cache) and re-weights the whole batch. Components that stop stay in the batch
+    (frozen: their weights no longer change) until they are :data:`_COMPACT` of it, then the
+    batch is rebuilt without them and trimmed to the largest remaining component.
     """
     G, n, m, dev, dt = prob.G, prob.n, prob.m, prob.R.device, prob.R.dtype
     used_edge, used_diag = w_edge.clone(), w_diag.clone()
@@ -393,15 +418,14 @@ def dense_irls(prob: PaddedProblem, w_edge: Tensor, w_diag: Tensor, max_iters: i
         chunk = _chunk(3 * ns)
         bufs = (torch.empty(min(chunk, Gs), 3 * ns, 3 * ns, dtype=dt, device=dev),
                 torch.empty(min(chunk, Gs), 3 * ns, 3 * ns, dtype=dt, device=dev))
-        Qt, w_new = torch.empty_like(Vt), torch.empty_like(we)
-        wd_new = torch.empty_like(wd)
-        stop = torch.empty(Gs, dtype=torch.bool, device=dev)
+        s = _node_scales(sub.src, sub.dst, sub.node_mask, we, wd)
+        Qt = torch.empty_like(Vt)
         for lo in range(0, Gs, chunk):
             c = slice(lo, min(Gs, lo + chunk))
-            Qt[c], w_new[c], wd_new[c], stop[c] = _round(
-                pat[c], sub.src[c], sub.dst[c], sub.edge_mask[c], sub.node_mask[c],
-                sub.count[c], we[c], wd[c], None if wp is None else wp[c], Vt[c],
-                Re9[:, c.start * ms:c.stop * ms], 1 if k == 1 else _FIRST, theta, tol, bufs)
+            Qt[c] = _subspace(pat[c], sub.src[c], sub.dst[c], sub.node_mask[c], s[c], we[c],
+                              wd[c], Vt[c], 1 if k == 1 else _FIRST, bufs)
+        w_new, wd_new, stop = _reweight(Qt, s, sub.src, sub.dst, sub.edge_mask, sub.node_mask,
+                                        sub.count, we, wd, wp, Re9, theta, tol)
         lv = live.nonzero().squeeze(1)
         gl = idx[lv]
         used_edge[gl, :ms], used_diag[gl] = we[lv], wd[lv]
