@@ -35,12 +35,13 @@ def posernet_train_callbacks(out_dir: object) -> list:
 
 def make_graph(n: int, extra: int, seed: int, rot_noise_deg: float = 0.0,
                trans_noise: float = 0.0, outlier_frac: float = 0.0,
-               dtype: torch.dtype = F64) -> ViewGraph:
+               dtype: torch.dtype = F64, edge_index: torch.Tensor | None = None) -> ViewGraph:
     """Graph with metric ground truth; ``edge_pose`` = GT plus Gaussian rotation noise (deg),
-    translation noise (m) and a fraction of random outlier edges."""
+    translation noise (m) and a fraction of random outlier edges. Edges: a random spanning
+    tree plus ``extra`` random ones, or ``edge_index [2, E]``."""
     g = torch.Generator().manual_seed(seed)
     P = random_absolute_poses(n, g, F64)
-    ei = random_edges(n, extra, g)
+    ei = random_edges(n, extra, g) if edge_index is None else edge_index
     gt = matrix_to_pose_vec(relative_pose(P[ei[0]], P[ei[1]]))
     E = ei.shape[1]
     ax = torch.nn.functional.normalize(torch.randn(E, 3, generator=g, dtype=F64), dim=-1)

@@ -98,11 +98,13 @@ def test_matches_literal_reference_with_noise(n, extra, seed):
 @pytest.mark.parametrize("shift_invert", [False, True])
 def test_matches_sparse_reference_and_krylov(monkeypatch, shift_invert):
     """Dense and Krylov solves give the reference's poses; the Krylov one also where large
-    CPU components run Lanczos on the shifted inverse (here: above 10 cameras)."""
+    CPU components run Lanczos on the shifted inverse (here: above 10 cameras, at once)."""
+    import posernet.sync.spectral as sp
     import posernet.sync.translation as tr
 
     if shift_invert:
         monkeypatch.setattr(tr, "SPARSE_MIN_NODES", 10)
+        monkeypatch.setattr(sp, "PLAIN_KRYLOV_CYCLES", 0)
     g = make_graph(70, 500, seed=7, rot_noise_deg=3.0, trans_noise=0.03)
     ref = eig_se3_reference(70, g.edge_index.numpy(), pose_vec_to_matrix(g.edge_pose).numpy(),
                             use_sparse=True)
@@ -110,6 +112,40 @@ def test_matches_sparse_reference_and_krylov(monkeypatch, shift_invert):
         res = get_backend("eig_se3", scale="given", solver=solver).solve_with_info(g)
         assert int(res.iterations[0]) == ref.iterations
         np.testing.assert_allclose(rel_to_first(res.poses), rel_to_first(ref.poses), atol=1e-8)
+
+
+@pytest.mark.parametrize("graph", ["chain", "connected"])
+def test_large_components_invert_only_where_plain_lanczos_stalls(monkeypatch, graph):
+    """Large CPU components start with Lanczos on ``N``: a well-connected graph settles in a
+    few cycles and never pays for a sparse LU (which fills in on such a graph); a chain of
+    cameras (tiny spectral gap) does not, and switches to the shifted inverse. Both give the
+    dense solver's poses."""
+    import posernet.sync.spectral as sp
+    import posernet.sync.translation as tr
+
+    monkeypatch.setattr(tr, "SPARSE_MIN_NODES", 10)
+    n = 120
+    if graph == "chain":  # each camera sees the next two
+        ei = torch.tensor([[i, i + d] for d in (1, 2) for i in range(n - d)]).T
+        g = make_graph(n, 0, seed=9, rot_noise_deg=2.0, trans_noise=0.02, edge_index=ei)
+    else:
+        g = make_graph(n, 900, seed=9, rot_noise_deg=2.0, trans_noise=0.02)
+    lus = []
+    real = sp.shift_invert_apply
+
+    def spy(S, rows):
+        lus.append(S.shape[0])
+        return real(S, rows)
+
+    monkeypatch.setattr(sp, "shift_invert_apply", spy)
+    res = get_backend("eig_se3", scale="given", solver="krylov").solve_with_info(g)
+    assert res.info["eig_converged"]
+    assert (len(lus) > 0) == (graph == "chain")
+    if graph == "chain":  # once it stalls, every later IRLS round factors at once
+        assert len(lus) == int(res.iterations[0])
+    dense = get_backend("eig_se3", scale="given", solver="dense").solve_with_info(g)
+    assert torch.equal(res.iterations, dense.iterations)
+    np.testing.assert_allclose(rel_to_first(res.poses), rel_to_first(dense.poses), atol=1e-8)
 
 
 def test_non_robust_single_solve_matches_reference():

@@ -9,9 +9,11 @@ Chebyshev-filtered subspace per iteration instead of an ``eigh``, the eigenvecto
 solve by batched ``eigh``: the same result); large ones a batched restarted block-Krylov
 (Lanczos with full reorthogonalisation) applying ``N`` as a sparse block-diagonal matrix
 (O(E) per product), warm-started across IRLS iterations; on the CPU, components over
-``posernet.sync.translation.SPARSE_MIN_NODES`` cameras run that Lanczos on the shifted inverse
-``(sigma I - N)^-1`` (one sparse LU per iteration), whose top-3 eigenvalues stand far apart
-where ``N``'s do not (a long chain of cameras). Also the operators themselves
+``posernet.sync.translation.SPARSE_MIN_NODES`` cameras that plain Lanczos does not settle in
+:data:`PLAIN_KRYLOV_CYCLES` cycles run it on the shifted inverse ``(sigma I - N)^-1`` (one
+sparse LU per iteration), whose top-3 eigenvalues stand far apart where ``N``'s do not (a long
+chain of cameras; on a well-connected graph the LU fills in and costs far more than the plain
+cycles). Also the operators themselves
 (:func:`dense_N`, :func:`sparse_N`), batched conjugate gradients and the dense/Krylov split by
 component size (:func:`split_by_size`).
 """
@@ -293,6 +295,11 @@ def top3_krylov(apply, V0: Tensor, row_mask: Tensor, generator: torch.Generator,
 #: small against the spectral gap, so the top-3 eigenvalues stand far apart from the rest
 SHIFT_INVERT_DELTA = 1e-6
 
+#: Lanczos cycles on ``N`` itself before large CPU components switch to the shifted inverse:
+#: well-connected graphs converge in a few (2 at 1000 cameras of degree 72, 8 at degree 4),
+#: where the sparse LU fills in (seconds); long chains would take thousands, the inverse one
+PLAIN_KRYLOV_CYCLES = 12
+
 
 def shift_invert_apply(S: Tensor, rows: Tensor):
     """``V -> (sigma I - N)^-1 V`` for the block-diagonal sparse ``S = N`` (from
@@ -444,6 +451,8 @@ def rotation_irls(prob: PaddedProblem, robust: bool, max_iters: int, tol: float,
     # a CPU generator: the Krylov start is the same on every device, so CUDA and CPU agree
     gen = torch.Generator().manual_seed(seed)
     warm = None
+    # large CPU components: Lanczos on the shifted inverse (see below); 0 plain cycles: at once
+    invert = PLAIN_KRYLOV_CYCLES <= 0
     pattern: CSRPattern | None = None
     pattern_idx: Tensor | None = None
     if krylov:
@@ -465,15 +474,21 @@ def rotation_irls(prob: PaddedProblem, robust: bool, max_iters: int, tol: float,
             def op(V: Tensor, S=S) -> Tensor:
                 return sparse_apply(S, V)
 
-            if use_sparse(ns, S.device):
-                # large components on the CPU: Lanczos on the shifted inverse (one sparse LU
-                # per IRLS round), converged when N's own residual is small
+            sparse = use_sparse(ns, S.device)
+            warm_s = warm[idx, :3 * ns]
+            if not (sparse and invert):
+                budget = min(PLAIN_KRYLOV_CYCLES, krylov_max_cycles) if sparse else \
+                    krylov_max_cycles
+                V3s, warm_s, ok, _ = top3_krylov(op, warm_s, rows, gen, krylov_tol, budget)
+                invert = sparse and not bool(ok.all())
+            if sparse and invert:
+                # large components on the CPU that plain Lanczos did not settle in its budget
+                # (a long chain: tiny spectral gap): Lanczos on the shifted inverse, one
+                # sparse LU per IRLS round from now on, converged when N's own residual is
+                # small
                 inv = shift_invert_apply(S, rows)
-                V3s, warm_s, ok, _ = top3_krylov(inv, warm[idx, :3 * ns], rows, gen,
-                                                 krylov_tol, krylov_max_cycles, check=op)
-            else:
-                V3s, warm_s, ok, _ = top3_krylov(op, warm[idx, :3 * ns], rows, gen,
-                                                 krylov_tol, krylov_max_cycles)
+                V3s, warm_s, ok, _ = top3_krylov(inv, warm_s, rows, gen, krylov_tol,
+                                                 krylov_max_cycles, check=op)
             warm[idx, :3 * ns] = warm_s
             eig_ok[idx] = ok
         else:
