@@ -334,11 +334,13 @@ def _node_scales(src: Tensor, dst: Tensor, node_mask: Tensor, we: Tensor,
 
 
 def _subspace(pat: Tensor, src: Tensor, dst: Tensor, node_mask: Tensor, s: Tensor, we: Tensor,
-              wd: Tensor, Vt: Tensor, first: int, bufs: tuple[Tensor, Tensor]) -> Tensor:
+              wd: Tensor, Vt: Tensor, first: int,
+              bufs: tuple[Tensor, Tensor, Tensor]) -> Tensor:
     """The top-3 eigenspace of ``N`` for one chunk of ``C`` components: orthonormal rows
     ``[C, 3, 3n]`` from ``pat [C, 3n, 3n]`` (:func:`_pattern`), ``src``/``dst [C, m]``,
     ``node_mask [C, n]``, node scales ``s [C, n]`` (:func:`_node_scales`), weights ``we [C,
-    m]``, ``wd [C]`` and start rows ``Vt [C, 3, 3n]``; the filter, or ``eigh`` where it fails."""
+    m]``, ``wd [C]`` and start rows ``Vt [C, 3, 3n]``; the filter, or ``eigh`` where it fails.
+    ``bufs``: three ``[>= C, 3n, 3n]`` work arrays (``Z0`` and the filter's two)."""
     C, n = node_mask.shape
     # N: block (j, i) scaled by s_i s_j w_e, the diagonal by s_j^2 w_diag, padded nodes 0
     coef = s.gather(1, src) * s.gather(1, dst) * we
@@ -348,9 +350,11 @@ def _subspace(pat: Tensor, src: Tensor, dst: Tensor, node_mask: Tensor, s: Tenso
     W.diagonal(dim1=-2, dim2=-1).copy_(  # overwrites the zeros padded edges put on (0, 0)
         torch.where(node_mask, wd[:, None] * s * s, torch.zeros_like(s)))
     # the filter's Z0 = _C1 N + _C0 I straight from the weights (N itself is not needed)
-    Z0 = (W.mul_(_C1).view(C, 1, n, 1, n) * pat.view(C, 3, n, 3, n)).view(C, 3 * n, 3 * n)
+    Z0 = bufs[2][:C]  # written in place: a fresh array of this size costs its page faults
+    torch.mul(W.mul_(_C1).view(C, 1, n, 1, n), pat.view(C, 3, n, 3, n),
+              out=Z0.view(C, 3, n, 3, n))
     Z0.diagonal(dim1=-2, dim2=-1).add_(_C0)
-    Qt, ok = _filter(Z0, Vt, _SQUARINGS, first, _PASSES, bufs)
+    Qt, ok = _filter(Z0, Vt, _SQUARINGS, first, _PASSES, bufs[:2])
     if not bool(ok.all()):
         bad = (~ok).nonzero().squeeze(1)
         Nb = (Z0[bad] - _C0 * torch.eye(3 * n, dtype=Z0.dtype, device=Z0.device)) / _C1
@@ -416,8 +420,8 @@ def dense_irls(prob: PaddedProblem, w_edge: Tensor, w_diag: Tensor, max_iters: i
     for k in range(1, max_iters + 1):
         Gs, ns, ms = sub.G, sub.n, sub.m
         chunk = _chunk(3 * ns)
-        bufs = (torch.empty(min(chunk, Gs), 3 * ns, 3 * ns, dtype=dt, device=dev),
-                torch.empty(min(chunk, Gs), 3 * ns, 3 * ns, dtype=dt, device=dev))
+        bufs = tuple(torch.empty(min(chunk, Gs), 3 * ns, 3 * ns, dtype=dt, device=dev)
+                     for _ in range(3))
         s = _node_scales(sub.src, sub.dst, sub.node_mask, we, wd)
         Qt = torch.empty_like(Vt)
         for lo in range(0, Gs, chunk):
