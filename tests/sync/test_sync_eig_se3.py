@@ -148,6 +148,30 @@ def test_large_components_invert_only_where_plain_lanczos_stalls(monkeypatch, gr
     np.testing.assert_allclose(rel_to_first(res.poses), rel_to_first(dense.poses), atol=1e-8)
 
 
+def test_well_connected_components_never_factor(monkeypatch):
+    """Where plain Lanczos is slow on a well-connected graph (here: one cycle allowed), it goes
+    on by itself rather than factor: the LU of such a graph fills in. A chain factors."""
+    import posernet.sync.spectral as sp
+    import posernet.sync.translation as tr
+
+    monkeypatch.setattr(tr, "SPARSE_MIN_NODES", 10)
+    monkeypatch.setattr(sp, "PLAIN_KRYLOV_CYCLES", 1)
+    lus = []
+    real = sp.shift_invert_apply
+    monkeypatch.setattr(sp, "shift_invert_apply", lambda S, rows: lus.append(1) or real(S, rows))
+    n = 80
+    dense = make_graph(n, 1500, seed=10, rot_noise_deg=2.0, trans_noise=0.02)
+    assert 2 * dense.num_edges / n > sp.SHIFT_INVERT_MAX_DEGREE
+    res = get_backend("eig_se3", scale="given", solver="krylov").solve_with_info(dense)
+    assert res.info["eig_converged"] and not lus
+    ref = get_backend("eig_se3", scale="given", solver="dense").solve_with_info(dense)
+    np.testing.assert_allclose(rel_to_first(res.poses), rel_to_first(ref.poses), atol=1e-8)
+    ei = torch.tensor([[i, i + 1] for i in range(n - 1)]).T
+    chain = make_graph(n, 0, seed=10, rot_noise_deg=2.0, trans_noise=0.02, edge_index=ei)
+    get_backend("eig_se3", scale="given", solver="krylov").solve_with_info(chain)
+    assert lus
+
+
 def test_non_robust_single_solve_matches_reference():
     g = make_graph(10, 12, seed=8, rot_noise_deg=5.0, trans_noise=0.1)
     res = get_backend("eig_se3", scale="given", robust=False).solve_with_info(g)

@@ -12,8 +12,8 @@ solve by batched ``eigh``: the same result); large ones a batched restarted bloc
 ``posernet.sync.translation.SPARSE_MIN_NODES`` cameras that plain Lanczos does not settle in
 :data:`PLAIN_KRYLOV_CYCLES` cycles run it on the shifted inverse ``(sigma I - N)^-1`` (one
 sparse LU per iteration), whose top-3 eigenvalues stand far apart where ``N``'s do not (a long
-chain of cameras; on a well-connected graph the LU fills in and costs far more than the plain
-cycles). Also the operators themselves
+chain of cameras); not above a mean degree of :data:`SHIFT_INVERT_MAX_DEGREE`, where the LU
+fills in and costs far more than the plain cycles. Also the operators themselves
 (:func:`dense_N`, :func:`sparse_N`), batched conjugate gradients and the dense/Krylov split by
 component size (:func:`split_by_size`).
 """
@@ -299,6 +299,10 @@ SHIFT_INVERT_DELTA = 1e-6
 #: well-connected graphs converge in a few (2 at 1000 cameras of degree 72, 8 at degree 4),
 #: where the sparse LU fills in (seconds); long chains would take thousands, the inverse one
 PLAIN_KRYLOV_CYCLES = 12
+#: ... and only where the mean degree is at most this: the LU of a well-connected graph fills in
+#: (a 2000-camera graph of degree 72 with random edge rotations, where Lanczos is slow too:
+#: over 15 minutes and 4 GB in the LU, 7.7 s in plain Lanczos)
+SHIFT_INVERT_MAX_DEGREE = 32.0
 
 
 def shift_invert_apply(S: Tensor, rows: Tensor):
@@ -474,7 +478,8 @@ def rotation_irls(prob: PaddedProblem, robust: bool, max_iters: int, tol: float,
             def op(V: Tensor, S=S) -> Tensor:
                 return sparse_apply(S, V)
 
-            sparse = use_sparse(ns, S.device)
+            degree = 2.0 * float(sub.edge_mask.sum()) / max(1.0, float(sub.node_mask.sum()))
+            sparse = use_sparse(ns, S.device) and degree <= SHIFT_INVERT_MAX_DEGREE
             warm_s = warm[idx, :3 * ns]
             if not (sparse and invert):
                 budget = min(PLAIN_KRYLOV_CYCLES, krylov_max_cycles) if sparse else \
