@@ -301,7 +301,7 @@ SHIFT_INVERT_DELTA = 1e-6
 PLAIN_KRYLOV_CYCLES = 12
 #: ... and only where the mean degree is at most this: the LU of a well-connected graph fills in
 #: (a 2000-camera graph of degree 72 with random edge rotations, where Lanczos is slow too:
-#: over 15 minutes and 4 GB in the LU, 7.7 s in plain Lanczos)
+#: over 15 minutes and 4 GB in the LU, 6-7 s in plain Lanczos)
 SHIFT_INVERT_MAX_DEGREE = 32.0
 
 
@@ -478,15 +478,17 @@ def rotation_irls(prob: PaddedProblem, robust: bool, max_iters: int, tol: float,
             def op(V: Tensor, S=S) -> Tensor:
                 return sparse_apply(S, V)
 
-            degree = 2.0 * float(sub.edge_mask.sum()) / max(1.0, float(sub.node_mask.sum()))
-            sparse = use_sparse(ns, S.device) and degree <= SHIFT_INVERT_MAX_DEGREE
+            # may factor: large CPU components whose graph is sparse enough for a sparse LU
+            factorable = use_sparse(ns, S.device) and (
+                2.0 * float(sub.edge_mask.sum()) / max(1.0, float(sub.node_mask.sum()))
+                <= SHIFT_INVERT_MAX_DEGREE)
             warm_s = warm[idx, :3 * ns]
-            if not (sparse and invert):
-                budget = min(PLAIN_KRYLOV_CYCLES, krylov_max_cycles) if sparse else \
+            if not (factorable and invert):
+                budget = min(PLAIN_KRYLOV_CYCLES, krylov_max_cycles) if factorable else \
                     krylov_max_cycles
                 V3s, warm_s, ok, _ = top3_krylov(op, warm_s, rows, gen, krylov_tol, budget)
-                invert = sparse and not bool(ok.all())
-            if sparse and invert:
+                invert = factorable and not bool(ok.all())
+            if factorable and invert:
                 # large components on the CPU that plain Lanczos did not settle in its budget
                 # (a long chain: tiny spectral gap): Lanczos on the shifted inverse, one
                 # sparse LU per IRLS round from now on, converged when N's own residual is
