@@ -115,8 +115,12 @@ def baseline_label(src: str) -> str:
     runs are labelled."""
     import subprocess
 
+    folder = Path(src).resolve().parent
     try:
-        return subprocess.run(["git", "-C", src, "rev-parse", "--short", "HEAD"],
-                              capture_output=True, text=True, check=True).stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        return Path(src).resolve().parent.name
+        top, commit = subprocess.run(
+            ["git", "-C", src, "rev-parse", "--show-toplevel", "--short", "HEAD"],
+            capture_output=True, text=True, check=True).stdout.split()
+    except (OSError, ValueError, subprocess.CalledProcessError):
+        return folder.name
+    # a copied src inside another checkout is not that checkout's commit
+    return f"commit {commit}" if Path(top).resolve() == folder else folder.name

@@ -140,7 +140,7 @@ def main() -> None:
             base_diff = float((fast_out.cpu() - base["out"]).abs().max())
             print(f"fast path of {name}: {fmt_s(base['time'])} "
                   f"{[round(t, 3) for t in base['times']]}", flush=True)
-            rows.insert(1, [f"fast path of commit {name} (`--baseline`)", fmt_s(base["time"]),
+            rows.insert(1, [f"fast path of {name} (`--baseline`)", fmt_s(base["time"]),
                             f"{n / base['time']:.0f}", f"{t_ref / base['time']:.1f}x"])
         if args.compile:
             compiled = torch.compile(model)

@@ -374,8 +374,7 @@ def report(rows: list[dict], args: argparse.Namespace, have_gtsam: bool) -> str:
         lines += [
             "",
             f"Before and after, same run, same inputs (best of {args.repeat}): the batched "
-            f"torch solver of commit {name} (`--baseline`, a dense `eigh` of every component "
-            "in every IRLS iteration) and of this checkout:",
+            f"torch solver of {name} (`--baseline`) and of this checkout:",
             "",
             f"| workload | before ({name}) | torch batched | before / torch "
             "| max gauge-free difference | IRLS iterations (before mean / max) |",

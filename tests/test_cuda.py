@@ -316,6 +316,13 @@ def test_reconstruct_with_refinement_on_cuda_matches_cpu(tmp_path: Path) -> None
                                test_sequences=1, frames_per_sequence=8, width=320, height=240,
                                focal=292.5, progress=False)
     intr = ",".join(f"{v:g}" for v in render_intrinsics(scene))
+    # the renderer's object boxes as proposals (keyed by file name, as the images folder is
+    # seq-01): the same boxes on both runs, and no contrib OpenCV needed on the GPU machine
+    objects = json.loads((scene / "objects.json").read_text())
+    objects["images"] = {Path(k).name: v for k, v in objects["images"].items()
+                         if k.startswith("seq-01/")}
+    boxes = tmp_path / "boxes.json"
+    boxes.write_text(json.dumps(objects))
     env = dict(os.environ, OMP_NUM_THREADS="1")
     for dev in ("cpu", "cuda"):
         # SIFT on the CPU and no bundle adjustment: the device is the only difference (the
@@ -323,7 +330,7 @@ def test_reconstruct_with_refinement_on_cuda_matches_cpu(tmp_path: Path) -> None
         r = subprocess.run([str(BIN / "posernet-reconstruct"), f"images={scene / 'seq-01'}",
                             f"intrinsics={intr}", f"out_dir={tmp_path / dev}", "matcher=sift",
                             "refine=true", "ba=false", "pictures=0", f"device={dev}",
-                            "progress=false"],
+                            "progress=false", "proposals=file", f"proposals.path={boxes}"],
                            capture_output=True, text=True, timeout=600, env=env)
         assert r.returncode == 0, r.stderr[-3000:]
     cpu, gpu = (json.loads((tmp_path / d / "poses.json").read_text())["cameras"]
