@@ -126,18 +126,21 @@ def test_sift_ratio_and_mutual_checks(pair):
     assert pair_set(default) <= pair_set(one_way) and len(default) < len(one_way)
 
 
+@pytest.mark.parametrize("int8", [True, False])
 @pytest.mark.parametrize(("k", "l", "block"), [(1, 1, 8), (1, 6, 8), (6, 1, 8), (40, 30, 7),
-                                                (40, 30, 2048), (9, 50, 4)])
-def test_two_nearest_neighbours_match_brute_force(k, l, block):
-    """The blocked two-nearest-neighbour search against a dense argsort, both directions, with
-    duplicated descriptors so that ties occur: the smaller index wins a tie."""
+                                                (40, 30, None), (9, 50, 4)])
+def test_two_nearest_neighbours_match_brute_force(k, l, block, int8, monkeypatch):
+    """The blocked two-nearest-neighbour search on int8 codes against a dense argsort, both
+    directions, both ways of multiplying (int8 products, float32 with a column search), with
+    duplicated and extreme codes so that ties occur: the smaller index wins a tie."""
     import torch
 
+    monkeypatch.setattr(F, "_int8_products", lambda: int8)
     rng = np.random.default_rng(k * 100 + l)
-    x = rng.integers(0, 3, (k, 4)).astype(np.float32)  # few values: many exact ties
-    y = rng.integers(0, 3, (l, 4)).astype(np.float32)
+    vals = np.array([-128, -1, 0, 127], np.int8)  # few values: many exact ties
+    x, y = vals[rng.integers(0, 4, (k, 128))], vals[rng.integers(0, 4, (l, 128))]
     got = F._nn2(torch.from_numpy(x), torch.from_numpy(y), block=block)
-    d = ((x[:, None] - y[None]) ** 2).sum(-1)
+    d = ((x[:, None].astype(np.int64) - y[None]) ** 2).sum(-1).astype(np.float64)
 
     def expect(d: np.ndarray) -> tuple[np.ndarray, ...]:
         order = np.argsort(d, axis=1, kind="stable")  # stable: smaller index first on ties
@@ -147,6 +150,36 @@ def test_two_nearest_neighbours_match_brute_force(k, l, block):
 
     for g, e in zip(got, (*expect(d), *expect(d.T)), strict=True):
         np.testing.assert_array_equal(g, e)
+
+
+def test_int8_and_float32_products_match_alike(pair, monkeypatch):
+    """Matching multiplies the codes in int8 where that is fast and in float32 elsewhere: the
+    same matches and scores either way, on real descriptors."""
+    m = SiftMatcher()
+    fa, fb = m.extract(pair[0]), m.extract(pair[1])
+    got = []
+    for int8 in (True, False):
+        monkeypatch.setattr(F, "_int8_products", lambda int8=int8: int8)
+        got.append(m.match(fa, fb))
+    assert len(got[0]) > 50
+    for name in ("idx_a", "idx_b", "score"):
+        np.testing.assert_array_equal(getattr(got[0], name), getattr(got[1], name))
+
+
+def test_descriptor_codes_are_colmap_bytes_less_128(pair):
+    """RootSIFT codes: the unit vectors x ``CODE_SCALE``, rounded, clipped to a byte, less 128;
+    plain SIFT codes: OpenCV's bytes less 128."""
+    from posernet.frontend.features import descriptor_array, descriptor_codes
+
+    for rootsift in (True, False):
+        f = SiftMatcher(rootsift=rootsift).extract(pair[0])
+        c = descriptor_codes(f)
+        assert c.dtype == np.int8 and c.shape == (len(f), 128)
+        x = descriptor_array(f)
+        expect = np.clip(np.rint(x * F.CODE_SCALE), 0, 255) if rootsift else x
+        np.testing.assert_array_equal(c.astype(np.int16) + 128, expect)
+        if rootsift:  # the codes use the byte's range, and the clip hardly ever acts
+            assert c.max() > 64 and (x * F.CODE_SCALE > 255).mean() < 1e-4
 
 
 @pytest.mark.parametrize("rows", [1, 5, 2**16 + 3])

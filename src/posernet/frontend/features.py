@@ -38,6 +38,7 @@ CPU thread at ``top_k=4096``.
 
 from __future__ import annotations
 
+import functools
 import importlib
 import importlib.resources
 import importlib.util
@@ -45,6 +46,8 @@ import inspect
 import logging
 import sys
 import threading
+import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -68,6 +71,7 @@ __all__ = [
     "XFeatOptions",
     "clear_cache",
     "descriptor_array",
+    "descriptor_codes",
     "make_matcher",
     "xfeat_available",
 ]
@@ -312,14 +316,71 @@ def _sift_vectors(desc: np.ndarray, root: bool) -> np.ndarray:
     return x
 
 
+#: RootSIFT components as bytes, as COLMAP stores them, on a finer scale (COLMAP: x 512): the
+#: largest component of a RootSIFT vector is about 0.33 (OpenCV clips SIFT's bins at 0.2), so
+#: x 740 spans the byte and the clip at 255 hardly ever acts
+CODE_SCALE = 740.0
+
+
+def descriptor_codes(f: Features) -> np.ndarray:
+    """``f``'s SIFT descriptors as the integer codes matching compares ``(K, 128)`` int8: the
+    (Root)SIFT bytes minus 128. Squared distances do not change under the shift, and int8 is
+    what the integer product takes; every distance is an exact integer (below 2**23)."""
+    root = f.extra.get("kind") == "rootsift"
+    x = descriptor_array(f)  # OpenCV's byte values, or unit RootSIFT vectors
+    if root:
+        x = np.rint(x * CODE_SCALE)
+    return (np.clip(x, 0, 255) - 128).astype(np.int8)
+
+
+@functools.cache
+def _int8_products() -> bool:
+    """Whether ``torch._int_mm`` multiplies int8 codes faster than float32 does here. Its fast
+    CPU kernel needs VNNI instructions; elsewhere it is a plain loop. Both give the same
+    integers, so the choice changes the time only. Decided once per process: from torch's
+    VNNI test where it has one (a timing under load could pick the slow way), else timed."""
+    if not hasattr(torch, "_int_mm"):
+        return False
+    vnni = getattr(torch.cpu, "_is_vnni_supported", None)
+    if callable(vnni) and vnni():
+        return True
+    x = torch.randint(-128, 128, (1024, 128), dtype=torch.int8)
+    xf = x.float()
+
+    def best(fn: Callable[[], Any]) -> float:
+        fn()
+        times = []
+        for _ in range(5):
+            t = time.perf_counter()
+            fn()
+            times.append(time.perf_counter() - t)
+        return min(times)
+
+    try:
+        return best(lambda: torch._int_mm(x, x.T)) < 0.7 * best(lambda: xf @ xf.T)
+    except RuntimeError:
+        return False
+
+
+def _partial_distances(x: torch.Tensor, y: torch.Tensor, ny: torch.Tensor, fast: bool
+                       ) -> np.ndarray:
+    """``|y_j|^2 - 2 x_i . y_j`` ``(K, L)`` for codes ``x (K, D)``, ``y (L, D)`` and ``ny (L,)``
+    the squared norms of ``y``: the squared distances less ``|x_i|^2``, which is constant along
+    a row (the caller adds it to the two smallest). int8 codes give int32; float32 codes give
+    float32, exact too (every partial sum is an integer below 2**24)."""
+    if fast:
+        return torch._int_mm(x, y.T).mul_(-2).add_(ny).numpy()
+    return torch.addmm(ny, x, y.T, alpha=-2.0).numpy()
+
+
 def _two_smallest(d: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per row of the C-contiguous float32 ``d`` (R, C): the smallest value, its column (the
-    first on ties) and the second smallest (inf when C = 1). Row-wise numpy reductions: about
-    a third of the time of ``torch.topk(2)`` on a SIFT distance matrix. ``d`` is restored."""
+    """Per row of the C-contiguous ``d`` (R, C): the smallest value, its column (the first on
+    ties) and the second smallest (:func:`_none` when C = 1). Row-wise numpy reductions:
+    about a third of the time of ``torch.topk(2)``. ``d`` is restored."""
     rows = np.arange(d.shape[0])
     i1 = d.argmin(1)
     v1 = d[rows, i1]
-    d[rows, i1] = np.inf
+    d[rows, i1] = _none(d)
     v2 = d.min(1)
     d[rows, i1] = v1
     return v1, i1, v2
@@ -337,45 +398,78 @@ def _two_smallest_per_column(d: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.
     kind = np.uint16 if R < 2**16 else np.int64
     rev = (R - np.arange(R)).astype(kind)[:, None]
     i1 = R - np.multiply(d == v1, rev, dtype=kind).max(0).astype(np.int64)
-    d[i1, cols] = np.inf
+    d[i1, cols] = _none(d)
     v2 = d.min(0)
     d[i1, cols] = v1
     return v1, i1, v2
 
 
-def _nn2(x: torch.Tensor, y: torch.Tensor, block: int = 2048) -> tuple[np.ndarray, ...]:
+def _none(d: np.ndarray) -> Any:
+    """What stands for "no value" in ``d``: larger than any distance of its type."""
+    return np.inf if d.dtype.kind == "f" else np.iinfo(d.dtype).max
+
+
+def _nn2(x: torch.Tensor, y: torch.Tensor, block: int | None = None
+         ) -> tuple[np.ndarray, ...]:
     """Two nearest neighbours (squared L2) of each row of x in y, and of each row of y in x.
 
     Args:
-        x: (K, D) float32; y: (L, D) float32, K, L >= 1.
+        x: (K, D) int8 codes; y: (L, D) int8 codes, K, L >= 1.
     Returns:
         ``(i_xy, d1_xy, d2_xy, i_yx, d1_yx, d2_yx)``: nearest index (K,) / (L,) and the smallest
-        two squared distances (inf when there is no second neighbour). On ties the smaller
-        index wins. Computed in row blocks so memory stays at ``block * L`` floats; each block
-        serves both directions.
+        two squared distances (float64, exact integers; inf when there is no second
+        neighbour). On ties the smaller index wins. Computed in blocks of ``block`` rows
+        (default: 2**22 distances, 16 MB, a block). Where int8 products are fast the search
+        from y is a product of its own (cheaper than a column search); elsewhere the codes
+        are multiplied in float32 and each block serves both directions. Both ways give the
+        same numbers.
     """
-    k, l_ = x.shape[0], y.shape[0]
-    nx, ny = (x * x).sum(1), (y * y).sum(1)
-    i_xy = np.empty(k, dtype=np.int64)
-    d1_xy, d2_xy = np.empty(k, np.float32), np.empty(k, np.float32)
-    # per column of the distance matrix: best two so far over the row blocks
-    d1_yx, d2_yx = np.full(l_, np.inf, np.float32), np.full(l_, np.inf, np.float32)
-    i_yx = np.zeros(l_, dtype=np.int64)
-    for s in range(0, k, block):
-        xb = x[s : s + block]
-        # |x|^2 - 2 x.y in one fused BLAS call, then + |y|^2 in place (2x faster than
-        # building the sum from temporaries)
-        d = torch.addmm(nx[s : s + block, None], xb, y.T, alpha=-2.0)
-        d.add_(ny[None, :]).clamp_min_(0.0)
-        e = slice(s, s + d.shape[0])
-        d1_xy[e], i_xy[e], d2_xy[e] = _two_smallest(d.numpy())
-        b1, bi, b2 = _two_smallest_per_column(d.numpy())
-        # merge with the earlier blocks (their rows come first: they win ties)
-        new = b1 < d1_yx
-        d2_yx = np.where(new, np.minimum(d1_yx, b2), np.minimum(d2_yx, b1))
-        i_yx = np.where(new, bi + s, i_yx)
-        d1_yx = np.where(new, b1, d1_yx)
+    fast = _int8_products()
+    if not fast:
+        x, y = x.float(), y.float()
+    # squared norms (exact in float32: below 2**22)
+    nx = x.float().square().sum(1).to(torch.int32).numpy()
+    ny = y.float().square().sum(1).to(torch.int32)
+
+    def search(x: torch.Tensor, y: torch.Tensor, ny: torch.Tensor, columns: bool
+               ) -> tuple[np.ndarray, ...]:
+        k, l_ = x.shape[0], y.shape[0]
+        rows = block or max(1, 2**22 // l_)
+        ny = ny.to(x.dtype if not fast else torch.int32)
+        i_xy, d1_xy, d2_xy = np.empty(k, np.int64), np.empty(k), np.empty(k)
+        # per column: best two so far over the row blocks (less |y_j|^2 until the end)
+        d1_yx, d2_yx = np.full(l_, np.inf), np.full(l_, np.inf)
+        i_yx = np.zeros(l_, dtype=np.int64)
+        for s in range(0, k, rows):
+            d = _partial_distances(x[s : s + rows], y, ny, fast)
+            e = slice(s, s + d.shape[0])
+            v1, i_xy[e], v2 = _two_smallest(d)
+            d1_xy[e], d2_xy[e] = _as_distance(v1, d), _as_distance(v2, d)
+            if columns:  # with |x_i|^2 added, d holds the distances of this block's rows
+                d += nx[e, None].astype(d.dtype)
+                b1, bi, b2 = _two_smallest_per_column(d)
+                b1, b2 = _as_distance(b1, d), _as_distance(b2, d)
+                # merge with the earlier blocks (their rows come first: they win ties)
+                new = b1 < d1_yx
+                d2_yx = np.where(new, np.minimum(d1_yx, b2), np.minimum(d2_yx, b1))
+                i_yx = np.where(new, bi + s, i_yx)
+                d1_yx = np.where(new, b1, d1_yx)
+        return i_xy, d1_xy, d2_xy, i_yx, d1_yx, d2_yx
+
+    out = search(x, y, ny, columns=not fast)
+    i_xy, d1_xy, d2_xy = out[0], out[1] + nx, out[2] + nx
+    if fast:
+        i_yx, d1_yx, d2_yx = search(y, x, torch.from_numpy(nx), columns=False)[:3]
+        ny_ = ny.numpy()
+        d1_yx, d2_yx = d1_yx + ny_, d2_yx + ny_
+    else:
+        i_yx, d1_yx, d2_yx = out[3:]
     return i_xy, d1_xy, d2_xy, i_yx, d1_yx, d2_yx
+
+
+def _as_distance(v: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """``v`` (values of ``d``) as float64, :func:`_none` as inf."""
+    return np.where(v == _none(d), np.inf, v.astype(np.float64))
 
 
 def _distance_ratio(d1: np.ndarray, d2: np.ndarray) -> np.ndarray:
@@ -467,8 +561,8 @@ class SiftMatcher:
         _check_pair(a, b, (self.kind,), self.name)
         if len(a) == 0 or len(b) == 0:
             return Matches.empty()
-        da = torch.from_numpy(descriptor_array(a))
-        db = torch.from_numpy(descriptor_array(b))
+        da = torch.from_numpy(descriptor_codes(a))
+        db = torch.from_numpy(descriptor_codes(b))
         with torch.inference_mode():
             i_ab, d1_ab, d2_ab, i_ba, d1_ba, d2_ba = _nn2(da, db)
         r_ab = _distance_ratio(d1_ab, d2_ab)
