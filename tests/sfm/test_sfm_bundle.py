@@ -310,6 +310,10 @@ def test_the_grouped_symmetric_product_is_the_whole_product(cameras: int) -> Non
     got = start.copy()
     _subtract_upper_product(got, W, Vinv, pt, indptr, npt)
     np.testing.assert_allclose(start - got, whole, rtol=0, atol=1e-12 * np.abs(whole).max())
+    for threads in (2, 3):  # the products shared between threads: the same bits
+        again = start.copy()
+        _subtract_upper_product(again, W, Vinv, pt, indptr, npt, threads=threads)
+        np.testing.assert_array_equal(again, got)
 
 
 @pytest.mark.parametrize("focal", ["none", "shared", "per_camera"])

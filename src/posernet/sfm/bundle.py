@@ -20,7 +20,9 @@ otherwise it is the input, and ``accepted`` is False with the reason in ``messag
 
 from __future__ import annotations
 
+import os
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from itertools import pairwise
 
@@ -79,7 +81,8 @@ class BundleOptions:
     ``pcg_min_cameras``: the solver solves the reduced camera system of problems with at
     least this many variable cameras by conjugate gradients on the implicit Schur complement
     (block-Jacobi preconditioner) instead of a dense Cholesky factorisation, whose cost grows
-    with the cube of the cameras (0: always, a huge value: never).
+    with the cube of the cameras (0: always, a huge value: never). ``threads``: threads that
+    share the block products of that system (the same numbers with any count).
     """
 
     loss: str = option("cauchy", choices=LOSSES,
@@ -121,6 +124,8 @@ class BundleOptions:
                                   "observations")
     pcg_min_cameras: int = option(400, ge=0, help="lm: problems with this many variable "
                                   "cameras solve the reduced system by conjugate gradients")
+    threads: int = option(0, ge=0, help="threads of the reduced camera system's block "
+                          "products (0: every available core)")
 
     def __post_init__(self) -> None:
         check_options(self)
@@ -432,15 +437,27 @@ def _segment_grams(A: np.ndarray, starts: np.ndarray) -> np.ndarray:
     return out
 
 
+def _threads(n: int) -> int:
+    """``n`` threads, or every core this process may run on for 0."""
+    if n > 0:
+        return n
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        return os.cpu_count() or 1
+
+
 def _subtract_upper_product(S: np.ndarray, W: np.ndarray, Vinv: np.ndarray, cols: np.ndarray,
-                            indptr: np.ndarray, npt: int) -> None:
+                            indptr: np.ndarray, npt: int, threads: int = 1) -> None:
     """``S -= Y W^T`` in place, ``Y = W V^-1``: ``S (6 nc, 6 nc)``, ``W (O, 6, 3)`` one block
     per observation (block row: the camera, ``indptr (nc + 1,)``; block column: the point,
     ``cols (O,)``), ``Vinv (npt, 3, 3)`` symmetric per point, so that ``Y W^T`` is symmetric.
     Cameras go in groups; only the block rows of groups ``i <= j`` are multiplied (scipy BSR
     products) and the rest mirrored: about 0.6 of the block products of the whole product.
     ``Y`` is formed one group at a time, never whole (it and its gather of ``Vinv`` are as
-    large as ``W``: tens of MB at a few hundred thousand observations)."""
+    large as ``W``: tens of MB at a few hundred thousand observations). A group's products
+    run on ``threads`` threads (scipy's sparse products release the GIL); each lands in its
+    own blocks of ``S``, so the result does not depend on the count."""
     nc = indptr.size - 1
     bounds = np.unique(np.linspace(0, nc, max(1, min(8, nc // 32)) + 1).astype(np.int64))
     groups = []
@@ -449,14 +466,16 @@ def _subtract_upper_product(S: np.ndarray, W: np.ndarray, Vinv: np.ndarray, cols
         ip = indptr[a:b + 1] - lo
         groups.append((a, b, lo, hi, ip,
                        bsr_matrix((W[lo:hi], cols[lo:hi], ip), shape=(6 * (b - a), 3 * npt))))
-    for i, (a, b, lo, hi, ip, _) in enumerate(groups):
-        Y = np.matmul(W[lo:hi], Vinv[cols[lo:hi]])
-        Yi = bsr_matrix((Y, cols[lo:hi], ip), shape=(6 * (b - a), 3 * npt))
-        for c, d, *_, Wj in groups[i:]:
-            P = (Yi @ Wj.T).toarray()
-            S[6 * a:6 * b, 6 * c:6 * d] -= P
-            if c != a:
-                S[6 * c:6 * d, 6 * a:6 * b] -= P.T
+    with ThreadPoolExecutor(max(1, threads)) as pool:  # a pool per call: nothing left over
+        for i, (a, b, lo, hi, ip, _) in enumerate(groups):
+            Y = np.matmul(W[lo:hi], Vinv[cols[lo:hi]])
+            Yi = bsr_matrix((Y, cols[lo:hi], ip), shape=(6 * (b - a), 3 * npt))
+            rest = groups[i:]
+            products = pool.map(lambda g, Yi=Yi: (Yi @ g[5].T).toarray(), rest)
+            for (c, d, *_), P in zip(rest, products, strict=True):
+                S[6 * a:6 * b, 6 * c:6 * d] -= P
+                if c != a:
+                    S[6 * c:6 * d, 6 * a:6 * b] -= P.T
 
 
 class _Schur:
@@ -479,9 +498,10 @@ class _Schur:
     pcg_maxiter: int = 1000
 
     def __init__(self, prob: _Problem, d_cam: np.ndarray, d_pt: np.ndarray, d_f: np.ndarray,
-                 r: np.ndarray, iterative: bool = False) -> None:
+                 r: np.ndarray, iterative: bool = False, threads: int = 1) -> None:
         nc, npt, nf = prob.var_cam.size, prob.var_pt.size, prob.n_focal
         self.nc, self.npt, self.nf = nc, npt, nf
+        self.threads = threads
         self.iterative = bool(iterative) and nc > 0
         self.pcg_iterations: list[int] = []
         O = d_pt.shape[0]
@@ -579,7 +599,8 @@ class _Schur:
                 S[:6 * nc, :6 * nc] -= Yc_bsr @ self.Wd.T
             else:
                 Wc_bsr = bsr_matrix((self.Wc, self.pj_c, self.indptr), shape=shape)
-                _subtract_upper_product(S, self.Wc, Vinv, self.pj_c, self.indptr, npt)
+                _subtract_upper_product(S, self.Wc, Vinv, self.pj_c, self.indptr, npt,
+                                        self.threads)
                 if nf:  # the focal rows need W V^-1 whole
                     Yc_bsr = bsr_matrix((np.matmul(self.Wc, Vinv[self.pj_c]), self.pj_c,
                                          self.indptr), shape=shape)
@@ -796,7 +817,8 @@ def _solve_lm(prob: _Problem, x0: np.ndarray, med0: float, opt: BundleOptions
         d_pt *= w_obs[:, :, None]
         d_f *= w_obs
         system = _Schur(prob, d_cam, d_pt, d_f, sw * r,
-                        iterative=prob.var_cam.size >= opt.pcg_min_cameras)
+                        iterative=prob.var_cam.size >= opt.pcg_min_cameras,
+                        threads=_threads(opt.threads))
         del d_cam, d_pt, d_f
         while nfev < opt.max_nfev:
             dc, dp = system.step(lam)
