@@ -260,11 +260,19 @@ class ImageFrontend:
             return
         bar = tqdm(total=len(todo), desc="images", unit="img", disable=not progress)
         if self.workers > 1 and len(todo) > 1:
-            with ThreadPoolExecutor(self.workers) as pool:
-                results = pool.map(self._process, todo)
-                for i, data, secs in results:
-                    self._store(i, data, secs)
-                    bar.update(1)
+            # OpenCV's own threads on top of the workers only oversubscribe the cores (SIFT
+            # of 64 rendered frames on 2 workers, 2 cores: 38.4 -> 35.9 ms an image; the same
+            # features, as its keypoint order is made canonical)
+            threads = cv2.getNumThreads()
+            cv2.setNumThreads(1)
+            try:
+                with ThreadPoolExecutor(self.workers) as pool:
+                    results = pool.map(self._process, todo)
+                    for i, data, secs in results:
+                        self._store(i, data, secs)
+                        bar.update(1)
+            finally:
+                cv2.setNumThreads(threads)
         else:
             for i in todo:
                 self._store(*self._process(i))
