@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import itertools
+
 import cv2
 import numpy as np
 import pytest
@@ -334,6 +336,30 @@ def test_pcg_schur_step_equals_the_direct_step(focal: str) -> None:
         assert pcg.iterative and 0 < pcg.pcg_iterations[0] < pcg.pcg_maxiter
         np.testing.assert_allclose(dc2, dc, rtol=0, atol=1e-6 * np.abs(dc).max())
         np.testing.assert_allclose(dp2, dp, rtol=0, atol=1e-6 * np.abs(dp).max())
+        # the passes over the observations shared between threads by rows: the same bits
+        for threads in (2, 3):
+            dc3, dp3 = _Schur(prob, *prob.blocks(x), r, iterative=True,
+                              threads=threads).step(lam)
+            np.testing.assert_array_equal(dc3, dc2)
+            np.testing.assert_array_equal(dp3, dp2)
+
+
+def test_row_blocks_cover_the_rows_on_views() -> None:
+    """The row ranges of a CSR matrix: contiguous, covering every row once (empty rows and
+    more parts than rows included), each block the rows of the matrix itself."""
+    from scipy.sparse import random as sparse_random
+
+    from posernet.sfm.bundle import _row_blocks
+
+    A = sparse_random(37, 20, density=0.2, format="csr", random_state=3)
+    A[5:9] = 0  # a run of empty rows
+    A.eliminate_zeros()
+    for parts in (1, 2, 3, 50):
+        blocks = _row_blocks(A, parts)
+        assert blocks[0][0] == 0 and blocks[-1][1] == A.shape[0]
+        assert all(a[1] == b[0] for a, b in itertools.pairwise(blocks))
+        for r0, r1, B in blocks:
+            np.testing.assert_array_equal(B.toarray(), A[r0:r1].toarray())
 
 
 def test_bundle_adjust_with_pcg_matches_the_direct_solver() -> None:

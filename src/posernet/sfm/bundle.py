@@ -478,6 +478,43 @@ def _subtract_upper_product(S: np.ndarray, W: np.ndarray, Vinv: np.ndarray, cols
                     S[6 * c:6 * d, 6 * a:6 * b] -= P.T
 
 
+def _row_blocks(A: csr_matrix, parts: int) -> list[tuple[int, int, csr_matrix]]:
+    """``A``'s rows in ``parts`` ranges of about equal nonzeros, each a CSR matrix on views of
+    ``A``'s arrays (no copy): ``(first row, end row, block)``."""
+    n = A.shape[0]
+    cuts = np.searchsorted(A.indptr, np.linspace(0, A.nnz, parts + 1)[1:-1])
+    bounds = np.unique(np.r_[0, np.clip(cuts, 0, n), n])
+    out = []
+    for r0, r1 in pairwise(bounds.tolist()):
+        p0, p1 = A.indptr[r0], A.indptr[r1]
+        out.append((r0, r1, csr_matrix((A.data[p0:p1], A.indices[p0:p1],
+                                        A.indptr[r0:r1 + 1] - p0), shape=(r1 - r0, A.shape[1]))))
+    return out
+
+
+class _RowSplit:
+    """``A @ x`` for a CSR ``A`` with its rows shared between the threads of ``pool``: each
+    row's product is computed as in one call (scipy's products release the GIL), so the result
+    is the same to the bit."""
+
+    def __init__(self, A: csr_matrix, pool: ThreadPoolExecutor | None, parts: int) -> None:
+        self.A, self.pool = A, pool
+        self.blocks = _row_blocks(A, parts) if pool is not None and parts > 1 else []
+
+    def __matmul__(self, x: np.ndarray) -> np.ndarray:
+        if len(self.blocks) < 2:
+            return self.A @ x
+        out = np.empty(self.A.shape[0], np.result_type(self.A.dtype, x.dtype))
+
+        def part(block: tuple[int, int, csr_matrix]) -> None:
+            r0, r1, B = block
+            out[r0:r1] = B @ x
+
+        for _ in self.pool.map(part, self.blocks):
+            pass
+        return out
+
+
 class _Schur:
     """The normal equations of one weighted Jacobian, reduced onto the camera parameters.
 
@@ -676,18 +713,22 @@ class _Schur:
             pf = Uff + fdamp - np.asarray((Wf @ Vb).multiply(Wf).sum(1)).ravel()
             pf = np.where(pf > 0, 1.0 / np.where(pf > 0, pf, 1.0), 0.0)
 
+        # the passes over the observations shared between threads, row ranges each
+        pool = ThreadPoolExecutor(self.threads) if self.threads > 1 else None
+        Wc_, WcT_ = (_RowSplit(M, pool, self.threads) for M in (Wc, WcT))
+
         def matvec(x: np.ndarray) -> np.ndarray:
             xc = x[:6 * nc]
-            wt = WcT @ xc
+            wt = WcT_ @ xc
             out = np.empty_like(x)
             if nf:
                 xf = x[6 * nc:]
                 wt += WfT @ xf
                 vw = Vb @ wt
-                out[:6 * nc] = Ub @ xc + Ufc @ xf - Wc @ vw
+                out[:6 * nc] = Ub @ xc + Ufc @ xf - Wc_ @ vw
                 out[6 * nc:] = Ucf @ xc + (Uff + fdamp) * xf - Wf @ vw
             else:
-                out[:] = Ub @ xc - Wc @ (Vb @ wt)
+                out[:] = Ub @ xc - Wc_ @ (Vb @ wt)
             return out
 
         def precond(x: np.ndarray) -> np.ndarray:
@@ -703,9 +744,13 @@ class _Schur:
         def tick(_: np.ndarray) -> None:
             count[0] += 1
 
-        dc, _ = cg(LinearOperator((n, n), matvec=matvec), b, rtol=self.pcg_rtol,
-                   maxiter=self.pcg_maxiter, M=LinearOperator((n, n), matvec=precond),
-                   callback=tick)
+        try:
+            dc, _ = cg(LinearOperator((n, n), matvec=matvec), b, rtol=self.pcg_rtol,
+                       maxiter=self.pcg_maxiter, M=LinearOperator((n, n), matvec=precond),
+                       callback=tick)
+        finally:
+            if pool is not None:
+                pool.shutdown()
         self.pcg_iterations.append(count[0])
         wtd = WcT @ dc[:6 * nc]
         if nf:
