@@ -82,7 +82,8 @@ class BundleOptions:
     least this many variable cameras by conjugate gradients on the implicit Schur complement
     (block-Jacobi preconditioner) instead of a dense Cholesky factorisation, whose cost grows
     with the cube of the cameras (0: always, a huge value: never). ``threads``: threads that
-    share the block products of that system (the same numbers with any count).
+    share that system's products (the block products of the direct solve, the passes over
+    the observations of conjugate gradients; the same numbers with any count).
     """
 
     loss: str = option("cauchy", choices=LOSSES,
@@ -124,8 +125,8 @@ class BundleOptions:
                                   "observations")
     pcg_min_cameras: int = option(400, ge=0, help="lm: problems with this many variable "
                                   "cameras solve the reduced system by conjugate gradients")
-    threads: int = option(0, ge=0, help="threads of the reduced camera system's block "
-                          "products (0: every available core)")
+    threads: int = option(0, ge=0, help="threads of the reduced camera system's products "
+                          "(0: every available core)")
 
     def __post_init__(self) -> None:
         check_options(self)
