@@ -9,7 +9,6 @@ malformed input, unwritable output, ``device=cuda`` without CUDA) is one line on
 
 from __future__ import annotations
 
-import os
 import re
 import signal
 import sys
@@ -304,14 +303,6 @@ def quiet_lightning() -> None:
             if type(h) is logging.StreamHandler:
                 lg.removeHandler(h)
     warnings.filterwarnings("ignore", message=r".*treespec, LeafSpec.*")
-
-
-def available_cores() -> int:
-    """CPU cores this process may run on (its affinity mask where the OS has one)."""
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except AttributeError:  # macOS, Windows
-        return max(1, os.cpu_count() or 1)
 
 
 def set_threads(n: int | None) -> None:

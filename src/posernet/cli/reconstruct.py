@@ -32,9 +32,9 @@ import hydra
 import torch
 from omegaconf import DictConfig, OmegaConf
 
+from ..threads import available_cores
 from . import CONFIG_DIR
 from .common import (
-    available_cores,
     check_config,
     resolve_device,
     run_app,

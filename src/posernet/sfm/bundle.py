@@ -20,7 +20,6 @@ otherwise it is the input, and ``accepted`` is False with the reason in ``messag
 
 from __future__ import annotations
 
-import os
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -32,6 +31,7 @@ from scipy.sparse import bsr_matrix, coo_matrix, csr_matrix
 from scipy.sparse.csgraph import connected_components
 
 from ..options import check_options, option
+from ..threads import available_cores
 
 __all__ = ["LOSSES", "BundleOptions", "BundleResult", "bundle_adjust", "gauge_cameras"]
 
@@ -438,16 +438,6 @@ def _segment_grams(A: np.ndarray, starts: np.ndarray) -> np.ndarray:
     return out
 
 
-def _threads(n: int) -> int:
-    """``n`` threads, or every core this process may run on for 0."""
-    if n > 0:
-        return n
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:  # not on Linux
-        return os.cpu_count() or 1
-
-
 def _subtract_upper_product(S: np.ndarray, W: np.ndarray, Vinv: np.ndarray, cols: np.ndarray,
                             indptr: np.ndarray, npt: int, threads: int = 1) -> None:
     """``S -= Y W^T`` in place, ``Y = W V^-1``: ``S (6 nc, 6 nc)``, ``W (O, 6, 3)`` one block
@@ -467,16 +457,21 @@ def _subtract_upper_product(S: np.ndarray, W: np.ndarray, Vinv: np.ndarray, cols
         ip = indptr[a:b + 1] - lo
         groups.append((a, b, lo, hi, ip,
                        bsr_matrix((W[lo:hi], cols[lo:hi], ip), shape=(6 * (b - a), 3 * npt))))
-    with ThreadPoolExecutor(max(1, threads)) as pool:  # a pool per call: nothing left over
+    pool = ThreadPoolExecutor(threads) if threads > 1 else None  # per call: nothing left over
+    run = pool.map if pool is not None else map
+    try:
         for i, (a, b, lo, hi, ip, _) in enumerate(groups):
             Y = np.matmul(W[lo:hi], Vinv[cols[lo:hi]])
             Yi = bsr_matrix((Y, cols[lo:hi], ip), shape=(6 * (b - a), 3 * npt))
             rest = groups[i:]
-            products = pool.map(lambda g, Yi=Yi: (Yi @ g[5].T).toarray(), rest)
+            products = run(lambda g, Yi=Yi: (Yi @ g[5].T).toarray(), rest)
             for (c, d, *_), P in zip(rest, products, strict=True):
                 S[6 * a:6 * b, 6 * c:6 * d] -= P
                 if c != a:
                     S[6 * c:6 * d, 6 * a:6 * b] -= P.T
+    finally:
+        if pool is not None:
+            pool.shutdown()
 
 
 def _row_blocks(A: csr_matrix, parts: int) -> list[tuple[int, int, csr_matrix]]:
@@ -864,7 +859,7 @@ def _solve_lm(prob: _Problem, x0: np.ndarray, med0: float, opt: BundleOptions
         d_f *= w_obs
         system = _Schur(prob, d_cam, d_pt, d_f, sw * r,
                         iterative=prob.var_cam.size >= opt.pcg_min_cameras,
-                        threads=_threads(opt.threads))
+                        threads=opt.threads or available_cores())
         del d_cam, d_pt, d_f
         while nfev < opt.max_nfev:
             dc, dp = system.step(lam)
