@@ -79,9 +79,11 @@ class Reconstruction:
     #: the final stage held against its evidence (:func:`self_check`); cameras that failed
     #: are unsolved in ``result.solved[stage]``. None when the check was not run.
     check: SelfCheck | None = None
-    #: in a weakly textured set whose matcher has a fallback: how many images the main
-    #: matcher alone placed (``placed``, ``images``, ``main_first``) and whether the
-    #: fallback then ``"ran"`` or was ``"not needed"``. None elsewhere.
+    #: in a weakly textured or sparse set whose matcher has a fallback: how many images the
+    #: main matcher alone placed (``placed``, ``images``, ``main_first``) and whether the
+    #: fallback then ``"ran"`` or was ``"not needed"``; when it ran, how many images its pass
+    #: placed (``fallback_placed``) and which result was ``kept`` (``"main"``: the fallback
+    #: placed no more). None elsewhere.
     main_first: dict[str, Any] | None = None
     #: with a refiner and the self-check: each stage's cameras that passed
     #: (``{"initial+ba": k, "refined+ba": k}``); the final stage is the one with more
@@ -346,7 +348,8 @@ def reconstruct(
     if not frontend.fallback_pending():
         return _solve(frontend, selection, clock, *args, release=release_descriptors)
     # A weakly textured or sparse set: the main matcher alone first; the fallback's less
-    # precise matches only where that leaves too many images unplaced.
+    # precise matches only where that leaves images unplaced, and its result only where it
+    # places more of them.
     share = float(frontend.matcher.main_first)
     frontend.hold_fallback(True)
     try:
@@ -362,9 +365,15 @@ def reconstruct(
         rec.main_first = {**main, "fallback": "not needed"}
         return rec
     frontend.forget_pairs()
-    rec = _solve(frontend, selection, clock, *args, release=release_descriptors)
-    rec.main_first = {**main, "fallback": "ran"}
-    return rec
+    second = _solve(frontend, selection, clock, *args, release=release_descriptors)
+    again = int(second.result.solved[second.stage][0].sum()) if second.result.absolute else 0
+    if rec is not None and placed >= again:
+        # the fallback placed no more cameras: the main matcher's more precise result stays
+        rec.main_first = {**main, "fallback": "ran", "fallback_placed": again, "kept": "main"}
+        return rec
+    second.main_first = {**main, "fallback": "ran", "fallback_placed": again,
+                         "kept": "fallback"}
+    return second
 
 
 def stage_choice_line(rec: Reconstruction) -> str | None:
@@ -383,8 +392,13 @@ def main_first_line(record: dict[str, Any]) -> str:
     head = (f"{kind}: the main matcher alone placed {record['placed']} of "
             f"{record['images']} images")
     if record["fallback"] == "ran":
-        return (f"{head} (< {record['main_first']:.0%}), so the pairs were matched again "
+        line = (f"{head} (< {record['main_first']:.0%}), so the pairs were matched again "
                 "with the fallback")
+        if "fallback_placed" in record:  # older records say no more
+            kept = ("its result is kept" if record.get("kept") == "fallback" else
+                    "the main matcher's result is kept")
+            line += f", which placed {record['fallback_placed']}: {kept}"
+        return line
     return f"{head} (>= {record['main_first']:.0%}): the fallback was not needed"
 
 

@@ -371,9 +371,17 @@ def test_xfeat_fallback_keypoints_make_tracks(scene, tmp_path) -> None:
     assert fe.summary.fallback["images"] == N and fe.summary.fallback["tried"] == len(PAIRS)
     kept = [p for p in (fe.pair(a, b) for a, b in PAIRS) if p.info.get("matcher") == "fallback"]
     assert kept
+    joined = 0
     for p in kept:
-        assert (p.inliers[:, 0] >= fe.image(p.a).features.extra["primary"]).all()
-        assert (p.inliers[:, 1] >= fe.image(p.b).features.extra["primary"]).all()
+        # XFeat's inliers index the XFeat part of both keypoint lists; SIFT's matches that the
+        # fallback's pose explains follow them, on the SIFT part of both, so that tracks join
+        # fallback edges to SIFT edges
+        na, nb = (fe.image(i).features.extra["primary"] for i in (p.a, p.b))
+        xfeat = p.inliers[:, 0] >= na
+        assert (xfeat == (p.inliers[:, 1] >= nb)).all()
+        assert xfeat[0] and not (np.diff(xfeat.astype(int)) > 0).any()  # XFeat's first
+        joined += int((~xfeat).sum())
+    assert joined > 0
     n_kp = [len(fe.image(i).features) for i in range(N)]
     tracks = build_tracks(fe.verified_matches(), n_kp)
     assert tracks.num_tracks > 100 and tracks.length.max() >= 3
@@ -427,3 +435,58 @@ def test_reconstruct_places_with_the_main_matcher_first(scene, keep, fallback) -
     at_once = _frontend(scene, _MainFirst(keep, main_first=0.0))
     assert reconstruct(at_once, None, get_backend("rotation_translation"),
                        progress=False).main_first is None
+
+
+class _OneCut(_MainFirst):
+    """The stub whose main matcher matches nothing with two images (the two with the most
+    keypoints: the same whatever order the images are extracted in); its fallback matches
+    everything (``fallback_helps``) or cuts the same images off as well."""
+
+    def __init__(self, fallback_helps: bool) -> None:
+        super().__init__(keep=10**6, main_first=1.0)
+        self.helps, self.seen = fallback_helps, []
+
+    def extract(self, image: np.ndarray) -> Features:
+        f = super().extract(image)
+        self.seen.append(f)
+        return f
+
+    def _cut(self, a: Features, b: Features, m: Matches) -> Matches:
+        lone = sorted(self.seen, key=len)[-2:]
+        return m.subset(np.arange(0)) if any(a is f or b is f for f in lone) else m
+
+    def match(self, a: Features, b: Features) -> Matches:
+        return self._cut(a, b, super().match(a, b))
+
+    def match_fallback(self, a: Features, b: Features) -> Matches:
+        m = self.sift.match(a, b)
+        return m if self.helps else self._cut(a, b, m)
+
+
+@pytest.mark.parametrize("helps", [True, False])
+def test_the_fallback_result_is_kept_only_where_it_places_more(scene, helps) -> None:
+    """The main matcher leaves two images of five out (less than ``main_first`` = all of
+    them placed), so the pairs are matched again with the fallback; the result that places more
+    cameras is kept, the main matcher's (more precise) one when the fallback places no
+    more."""
+    from posernet.reconstruction import main_first_line, reconstruct
+    from posernet.sync import get_backend
+
+    fe = _frontend(scene, _OneCut(helps))
+    rec = reconstruct(fe, None, get_backend("rotation_translation"), progress=False)
+    record = rec.main_first
+    assert 0 < record["placed"] < N and record["fallback"] == "ran"
+    assert fe.summary.fallback["tried"] == 2 * N - 3  # the two images' pairs: SIFT's weak
+    assert fe.summary.fallback["kept"] == (2 * N - 3 if helps else 0)
+    placed = int(rec.result.solved[rec.stage][0].sum())
+    more = record["fallback_placed"] > record["placed"]
+    assert record["kept"] == ("fallback" if more else "main")
+    assert placed == max(record["placed"], record["fallback_placed"])
+    assert more == helps  # the two images are placed again only by the fallback
+    line = main_first_line(record)
+    assert f"which placed {record['fallback_placed']}" in line
+    assert ("its result is kept" if more else "the main matcher's result is kept") in line
+    # the returned result is the kept pass's: its edges and counts
+    fallback_edges = [p for p in rec.frontend.matches.pairs.values()
+                      if p.geometry.is_edge and p.geometry.info.get("matcher") == "fallback"]
+    assert bool(fallback_edges) == more

@@ -34,7 +34,7 @@ __all__ = ["FrontendCache", "file_digest", "options_digest"]
 
 log = logging.getLogger("posernet.frontend")
 
-FORMAT = 1
+FORMAT = 2  # 2: a kept fallback edge also carries the main matcher's matches it explains
 
 
 def file_digest(path: str | Path) -> str:

@@ -276,8 +276,8 @@ class FallbackOptions(XFeatOptions, SiftOptions):
                                                          "this share of SIFT's matches")
     weak_share: float = option(0.5, ge=0, le=1, help="the fallback runs in a set where at "
                                                      "least this share is weakly textured")
-    main_first: float = option(0.75, ge=0, le=1, help="... and only when SIFT alone places "
-                                                      "less than this share (0: at once)")
+    main_first: float = option(1.0, ge=0, le=1, help="... and only when SIFT alone places "
+                                                     "less than this share (0: at once)")
     sparse_images: int = option(12, ge=0, help="a set of at most this many images: any pair "
                                                "may be matched again (0: never)")
 
@@ -824,11 +824,11 @@ class FallbackMatcher:
             plain frames (7-Scenes RedKitchen: 2 of 20) stays with SIFT alone.
         main_first: in such a set :func:`posernet.reconstruction.reconstruct` first places the
             cameras with SIFT alone and keeps that result when at least this share of the
-            images is placed and passes the self-check; only otherwise are the pairs matched
-            again with the fallback (0: the fallback runs at once). XFeat's keypoints are
-            about 4x less precise than SIFT's (median 1.1 vs 0.3 px from the true
-            correspondence on rendered frames), which put whole low-texture rooms degrees
-            off where SIFT alone places them right.
+            images is placed and passes the self-check (1: all of them); only otherwise are
+            the pairs matched again with the fallback, whose result is kept when it places
+            more cameras (0: the fallback runs at once). XFeat's keypoints are about 4x less
+            precise than SIFT's (median 1.1 vs 0.3 px from the true correspondence on
+            rendered frames), so SIFT's result stays wherever the fallback adds no camera.
         sparse_images: a set of at most this many images is sparse: there the fallback may
             match any pair again, textured or not, after SIFT alone (``main_first``) left
             too many images unplaced. A few photos far apart are where SIFT's matches run
@@ -863,7 +863,7 @@ class FallbackMatcher:
         fallback_degree: int = 2,
         fallback_agree: float = 0.5,
         weak_share: float = 0.5,
-        main_first: float = 0.75,
+        main_first: float = 1.0,
         sparse_images: int = 12,
     ) -> None:
         o: FallbackOptions = _options(FallbackOptions, locals())

@@ -424,6 +424,7 @@ class ImageFrontend:
                 second.fallback["kept"] += 1
                 res2.info.update(matcher="fallback", main_inliers=res.info["main_inliers"],
                                  main_spread=res.info["main_spread"])
+                res2.inliers = self._with_main_tracks(m, res2, a, b)
                 first, m, res = second, m2, res2
         summary.merge(first)
         if self.keep_matches:
@@ -560,25 +561,47 @@ class ImageFrontend:
 
     def _agreement(self, m: Matches, res: PairResult, a: int, b: int) -> float:
         """Share of the matches ``m`` of pair ``a, b`` that the verified pose of ``res``
-        explains (epipolar distance, or the rotation's mapping for a rotation-only edge,
-        within the tracks' threshold)."""
+        explains (:meth:`_explained`)."""
+        ok = self._explained(m, res, a, b)
+        return float(ok.mean()) if ok.size else 0.0
+
+    def _explained(self, m: Matches, res: PairResult, a: int, b: int) -> np.ndarray:
+        """Which matches ``(M,)`` of ``m`` (pair ``a, b``) the verified pose of ``res``
+        explains: epipolar distance, or the rotation's mapping for a rotation-only edge,
+        within the tracks' threshold (none without a pose)."""
         pose = res.kp
         if len(m) == 0 or pose is None:
-            return 0.0
+            return np.zeros(len(m), bool)
         ra, rb = self.records[a], self.records[b]
         R, t = (np.asarray(x, np.float64) for x in pose)
         thr = 2.0 * self.pose.kp_threshold
         if not res.rotation_only:
-            ok = epipolar_consistent(m.uv_a, m.uv_b, R, t.ravel(), ra.K, rb.K, ra.dist,
-                                     rb.dist, threshold=thr)
-            return float(ok.mean())
+            return epipolar_consistent(m.uv_a, m.uv_b, R, t.ravel(), ra.K, rb.K, ra.dist,
+                                       rb.dist, threshold=thr)
         x1 = cv2.undistortPoints(m.uv_a.reshape(-1, 1, 2), ra.K, ra.dist).reshape(-1, 2)
         h = np.c_[x1, np.ones(len(x1))] @ R.T
         with np.errstate(divide="ignore", invalid="ignore"):
             pred = h[:, :2] / h[:, 2:3] * np.diag(rb.K)[:2] + rb.K[:2, 2]
         und = cv2.undistortPoints(m.uv_b.reshape(-1, 1, 2), rb.K, rb.dist, P=rb.K)
         err = np.linalg.norm(pred - und.reshape(-1, 2), axis=1)
-        return float(((h[:, 2] > 0) & (err < thr)).mean())
+        return (h[:, 2] > 0) & (err < thr)
+
+    def _with_main_tracks(self, m: Matches, res: PairResult, a: int, b: int
+                          ) -> np.ndarray | None:
+        """The track matches ``(I, 2)`` of a kept fallback edge ``res`` with the main matcher's
+        matches ``m`` of the pair that its pose explains appended. The two kinds of keypoints
+        never match each other, so without them a fallback edge's 3D points could never be
+        seen in a camera tied to the pair by a main-matcher edge: alternating edges round a
+        ring would leave every pair's distance unfixed (the self-check rejects such cameras)."""
+        if res.inliers is None or res.rotation_only or m.idx_a is None or m.idx_b is None:
+            return res.inliers  # a rotation-only edge's tracks are its fitted inliers alone
+        ok = self._explained(m, res, a, b)
+        if not ok.any():
+            return res.inliers
+        main = np.stack([m.idx_a[ok], m.idx_b[ok]], axis=1).astype(res.inliers.dtype)
+        both = np.concatenate([res.inliers, main])
+        _, first = np.unique(both, axis=0, return_index=True)  # a match both matchers found
+        return both[np.sort(first)]
 
     def _spread(self, a: int, b: int, inliers: np.ndarray | None) -> float | None:
         """The smaller share of the two images the inliers' hull covers (None: no inliers)."""
