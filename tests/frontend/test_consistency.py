@@ -20,7 +20,7 @@ from posernet.frontend.consistency import (
 )
 from posernet.frontend.features import Features
 from posernet.frontend.images import ImageRecord
-from posernet.frontend.pipeline import ImageFrontend, _ImageData
+from posernet.frontend.pipeline import ImageFrontend
 from posernet.frontend.verify import VerifyRules, inlier_spread
 
 W, H = 640, 480
@@ -162,18 +162,29 @@ def _edges(poses: list[np.ndarray], pairs: dict[tuple[int, int], np.ndarray],
 def _frontend(n: int, poses: list[np.ndarray], pairs: dict[tuple[int, int], np.ndarray],
               inliers: dict[tuple[int, int], np.ndarray]) -> ImageFrontend:
     """A front end whose images and evaluated pairs are given (no image is read)."""
+    feats = [Features(UV, np.zeros((400, 1), np.float32), (W, H)) for _ in range(n)]
+    return ImageFrontend.from_evaluated(_records(n), feats,
+                                        _edges(poses, pairs, inliers).values())
+
+
+def _records(n: int) -> list[ImageRecord]:
     K = np.array([[500.0, 0, W / 2], [0, 500.0, H / 2], [0, 0, 1]])
-    records = [ImageRecord(Path(f"img{i}.png"), f"img{i}.png", K, size=(W, H))
-               for i in range(n)]
-    fe = ImageFrontend(records, None, matcher=None, edge_rule="verified")
-    for i in range(n):
-        feats = Features(UV, np.zeros((400, 1), np.float32), (W, H))
-        fe._images[i] = _ImageData(np.zeros((0, 4)), np.zeros(0), feats, np.ones(400, bool))
-    for key, p in _edges(poses, pairs, inliers).items():
-        fe._pairs[key] = p
-        fe.summary.pairs["edge"] += 1
-        fe.summary.pairs["edge_few_boxes"] += 1
-    return fe
+    return [ImageRecord(Path(f"img{i}.png"), f"img{i}.png", K, size=(W, H)) for i in range(n)]
+
+
+def test_a_front_end_from_evaluated_pairs_names_what_does_not_fit():
+    poses, _, pairs, inliers = _planted()
+    feats = [Features(UV, np.zeros((400, 1), np.float32), (W, H))] * 4
+    edges = [e for e in _edges(poses, pairs, inliers).values() if e.b < 4]
+    fe = ImageFrontend.from_evaluated(_records(4), feats, edges)
+    assert fe.summary.pairs["edge"] == len(edges) and fe.pair(0, 1) is edges[0]
+    assert fe.features(2).keypoints is UV and not fe.summary.boxes
+    with pytest.raises(ValueError, match="3 feature sets for 4 images"):
+        ImageFrontend.from_evaluated(_records(4), feats[:3], edges)
+    with pytest.raises(ValueError, match=r"pair \(0, 1\) given twice"):
+        ImageFrontend.from_evaluated(_records(4), feats, [edges[0], edges[0]])
+    with pytest.raises(ValueError, match=r"pair \(0, 1\) is not two images a < b of the 1"):
+        ImageFrontend.from_evaluated(_records(1), feats[:1], edges[:1])
 
 
 def _planted(n: int = 7) -> tuple[list, list, dict, dict]:

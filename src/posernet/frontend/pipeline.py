@@ -171,6 +171,37 @@ class ImageFrontend:
         self._first: dict[tuple[int, int], tuple[Matches, PairResult, FrontendSummary]] = {}
         self.cache = None if cache is None else FrontendCache(cache, self.fingerprint())
 
+    @classmethod
+    def from_evaluated(cls, records: Sequence[ImageRecord], features: Sequence[Features],
+                       pairs: Iterable[PairResult], **kwargs: Any) -> ImageFrontend:
+        """A front end over images whose keypoints were found and pairs evaluated elsewhere
+        (matches imported from another tool, hand-made cases): nothing is read or matched
+        again, and the later steps (:meth:`screen`, :meth:`view_graph`, :meth:`graph`,
+        :meth:`rejected_pairs`) run on them. ``features``: one
+        :class:`~posernet.frontend.features.Features` per record (keypoints only, no boxes);
+        ``pairs``: evaluated pairs (``a < b``, inliers indexing those keypoints), each booked
+        in the summary by its status. ``kwargs``: the constructor's options (keypoint edges:
+        ``estimate="kp"``, ``edge_rule="verified"``)."""
+        fe = cls(records, None, None, **{"edge_rule": "verified", **kwargs})
+        if len(features) != len(fe.records):
+            raise ValueError(f"from_evaluated: {len(features)} feature sets for "
+                             f"{len(fe.records)} images")
+        for i, f in enumerate(features):
+            fe._images[i] = _ImageData(np.zeros((0, 4)), np.zeros(0), f,
+                                       np.ones(len(f.uv), bool))
+        n = len(fe.records)
+        for p in pairs:
+            if not 0 <= p.a < p.b < n:
+                raise ValueError(f"from_evaluated: pair ({p.a}, {p.b}) is not two images "
+                                 f"a < b of the {n}")
+            if (p.a, p.b) in fe._pairs:
+                raise ValueError(f"from_evaluated: pair ({p.a}, {p.b}) given twice")
+            fe._pairs[(p.a, p.b)] = p
+            fe.summary.pairs[p.status] += 1
+            if p.is_edge and len(p.box_a) < fe.rules.min_boxes:
+                fe.summary.pairs["edge_few_boxes"] += 1
+        return fe
+
     def fingerprint(self) -> dict[str, Any]:
         """Every option that changes a front-end result (the cache's key)."""
         return {"proposals": None if self.proposals is None else _describe(self.proposals),
