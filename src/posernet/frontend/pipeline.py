@@ -679,15 +679,18 @@ class ImageFrontend:
         common = {"prob": q.ransac_prob, "max_iters": q.max_iters, "seed": s, "method": q.method}
         geo = {"K2": rb.K, "dist1": ra.dist, "dist2": rb.dist}
         track_geo = {"K1": ra.K, **geo}
-        if self.kp_fit == "all" and ia.size >= rules.min_boxes:
-            # Every verified pair is an edge: its geometry (and the tracks) from all its
-            # matches, however many boxes they share; the box-centre estimate rides along.
+        boxes = ia.size >= rules.min_boxes
+        if self.kp_fit == "all" or not boxes:
+            # The geometry (and the tracks) from all the pair's matches: every verified pair
+            # is an edge when keypoints make the edges (kp_fit "all"), with the box-centre
+            # estimate riding along where boxes match; with the paper's box rule a pair with
+            # too few matched boxes is no edge, but its verified matches still join the tracks.
             tv = verify_two_view(m.uv_a, m.uv_b, ra.K, rules=self.verify,
                                  threshold=q.kp_threshold, **geo, **common)
             bb = five_point(box_centres(A.boxes[ia]), box_centres(B.boxes[ib]), ra.K,
-                            q.bb_threshold, **geo, **common)
+                            q.bb_threshold, **geo, **common) if boxes else None
             sec["five_point"] += time.perf_counter() - t2
-            if bb is None:
+            if boxes and bb is None:
                 summary.rejected["bb:five_point"] += 1
             inliers = self._track_matches(m, tv, np.ones(len(m), bool), track_geo)
             if not tv.accepted:
@@ -695,30 +698,16 @@ class ImageFrontend:
                 return PairResult(a, b, ia, ib, wrong, 0, 0, None, bb, "unmatched",
                                   reason=tv.status, rotation_only=tv.rotation_only,
                                   inliers=inliers, info=tv.info)
-            summary.rotation_only += bool(tv.rotation_only)
-            return PairResult(a, b, ia, ib, wrong, len(m), 0, tv.pose, bb, "edge",
-                              rotation_only=tv.rotation_only, inliers=inliers, info=tv.info)
-        if ia.size < rules.min_boxes:
-            # Too few matched boxes for the paper's edge rule: verified on all its matches,
-            # it is an edge under edge_rule="verified" (KP input), and its matches join the
-            # keypoint tracks of bundle adjustment either way.
-            tv = verify_two_view(m.uv_a, m.uv_b, ra.K, rules=self.verify,
-                                 threshold=q.kp_threshold, **geo, **common)
-            sec["five_point"] += time.perf_counter() - t2
-            inliers = self._track_matches(m, tv, np.ones(len(m), bool), track_geo)
-            if tv.accepted and self.edge_rule == "verified" and self.estimate == "kp":
-                summary.rotation_only += bool(tv.rotation_only)
-                summary.pairs["edge_few_boxes"] += 1
-                return PairResult(a, b, ia, ib, wrong, len(m), 0, tv.pose, None, "edge",
+            if self.kp_fit != "all":  # boxes may not be in use at all: say which rule failed
+                return PairResult(a, b, ia, ib, wrong, 0, 0, None, None, "unmatched",
+                                  reason="too_few_matched_boxes",
                                   rotation_only=tv.rotation_only, inliers=inliers,
                                   info=tv.info)
-            if not tv.accepted:
-                summary.rejected[f"kp:{tv.status}"] += 1
-            # the verification's own reason when it failed: boxes may not be in use at all
-            return PairResult(a, b, ia, ib, wrong, 0, 0, None, None, "unmatched",
-                              reason="too_few_matched_boxes" if tv.accepted else tv.status,
-                              rotation_only=tv.rotation_only,
-                              inliers=inliers, info=tv.info)
+            summary.rotation_only += bool(tv.rotation_only)
+            if not boxes:
+                summary.pairs["edge_few_boxes"] += 1
+            return PairResult(a, b, ia, ib, wrong, len(m), 0, tv.pose, bb, "edge",
+                              rotation_only=tv.rotation_only, inliers=inliers, info=tv.info)
         inside = keypoints_in_matched_boxes(m.uv_a, m.uv_b, A.boxes, B.boxes, ia, ib,
                                             self.kp_top_pairs)
         p1, p2 = m.uv_a[inside], m.uv_b[inside]
