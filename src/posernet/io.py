@@ -8,7 +8,8 @@ process umask (and any default ACL of the folder), exactly as for ``open(path, "
 output written here gets the permissions of any other new file of the process (``0644`` under
 the usual umask ``022``, ``0664`` under ``002``), not the ``0600`` of :func:`tempfile.mkstemp`.
 A file that is replaced gets those permissions too (its old mode is not carried over).
-Every output of posernet goes through this module.
+Every output of posernet goes through this module; :func:`writable_dir` and
+:func:`writable_file` check, before any work, that an output can be written (creating nothing).
 """
 
 from __future__ import annotations
@@ -16,12 +17,16 @@ from __future__ import annotations
 import json
 import os
 import secrets
+import tempfile
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
-__all__ = ["atomic_path", "atomic_write_bytes", "atomic_write_json", "atomic_write_text"]
+from .options import ConfigValueError
+
+__all__ = ["atomic_path", "atomic_write_bytes", "atomic_write_json", "atomic_write_text",
+           "writable_dir", "writable_file"]
 
 _FLAGS = os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_CLOEXEC", 0) \
     | getattr(os, "O_BINARY", 0)
@@ -79,3 +84,48 @@ def atomic_write_json(path: str | os.PathLike[str], obj: Any, indent: int | None
     with atomic_path(path) as tmp, open(tmp, "w", encoding="utf-8") as fh:
         json.dump(obj, fh, indent=indent, allow_nan=False)
     return Path(path)
+
+
+# --------------------------------------------------------------------------- output probing
+
+
+def _nearest_existing(p: Path) -> Path:
+    q = p
+    while not os.path.lexists(q) and q.parent != q:
+        q = q.parent
+    return q
+
+
+def writable_dir(folder: Any, key: str = "out_dir") -> Path:
+    """Check that ``folder`` is (or can be made) a folder that takes files; creates nothing.
+
+    The nearest existing folder on its path gets a probe file, removed at once. Raises
+    :class:`~posernet.options.ConfigValueError` naming ``key`` and the path as given.
+    """
+    p = Path(str(folder))
+    q = _nearest_existing(p.absolute())
+    where = "it" if q == p.absolute() else str(q)
+    if not q.is_dir():
+        raise ConfigValueError(f"{key}: {str(folder)!r} is not a writable folder "
+                               f"({where} is not a folder)")
+    try:
+        fd, probe = tempfile.mkstemp(prefix=".posernet-write-test-", dir=q)
+        os.close(fd)
+        os.unlink(probe)
+    except OSError as exc:
+        raise ConfigValueError(f"{key}: {str(folder)!r} is not a writable folder "
+                               f"(cannot write in {q}: {exc.strerror})") from None
+    return p
+
+
+def writable_file(file: Any, key: str = "output") -> Path:
+    """Check that file ``file`` can be written (created or replaced); creates nothing."""
+    p = Path(str(file))
+    if p.is_dir():
+        raise ConfigValueError(f"{key}: {str(file)!r} is not a writable file (it is a folder)")
+    try:
+        writable_dir(p.parent, key)
+    except ConfigValueError as exc:
+        detail = str(exc).split(" is not a writable folder ", 1)[-1]
+        raise ConfigValueError(f"{key}: {str(file)!r} is not a writable file {detail}") from None
+    return p

@@ -14,13 +14,8 @@ from hydra import compose, initialize_config_dir
 
 from posernet.cli import CONFIG_DIR
 from posernet.cli.common import hydra_error_message, preflight, run_task
-from posernet.cli.validation import (
-    COMMANDS,
-    ConfigValueError,
-    check_config,
-    writable_dir,
-    writable_file,
-)
+from posernet.cli.validation import COMMANDS, ConfigValueError, check_config
+from posernet.io import writable_dir, writable_file
 
 REQUIRED = {  # the values a command cannot run without (??? in its config)
     "train": [], "eval": ["ckpt_path=x.ckpt"], "refine": ["input=x.json"], "demo": [],

@@ -16,7 +16,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any, NoReturn, TypeVar
 
-from .validation import ConfigValueError, check_config, writable_dir, writable_file
+from ..io import writable_dir, writable_file
+from .validation import ConfigValueError, check_config
 
 __all__ = [
     "check_config",

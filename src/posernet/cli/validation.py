@@ -28,14 +28,13 @@ the loaders.
 
 from __future__ import annotations
 
-import os
 import re
-import tempfile
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from ..io import writable_dir, writable_file
 from ..options import (
     DEVICE,
     ConfigValueError,
@@ -53,7 +52,7 @@ from ..options import (
     text,
 )
 
-__all__ = ["COMMANDS", "ConfigValueError", "check_config", "writable_dir", "writable_file"]
+__all__ = ["COMMANDS", "ConfigValueError", "check_config"]
 
 
 # --------------------------------------------------------------------------- rules
@@ -511,48 +510,3 @@ def _check_cuda(key: str, value: Any) -> None:
 
     if not torch.cuda.is_available():
         raise ConfigValueError(f"{key}={value} but CUDA is not available")
-
-
-# --------------------------------------------------------------------------- outputs
-
-
-def _nearest_existing(p: Path) -> Path:
-    q = p
-    while not os.path.lexists(q) and q.parent != q:
-        q = q.parent
-    return q
-
-
-def writable_dir(folder: Any, key: str = "out_dir") -> Path:
-    """Check that ``folder`` is (or can be made) a folder that takes files; creates nothing.
-
-    The nearest existing folder on its path gets a probe file, removed at once. Raises
-    :class:`ConfigValueError` naming ``key`` and the path as given.
-    """
-    p = Path(str(folder))
-    q = _nearest_existing(p.absolute())
-    where = "it" if q == p.absolute() else str(q)
-    if not q.is_dir():
-        raise ConfigValueError(f"{key}: {str(folder)!r} is not a writable folder "
-                               f"({where} is not a folder)")
-    try:
-        fd, probe = tempfile.mkstemp(prefix=".posernet-write-test-", dir=q)
-        os.close(fd)
-        os.unlink(probe)
-    except OSError as exc:
-        raise ConfigValueError(f"{key}: {str(folder)!r} is not a writable folder "
-                               f"(cannot write in {q}: {exc.strerror})") from None
-    return p
-
-
-def writable_file(file: Any, key: str = "output") -> Path:
-    """Check that file ``file`` can be written (created or replaced); creates nothing."""
-    p = Path(str(file))
-    if p.is_dir():
-        raise ConfigValueError(f"{key}: {str(file)!r} is not a writable file (it is a folder)")
-    try:
-        writable_dir(p.parent, key)
-    except ConfigValueError as exc:
-        detail = str(exc).split(" is not a writable folder ", 1)[-1]
-        raise ConfigValueError(f"{key}: {str(file)!r} is not a writable file {detail}") from None
-    return p
