@@ -80,6 +80,10 @@ TRUST_SETS = ("middlebury_dino_sparse_ring", "middlebury_dino_sparse_ring_far8",
 # step-th frame kept, every k-th object textured)
 TRUST_RENDERED = (("lowtex_chess_every3", "chess", 0, 36, 3, 8),
                   ("lowtex_office_every6", "office", 1, 72, 6, 8))
+# ... and a rendered plain object seen from all round (posernet.data.render.render_object_ring):
+# (name, frames on the ring, every step-th kept, textured room around it)
+TRUST_RINGS = (("plain_object_ring", 24, 1, True), ("plain_object_ring_every3", 24, 3, True),
+               ("bare_object_ring_every3", 24, 3, False))
 COLMAP_METHODS = ("colmap-global", "colmap-incremental")
 COLMAP_MATCHING = ("exhaustive", "sequential")  # the COLMAP worker's pair selection
 DEFAULT_METHODS = ("posernet", *COLMAP_METHODS)
@@ -286,6 +290,40 @@ def rendered_set(work: Path, scene: str, frames: int, width: int, height: int,
     kept = f"one frame in {step} of {frames}" if step > 1 else f"{frames} frames"
     s.source = (f"posernet.data.render: {scene}, seed {seed}, {kept} of one sweep, "
                 f"{width}x{height}, f = {focal:g}{texture}")
+    return s
+
+
+def ring_set(work: Path, frames: int, step: int = 1, background: bool = True,
+             name: str | None = None) -> ImageSet:
+    """A plain object rendered from ``frames`` views round it (cached in ``work``;
+    :func:`posernet.data.render.render_object_ring`) as a set: every ``step``-th view;
+    ``background``: in a textured room, else in a plain bare one."""
+    import shutil
+
+    from posernet.data.render import render_intrinsics, render_object_ring
+
+    folder = work / f"object-ring-{frames}-{'room' if background else 'bare'}"
+    if not (folder / "all" / "render.json").is_file():
+        render_object_ring(folder / "all", frames, background=background, overwrite=True,
+                           progress=False)
+    intr = ",".join(f"{v:g}" for v in render_intrinsics(folder / "all"))
+    images = folder / "all"
+    if step > 1:
+        sub = folder / f"every{step}"
+        if not sub.is_dir():
+            tmp = folder / f".every{step}.tmp"
+            shutil.rmtree(tmp, ignore_errors=True)
+            tmp.mkdir()
+            for k in range(0, frames, step):
+                for suffix in (".color.png", POSE_SUFFIX):
+                    shutil.copy(images / f"frame-{k:06d}{suffix}", tmp)
+            tmp.rename(sub)
+        images = sub
+    s = load_set(name or folder.name, images, intr)
+    kept = f"every {step}th of {frames} views" if step > 1 else f"{frames} views"
+    s.source = (f"posernet.data.render.render_object_ring: a plain cabinet-like object, {kept} "
+                f"({360 * step / frames:g} deg apart) on a ring 1.5 m round it, "
+                + ("in a textured room" if background else "in a plain bare room"))
     return s
 
 
@@ -1178,6 +1216,8 @@ def main(argv: list[str] | None = None) -> int:
         for name, scene, seed, frames, step, every in TRUST_RENDERED:
             sets.append(rendered_set(work / "render", scene, frames, 640, 480, seed=seed,
                                      step=step, textured_every=every, name=name))
+        for name, frames, step, background in TRUST_RINGS:
+            sets.append(ring_set(work / "render", frames, step, background, name))
     if args.pairs:
         for name, scene, seed, frames, step, every in PAIR_RENDERED:
             sets.append(rendered_set(work / "render", scene, frames, 640, 480, seed=seed,

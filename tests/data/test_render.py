@@ -13,8 +13,10 @@ import pytest
 from posernet.data.render import (
     Renderer,
     make_trajectory,
+    object_ring_scene,
     read_render_info,
     render_intrinsics,
+    render_object_ring,
     render_sevenscenes,
 )
 from posernet.data.synthetic.camera import cuboid_corners, projected_boxes, rotation_z
@@ -258,3 +260,40 @@ def test_low_texture_keeps_geometry_and_loses_keypoints(scene: Scene) -> None:
     np.testing.assert_array_equal(full.rgb[kept], plain.rgb[kept])
     with pytest.raises(ValueError, match="textured_every"):
         render_sevenscenes(Path("/nonexistent"), textured_every=0, progress=False)
+
+
+def test_object_ring_looks_at_a_plain_object_from_all_round(tmp_path: Path) -> None:
+    """Views evenly round the object, each camera looking at it; the object's faces are one
+    colour (a 1 % drift) in a textured room, and everything is plain without the room."""
+    n = 8
+    folder = render_object_ring(tmp_path / "ring", n, width=W, height=H, focal=F,
+                                progress=False)
+    assert render_intrinsics(folder) == (F, F, W / 2, H / 2)
+    c2w = np.stack([np.loadtxt(folder / f"frame-{k:06d}.pose.txt") for k in range(n)])
+    centres = c2w[:, :3, 3]
+    heading = np.degrees(np.arctan2(centres[:, 1] - 3.0, centres[:, 0] - 3.0))
+    np.testing.assert_allclose(np.diff(np.unwrap(heading, period=360)), 360 / n, atol=5)
+    np.testing.assert_allclose(np.linalg.norm(centres[:, :2] - 3.0, axis=1), 1.5, atol=0.15)
+    # the object's centre projects near the image centre: every view looks at it
+    x = np.einsum("kji,kj->ki", c2w[:, :3, :3], np.array([3.0, 3.0, 0.55]) - centres)
+    uv = F * x[:, :2] / x[:, 2:3] + [W / 2, H / 2]
+    assert (x[:, 2] > 0).all() and (np.abs(uv - [W / 2, H / 2]) < [W / 5, H / 5]).all()
+    scene = object_ring_scene()
+    r = Renderer(scene, 0, W, H, F, plain=frozenset(range(3)))
+    view = r.render(np.linalg.inv(c2w[0]))
+    body = view.object_id == 0  # the cabinet's body: a flat colour up to shading
+    grey = cv2.cvtColor(view.rgb, cv2.COLOR_RGB2GRAY).astype(float)
+    assert body.sum() > 0.1 * W * H
+    lap = np.abs(cv2.Laplacian(grey, cv2.CV_64F))
+    inner = cv2.erode(body.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
+    room = view.object_id == -1
+    assert np.median(lap[inner]) < 3.0 < np.median(lap[room])  # plain object, textured room
+    bare = render_object_ring(tmp_path / "bare", 2, width=W, height=H, focal=F,
+                              background=False, progress=False)
+    assert object_ring_scene(background=False).num_objects == 3
+    grey = cv2.cvtColor(cv2.imread(str(bare / "frame-000000.color.png")), cv2.COLOR_BGR2GRAY)
+    assert np.median(np.abs(cv2.Laplacian(grey.astype(float), cv2.CV_64F))) < 3.0
+    with pytest.raises(ValueError, match="radius"):
+        render_object_ring(tmp_path / "x", 4, radius=0.0, progress=False)
+    with pytest.raises(FileExistsError, match="not empty"):
+        render_object_ring(folder, n, width=W, height=H, focal=F, progress=False)

@@ -48,8 +48,10 @@ __all__ = [
     "RenderedView",
     "Renderer",
     "make_trajectory",
+    "object_ring_scene",
     "read_render_info",
     "render_intrinsics",
+    "render_object_ring",
     "render_sevenscenes",
 ]
 
@@ -265,8 +267,10 @@ def _room_texture(
 class _Textures:
     """Lazily generated textures of every face; each from its own seeded stream."""
 
-    def __init__(self, scene: Scene, seed: int, textured_every: int = 1) -> None:
+    def __init__(self, scene: Scene, seed: int, textured_every: int = 1,
+                 plain: frozenset[int] = frozenset()) -> None:
         self.scene, self.seed, self.textured_every = scene, seed, textured_every
+        self.plain = plain  # cuboids drawn in one colour whatever textured_every says
         O = scene.num_objects
         rng = make_rng(seed, scene.name, "render", "palettes")
         hue0 = rng.uniform()
@@ -288,8 +292,8 @@ class _Textures:
             ua, _, va, _ = _FACE_UV[face]
             size = (2 * float(half[ua]), 2 * float(half[va]))
             rng = make_rng(self.seed, self.scene.name, "render", "texture", box, face)
-            plain = self.textured_every > 1 and (box == self.scene.num_objects
-                                                 or box % self.textured_every)
+            plain = box in self.plain or (self.textured_every > 1 and (
+                box == self.scene.num_objects or box % self.textured_every))
             if plain:  # low-texture scene: one colour, a 1 % brightness drift
                 base = (self.wall if face < 4 else self.floor if face == 5 else self.ceiling) \
                     if box == self.scene.num_objects else self.palettes[box].base
@@ -365,6 +369,7 @@ class Renderer:
         focal: float = 585.0,
         supersample: int = 1,
         textured_every: int = 1,
+        plain: frozenset[int] = frozenset(),
     ) -> None:
         self.scene, self.width, self.height = scene, int(width), int(height)
         self.focal, self.supersample = float(focal), int(supersample)
@@ -384,7 +389,7 @@ class Renderer:
         self.half = np.vstack([scene.half, room / 2])
         self.R = np.concatenate([scene.rotation, np.eye(3)[None]])
         self.corners = cuboid_corners(scene.centre, scene.half, scene.rotation)  # (O, 8, 3)
-        self.textures = _Textures(scene, seed, int(textured_every))
+        self.textures = _Textures(scene, seed, int(textured_every), frozenset(plain))
         self.num_objects = O
         # Lights: a ceiling lamp above the content and a fill light from behind the cameras.
         ahead = scene.kind == OBJECT
@@ -792,6 +797,99 @@ def render_sevenscenes(
     if degrade is not None:  # the intrinsics above stay the pinhole's: the lens is uncorrected
         info["degradation"] = {"ranges": degrade.to_dict(), "k1": lens, "frames": drawn}
     atomic_write_json(folder / "render.json", info)
+    return folder
+
+
+def object_ring_scene(seed: int = 0, background: bool = True) -> Scene:
+    """A plain cabinet-like object (a cuboid with a smaller one on top and a drawer front) in
+    the middle of a 6 x 6 x 2.7 m room, for :func:`render_object_ring`. ``background``: 14
+    textured boxes and furniture along the walls (the room's walls, floor and ceiling are
+    textured then too); without, the room is bare."""
+    rng = make_rng(seed, "object_ring", "layout")
+    room = np.array([6.0, 6.0, 2.7])
+    centre = [[3.0, 3.0, 0.45], [3.05, 2.98, 0.99], [3.0, 2.73, 0.3]]
+    half = [[0.32, 0.26, 0.45], [0.16, 0.12, 0.09], [0.28, 0.02, 0.12]]
+    kind = [FURNITURE, OBJECT, FURNITURE]
+    yaw = [0.0, 0.3, 0.0]
+    if background:
+        for k in range(14):
+            side = k % 4  # along each wall in turn
+            along = rng.uniform(0.6, 5.4)
+            h = rng.uniform([0.15, 0.1, 0.2], [0.5, 0.35, 0.9])
+            gap = h[1] + rng.uniform(0.05, 0.3)
+            x, y = [(along, gap), (6 - gap, along), (along, 6 - gap), (gap, along)][side]
+            centre.append([x, y, h[2]])
+            half.append(h.tolist())
+            kind.append(FURNITURE if h[2] > 0.5 else OBJECT)
+            yaw.append(side * np.pi / 2 + rng.normal(0, 0.1))
+    O = len(centre)
+    none3, none = np.zeros((0, 3)), np.zeros(0, np.int64)
+    return Scene("object_ring", room, np.array([1.0, 1.0, 0.5]), np.array([5.0, 5.0, 1.8]),
+                 np.array(centre), np.array(half), np.array(yaw), np.array(kind), none3, none3,
+                 none, none, np.full(O, -1))
+
+
+def render_object_ring(
+    root: str | os.PathLike[str],
+    frames: int = 24,
+    radius: float = 1.5,
+    camera_height: float = 1.25,
+    seed: int = 0,
+    width: int = 640,
+    height: int = 480,
+    focal: float = 585.0,
+    background: bool = True,
+    overwrite: bool = False,
+    progress: bool = True,
+) -> Path:
+    """Render a textureless object from all round: ``frames`` views on a ring of ``radius``
+    metres at ``camera_height`` around the plain object of :func:`object_ring_scene`, evenly
+    spaced in angle (a little jitter in position and gaze), every one looking at it. Writes
+    ``frame-<k>.color.png`` and ``frame-<k>.pose.txt`` (camera-to-world) into ``root`` with
+    ``render.json``; returns ``root``. The object is drawn in one colour per cuboid (a 1 %
+    brightness drift); ``background``: the room and the boxes along its walls are textured
+    (a plain object in an ordinary room), else the room is plain and bare."""
+    frames = _check_int("frames", frames, 2)
+    width, height = _check_int("width", width, 16), _check_int("height", height, 16)
+    seed = _check_int("seed", seed, 0)
+    for name, v in (("radius", radius), ("camera_height", camera_height), ("focal", focal)):
+        if not (np.isfinite(v) and v > 0):
+            raise ValueError(f"{name} must be a positive number, got {v!r}")
+    folder = Path(root)
+    if folder.exists() and not folder.is_dir():
+        raise FileExistsError(f"{folder} exists and is not a folder")
+    if folder.is_dir() and any(folder.iterdir()):
+        if not overwrite:
+            raise FileExistsError(f"folder {folder} is not empty; pass overwrite=True to render "
+                                  "over it")
+        for f in folder.iterdir():
+            if f.is_file():
+                f.unlink()
+    folder.mkdir(parents=True, exist_ok=True)
+    scene = object_ring_scene(seed, background)
+    plain = frozenset(range(3)) if background else frozenset(range(scene.num_objects))
+    renderer = Renderer(scene, seed, width, height, float(focal), 1,
+                        1 if background else 2, plain)
+    rng = make_rng(seed, "object_ring", "cameras")
+    angle = 2 * np.pi * np.arange(frames) / frames + rng.normal(0, np.radians(1.0), frames)
+    r = radius + rng.normal(0, 0.03, frames)
+    centres = np.stack([3.0 + r * np.cos(angle), 3.0 + r * np.sin(angle),
+                        camera_height + rng.normal(0, 0.03, frames)], axis=1)
+    targets = np.array([3.0, 3.0, 0.55]) + rng.normal(0, 0.03, (frames, 3))
+    w2c = look_at(centres, targets, rng.normal(0, np.radians(2.0), frames))
+    for k in tqdm(range(frames), desc=f"render {folder.name}", disable=not progress):
+        view = renderer.render(w2c[k])
+        stem = folder / f"frame-{k:06d}"
+        _write_png(stem.with_name(stem.name + ".color.png"), view.rgb[..., ::-1])
+        atomic_write_text(stem.with_name(stem.name + ".pose.txt"),
+                          _pose_text(_invert_rigid(w2c[k])))
+    atomic_write_json(folder / "render.json", {
+        "format": RENDER_FORMAT, "version": 1, "scene": "object_ring", "seed": seed,
+        "width": width, "height": height, "focal": float(focal),
+        "principal_point": [width / 2, height / 2],
+        "intrinsics": [float(focal), float(focal), width / 2, height / 2],
+        "frames": frames, "radius": float(radius), "camera_height": float(camera_height),
+        "background": bool(background), "pose": "camera-to-world"})
     return folder
 
 
