@@ -60,9 +60,11 @@ __all__ = [
     "field_rules",
     "integer",
     "number",
+    "one_of",
     "option",
     "option_help",
     "path",
+    "paths",
     "positive",
     "rule_for",
     "text",
@@ -159,6 +161,21 @@ def text(*, null: bool = False) -> Rule:
 def path(*, null: bool = False) -> Rule:
     """A file or folder name (a number is a valid name too: ``out_dir=2024``)."""
     return Rule("a path", lambda v: (isinstance(v, str) and v != "") or is_int(v), null)
+
+
+def paths() -> Rule:
+    """A path or a non-empty list of paths (e.g. several datasets to train on)."""
+    one = path()
+    return Rule("a path or a list of paths",
+                lambda v: one.ok(v) or (isinstance(v, list) and bool(v)
+                                        and all(one.ok(x) for x in v)))
+
+
+def one_of(*rules: Rule, expected: str | None = None) -> Rule:
+    """A value any of ``rules`` accepts (``expected``: in words, else theirs joined by "or")."""
+    null = any(r.null for r in rules)
+    return Rule(expected or " or ".join(r.expected for r in rules),
+                lambda v: any(r.ok(v) for r in rules), null)
 
 
 #: a torch device name as the commands take it

@@ -87,6 +87,8 @@ COMMAND_DEFAULTS = {
     ("relpose/ransac.yaml", "method"): "the classic-RANSAC choice of the group",
     ("matcher/xfeat_lighterglue.yaml", "lighterglue"): "the group's choice: LighterGlue",
     ("matcher/sift_xfeat.yaml", "lighterglue"): "the fallback matches with LighterGlue",
+    ("data/synthetic.yaml", "root"): "the library needs a folder; the command names "
+                                     "posernet-make-data's default one",
 }
 
 
@@ -119,20 +121,24 @@ def test_the_dataclass_backed_blocks_are_found():
                   *((f"matcher/{m}.yaml", "") for m in ("auto", "sift", "sift_xfeat", "xfeat",
                                                          "xfeat_lighterglue")),
                   *((f"proposals/{p}.yaml", "") for p in ("selective_search", "edge_boxes",
-                                                           "file"))]:
+                                                           "file")),
+                  ("data/synthetic.yaml", ""), ("trainer/cpu.yaml", "")]:
         assert block in found, block
 
 
 def test_constructors_declare_their_options():
     """The network, each matcher and each proposal source checks its arguments against its
-    options dataclass, whose fields are exactly the constructor's arguments and defaults."""
+    options dataclass, whose fields are exactly the constructor's arguments and defaults (the
+    datamodule's ``Options`` too, which the config check reads)."""
     import inspect
 
+    from posernet.data.datamodule import PoserDataModule
     from posernet.frontend import features, proposals
     from posernet.nn import PoserNet
 
     for cls in (PoserNet, features.SiftMatcher, features.XFeatMatcher, features.FallbackMatcher,
-                proposals.SelectiveSearch, proposals.EdgeBoxes, proposals.FileProposals):
+                proposals.SelectiveSearch, proposals.EdgeBoxes, proposals.FileProposals,
+                PoserDataModule):
         params = {k: p.default for k, p in inspect.signature(cls).parameters.items()}
         fields = {f.name: _default(f) for f in dataclasses.fields(cls.Options)}
         fields = {k: (inspect.Parameter.empty if v is dataclasses.MISSING else v)
@@ -157,6 +163,8 @@ def test_yaml_defaults_are_the_fields_defaults(file, prefix, owner, node):
             continue
         assert key in fields, f"{file}: {prefix}{key} is no option of {owner.__name__}"
         value = node._get_node(key)._value()
+        if OmegaConf.is_interpolation(node, key):  # wired to another key (${seed}): no default
+            continue
         if (file, f"{prefix}{key}") in COMMAND_DEFAULTS:
             assert value != _default(fields[key]), f"{file}: {prefix}{key} is the default now"
             continue

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import os
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -17,12 +18,63 @@ import torch
 from torch.utils.data import DataLoader
 
 from ..graph import GraphBatch, ViewGraph
+from ..options import Rule, option, paths
 from .mixture import MixedInitDataset, check_mixture
 from .store import SIZES, DatasetError, available_scenes, open_split, read_manifest
 
-__all__ = ["PoserDataModule", "collate_graphs"]
+__all__ = ["DataOptions", "PoserDataModule", "collate_graphs"]
 
 ESTIMATES = ("kp", "bb")
+
+
+def _mixture_ok(v: Any) -> bool:
+    try:
+        check_mixture(v)
+    except (ValueError, TypeError):
+        return False
+    return True
+
+
+#: ``init_mix``: what :func:`posernet.data.mixture.check_mixture` accepts
+MIXTURE = Rule("a mapping of initial-pose sources (kp, bb, gt, recorrupt) to weights >= 0, "
+               "not all 0", _mixture_ok, True)
+
+
+@dataclass(frozen=True, kw_only=True)
+class DataOptions:
+    """The arguments of :class:`PoserDataModule` (``data.*`` of ``posernet-train`` and
+    ``posernet-eval``), each with its range and meaning; the config check applies them before
+    any work. (The constructor still checks its arguments itself, with its own messages.)"""
+
+    root: str | Sequence[str] = option(
+        rule=paths(), help="the dataset directory (posernet-make-data's default out_dir), or a "
+                           "list of them to train on all: data.root=[DIR_A,DIR_B]")
+    estimate: str = option("kp", choices=ESTIMATES, help="initial relative poses: kp "
+                                                         "(keypoints) or bb (box centres)")
+    size: str = option("small", choices=SIZES, help="graph size for training and validation: "
+                                                    "small (8 nodes) or large")
+    batch_size: int = option(32, ge=1, help="graphs per training batch")
+    num_workers: int = option(0, ge=0, help="DataLoader worker processes")
+    leave_out_scene: str | None = option(None, help="a scene name: train/validate on the "
+                                                    "others, test on it only")
+    test_size: str | None = option(None, choices=SIZES, help="graph size of the test split "
+                                                             "(null: same as size)")
+    shuffle: bool = option(True, help="shuffle the training graphs every epoch (seeded)")
+    seed: int = option(0, ge=0, help="seed of the shuffling and of the initial-pose mixture")
+    val_size: str | None = option(None, choices=SIZES, help="graph size of the validation "
+                                                            "split (null: same as size)")
+    eval_batch_size: int | None = option(None, ge=1, help="graphs per validation/test batch "
+                                                          "(null: batch_size)")
+    init_mix: Mapping[str, float] | None = option(
+        None, rule=MIXTURE, help="input-adaptive training: a mixture of initial-pose qualities, "
+        "redrawn every epoch, e.g. data.init_mix='{kp: 0.4, bb: 0.1, gt: 0.3, recorrupt: 0.2}' "
+        "(null: train on estimate)")
+    gt_noise_deg: float = option(3.0, ge=0, help="gt source: ground truth rotated by up to this "
+                                                 "angle (degrees)")
+    recorrupt_deg: float = option(60.0, ge=0, help="recorrupt source: ground truth rotated by "
+                                                   "up to this angle (degrees)")
+    mix_edge_fraction: float = option(0.5, ge=0, le=1, help="chance a graph mixes sources per "
+                                                            "edge (else one source per graph)")
 
 
 def _dataset_roots(root: Any) -> list[Path]:
@@ -71,7 +123,12 @@ class PoserDataModule(L.LightningDataModule):
         gt_noise_deg: largest rotation noise of the ``gt`` source (degrees, default 3).
         recorrupt_deg: largest rotation noise of the ``recorrupt`` source (default 60).
         mix_edge_fraction: chance a graph mixes sources per edge rather than per graph (0.5).
+
+    The arguments, with their ranges, are declared once more as :class:`DataOptions`
+    (``Options``), which the commands' config check reads.
     """
+
+    Options = DataOptions
 
     def __init__(
         self,
