@@ -9,7 +9,7 @@ from typing import TYPE_CHECKING, Any
 if TYPE_CHECKING:
     from ..data.sevenscenes_graphs import FrontendStages
 
-__all__ = ["backend_from_config", "frontend_stages"]
+__all__ = ["backend_from_config", "check_sync_config", "frontend_stages"]
 
 
 def backend_from_config(cfg: Any) -> Any:
@@ -35,6 +35,23 @@ def backend_from_config(cfg: Any) -> Any:
     if name in (None, "none"):
         return None
     return get_backend(str(name), **d)
+
+
+def check_sync_config(sync: Mapping[str, Any]) -> None:
+    """Build the backend of a ``sync`` config (plain values) before any work, so that its own
+    checks across options (the scale policies it supports, gtsam installed) run then;
+    :class:`~posernet.options.ConfigValueError` ``sync=<name>: <reason>``."""
+    from ..options import ConfigValueError
+
+    if sync.get("name") == "none" or (sync.get("name") is None and sync.get("_target_") is None):
+        return
+    try:
+        backend_from_config(sync)
+    except ValueError as exc:
+        label = sync.get("name") or sync.get("_target_")
+        first = next((ln.strip() for ln in str(exc).splitlines() if ln.strip()),
+                     type(exc).__name__)
+        raise ConfigValueError(f"sync={label}: {first}") from None
 
 
 def _instantiate_backend(d: dict[str, Any]) -> Any:

@@ -18,16 +18,63 @@ Graphs:
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import hydra
 from omegaconf import DictConfig, OmegaConf
 
+from ..data.synthetic.scenes import SCENE_PRESETS
+from ..options import DEVICE, option, path
 from . import CONFIG_DIR
 from .common import check_config, resolve_device, run_app, run_task, set_threads
 
-__all__ = ["demo", "main"]
+__all__ = ["DemoSettings", "ImagesOptions", "demo", "main"]
+
+#: the matcher/ configs the images part may pick
+MATCHERS = tuple(sorted(p.stem for p in Path(CONFIG_DIR, "matcher").glob("*.yaml")))
+
+
+@dataclass(frozen=True, kw_only=True)
+class DemoSettings:
+    """``posernet-demo``'s own keys (``conf/demo.yaml``; ``images`` is :class:`ImagesOptions`,
+    the groups declare theirs)."""
+
+    out_dir: str = option("outputs/demo", rule=path(), help="every output of the demo (made "
+                          "after checking it can be)")
+    seed: int = option(0, ge=0, help="dataset seed")
+    workers: int = option(2, ge=1, help="processes for data generation")
+    estimate: str = option("kp", choices=("kp", "bb"), help="initial poses to refine (the "
+                           "shipped checkpoint was trained on kp)")
+    ckpt_path: str | None = option(None, rule=path(), help="null: the checkpoint shipped with "
+                                   "posernet")
+    train_epochs: int = option(5, ge=1, help="only when no checkpoint is available: train "
+                               "briefly on the demo data")
+    camera_plots: int = option(3, ge=0, help="graphs drawn in 3D")
+    batch_size: int = option(64, ge=1, help="graphs per batch")
+    device: str = option("cpu", rule=DEVICE, help="cpu | cuda | cuda:N | auto")
+    num_threads: int | None = option(1, ge=1, help="torch CPU threads (null: torch default)")
+    digits: int = option(2, ge=0, le=12, help="decimals in the printed and written tables")
+
+
+@dataclass(frozen=True, kw_only=True)
+class ImagesOptions:
+    """``images.*``: the demo's part 1, a rendered scene through ``posernet-reconstruct``."""
+
+    enabled: bool = option(True, help="run part 1 (images.enabled=false skips it)")
+    scene: str = option("office", choices=sorted(SCENE_PRESETS),
+                        help="scene layout of the renderer (the simulator's rooms)")
+    seed: int = option(0, ge=0, help="render seed")
+    frames: int = option(12, ge=2, help="frames of the rendered test sequence (every pair is "
+                         "matched)")
+    width: int = option(640, ge=16, help="image width (px)")
+    height: int = option(480, ge=16, help="image height (px)")
+    focal: float = option(585.0, gt=0, help="focal length (px)")
+    matcher: str = option("auto", choices=MATCHERS, help="matcher/ config (auto: XFeat when "
+                          "installed, else SIFT)")
+    refine: bool = option(False, help="posernet-reconstruct's default (measured: refinement "
+                          "hurts good KP input)")
 
 
 def _model(cfg: DictConfig, data_dir: Path, out_dir: Path, device: str) -> tuple[Any, str]:

@@ -18,6 +18,7 @@ placed per stage).
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -25,10 +26,31 @@ import hydra
 import torch
 from omegaconf import DictConfig, OmegaConf
 
+from ..data.inputs import ESTIMATES
+from ..options import DEVICE, option, path
 from . import CONFIG_DIR
 from .common import check_config, quiet_lightning, resolve_device, run_app, run_task, set_threads
 
-__all__ = ["evaluate", "main"]
+__all__ = ["EvalSettings", "evaluate", "main"]
+
+
+@dataclass(frozen=True, kw_only=True)
+class EvalSettings:
+    """``posernet-eval``'s own keys (``conf/eval.yaml``; its groups declare theirs)."""
+
+    seed: int = option(0, ge=0, help="seed of the data module (data.seed follows it)")
+    ckpt_path: str = option(rule=path(), help="a checkpoint written by posernet-train")
+    graphs: str | None = option(None, rule=path(), help="a graph file (.pt), a folder of them, "
+                                "or an authors' .json (its test split); null: data's test split")
+    estimate: str | None = option("${data.estimate}", choices=ESTIMATES, help="initial poses to "
+                                  "refine (free: an authors' .json's free keypoint 5-point; gt: "
+                                  "ground truth; null: the stored edge_pose)")
+    batch_size: int = option("${data.batch_size}", ge=1, help="graphs per batch")
+    device: str = option("cpu", rule=DEVICE, help="cpu | cuda | cuda:N | auto")
+    digits: int = option(2, ge=0, le=12, help="decimals in the printed and written tables")
+    num_threads: int | None = option(1, ge=1, help="torch CPU threads (null: torch default)")
+    out_dir: str = option("${hydra:runtime.output_dir}", rule=path(),
+                          help="where table.md / table.csv (and abs_table.*) are written")
 
 
 def _test_graphs(cfg: DictConfig) -> tuple[list[Any], str]:

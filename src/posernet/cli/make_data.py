@@ -18,15 +18,52 @@ are kept and ``resume=true`` finishes the dataset.
 from __future__ import annotations
 
 import sys
+from collections.abc import Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import hydra
 from omegaconf import DictConfig, OmegaConf
 
+from ..options import anything, option, path
 from . import CONFIG_DIR
 from .common import check_config, run_app, run_task
 
-__all__ = ["execute", "main", "run"]
+__all__ = ["MakeDataSettings", "execute", "main", "run"]
+
+
+@dataclass(frozen=True, kw_only=True)
+class MakeDataSettings:
+    """``posernet-make-data``'s own keys (``conf/make_data.yaml``; ``sevenscenes`` is
+    :class:`posernet.data.sevenscenes_graphs.SevenScenesOptions`, the groups declare theirs)."""
+
+    source: str = option("synthetic", choices=("synthetic", "sevenscenes"), help="synthetic "
+                         "(the simulator, dataset=...) or sevenscenes (images under root=)")
+    out_dir: str | None = option(None, rule=path(), help="dataset directory; default "
+                                 "outputs/data/<preset name> (or .../sevenscenes)")
+    preset: str | None = option(None, help="alternative to dataset=NAME; dataset.* overrides "
+                                "still apply on top")
+    seed: int = option(0, ge=0, help="master seed: same config + seed => bit-identical graph "
+                       "files")
+    workers: int = option(2, ge=1, help="synthetic: worker processes; sevenscenes: threads for "
+                          "per-image stages")
+    overwrite: bool = option(False, help="replace an existing dataset in out_dir")
+    resume: bool = option(False, help="keep the complete files of an interrupted run, make the "
+                          "rest")
+    export_json: bool = option(False, help="also write json/<size>.json in the authors' schema")
+    progress: bool = option(True, help="tqdm progress bars (sevenscenes: also images and pairs "
+                            "of each file)")
+    root: str | None = option(None, rule=path(), help="source=sevenscenes: folder holding the "
+                              "scene folders (chess/, fire/, ...), or one scene folder")
+    scenes: Sequence[str] | None = option(None, rule=anything("a list of scene folders"),
+                                          help="source=sevenscenes: scene folders to use, e.g. "
+                                          "[chess,fire]; null: every one under root")
+    intrinsics: str | Sequence[float] | None = option(
+        None, rule=anything("FX,FY,CX,CY, [FX,FY,CX,CY], a JSON / 3x3 text file, or auto"),
+        help="source=sevenscenes: FX,FY,CX,CY | [FX,FY,CX,CY] | a JSON / 3x3 text file; null: "
+        "585,585,320,240")
+    frame_step: int = option(10, ge=1, help="source=sevenscenes: every n-th frame of each "
+                             "1000-frame, 30 Hz sequence")
 
 
 def _dataset_config(cfg: DictConfig) -> Any:

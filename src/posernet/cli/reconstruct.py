@@ -23,8 +23,9 @@ from __future__ import annotations
 
 import sys
 import time
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, NoReturn
 
@@ -32,6 +33,7 @@ import hydra
 import torch
 from omegaconf import DictConfig, OmegaConf
 
+from ..options import DEVICE, anything, boolean, choice, one_of, option, path
 from ..threads import available_cores
 from . import CONFIG_DIR
 from .common import (
@@ -49,7 +51,94 @@ EXIT_NOTHING_PLACED = 3
 #: camera unsolved with its reason in poses.json)
 EXIT_UNVERIFIED = 4
 
-__all__ = ["main", "run"]
+__all__ = ["ReconstructSettings", "main", "run"]
+
+#: what ``intrinsics`` takes (read, and reported, by the intrinsics loader)
+INTRINSICS = "FX,FY,CX,CY, [FX,FY,CX,CY], a JSON / 3x3 text file, or auto"
+
+
+@dataclass(frozen=True, kw_only=True)
+class ReconstructSettings:
+    """``posernet-reconstruct``'s own keys (``conf/reconstruct.yaml``; its blocks ``pairs``,
+    ``verify``, ``bundle``, ``check`` and its groups declare theirs)."""
+
+    images: str = option(rule=path(), help="folder of images (every image file except 7-Scenes "
+                         "*.depth.png)")
+    pattern: str | None = option(None, help='glob inside the folder, e.g. "*.color.png"')
+    strict: bool = option(False, help="an unreadable or empty image file: skipped with one line "
+                          "(false) or stop (true)")
+    intrinsics: str | Sequence[float] = option(
+        "auto", rule=anything(INTRINSICS), help="FX,FY,CX,CY | [FX,FY,CX,CY] | a JSON file "
+        "(shared or per image) | a 3x3 text file | auto: EXIF focal length, else 1.2 x the "
+        "longest side (refined by BA)")
+    gt_poses: str | None = option("auto", rule=path(), help="auto: <name>.pose.txt beside every "
+                                  "image (7-Scenes) -> error tables | none | a folder of pose "
+                                  "files | a COLMAP model folder (images.bin/.txt, by name) | a "
+                                  "TUM groundtruth.txt (poses within 20 ms of TUM-style image "
+                                  "timestamps)")
+    out_dir: str = option("outputs/reconstruct", rule=path(), help="every output of the run "
+                          "(made once there is output)")
+    overwrite: bool = option(False, help="out_dir holding a finished run (or other files): "
+                             "replace its outputs (true) or stop with one line (false); a folder "
+                             "with only an interrupted run's cache/ is resumed either way")
+    refine: bool = option(False, help="PoserNet refinement before averaging. Off by default: on "
+                          "real photos bundle adjustment on keypoints decides the poses "
+                          "(refine=true changes the absolute rotation by under 3 %, and costs "
+                          "2.5-5.5 s of CPU), and KP poses without it gain nothing either; it "
+                          "helps box-centre input without bundle adjustment (estimate=bb "
+                          "ba=false: 29 -> 7 deg on RedKitchen, 51 -> 17 on fountain-P11; "
+                          'docs/model-card.md, "The front-end checkpoint").')
+    guard: bool = option(False, help="with refine: keep the input pose where the model's "
+                         "confidence says refinement would not help (needs a confidence head, "
+                         "as the shipped one)")
+    check_inputs: bool = option(True, help="with refine: one warning line when the images' graph "
+                                "looks unlike the model's training data or refinement made it "
+                                "less cycle-consistent")
+    ckpt_path: str | None = option("shipped:posernet_frontend_kp.ckpt", rule=path(), help="the "
+                                   "refiner: the shipped checkpoint fine-tuned on the image front "
+                                   "end's graphs (rendered, degraded photos; its guard statistics "
+                                   "cover ordinary cameras); shipped: the synthetic one")
+    estimate: str = option("kp", choices=("kp", "bb"), help="initial poses: kp (5-point on "
+                           "keypoints: every match of the pair with edge_rule=verified, those "
+                           "in matched boxes with boxes) or bb (box centres)")
+    edge_rule: str = option("verified", choices=("verified", "boxes"), help="which image pairs "
+                            "become edges: verified (every pair whose two-view geometry passes; "
+                            "its matched boxes, however few, ride along) or boxes (the paper's "
+                            "rule: box_matching.min_boxes matched boxes). estimate=bb always "
+                            "needs the boxes.")
+    kp_top_pairs: int = option(0, ge=0, help="edge_rule=boxes: KP from the N box pairs sharing "
+                               "most matches (0: all, the paper's)")
+    seed: int = option(0, ge=0, help="RANSAC seed")
+    boxes: bool | str = option("auto", rule=one_of(choice("auto"), boolean(),
+                                                   expected="auto, true or false"),
+                               help="Object boxes (ROI proposals): auto detects them only when a "
+                               "stage uses them (refine=true, estimate=bb, edge_rule=boxes); "
+                               "keypoints alone make the verified edges and the tracks.")
+    max_image_size: int | None = option(1600, ge=32, help="keypoints found on a copy at most "
+                                        "this long (px; null: full size), mapped back to "
+                                        "full-resolution pixels: a 4000x3000 photo costs what a "
+                                        "1600x1200 does")
+    cache: bool = option(True, help="out_dir/cache keeps each image's features and each pair's "
+                         "verified matches: the same command after an interruption (or with "
+                         "overwrite=true and other averaging / bundle options) resumes instead "
+                         "of recomputing")
+    workers: int = option(0, ge=0, help="threads for the per-image and per-pair stages (0: "
+                          "every available core)")
+    pictures: int = option(4, ge=0, help="image pairs drawn with their matches (and cameras.png, "
+                           "cameras.html); 0: none")
+    device: str = option("cpu", rule=DEVICE, help="cpu | cuda | cuda:N | auto")
+    num_threads: int | None = option(1, ge=1, help="torch CPU threads (null: torch default)")
+    progress: bool = option(True, help="progress bars of the stages")
+    digits: int = option(2, ge=0, le=12, help="decimals in the printed and written tables")
+    ba: bool = option(True, help="Final stage: keypoint tracks from the verified matches, "
+                      "triangulation and robust bundle adjustment of the averaged cameras "
+                      "(posernet.sfm; Levenberg-Marquardt). ba=false: averaging only.")
+    self_check: bool = option(True, help="After the last stage every placed camera is held "
+                              "against the evidence it came from (posernet.sfm.selfcheck): its "
+                              "verified image pairs, coinciding centres, its 3D points and their "
+                              "triangulation angles. A camera that fails is reported unsolved, "
+                              "with the reason, in every output; a run left with fewer than two "
+                              "cameras exits with status 4.")
 
 
 def _pictures(rec: Any, out: Path, k: int) -> list[Path]:

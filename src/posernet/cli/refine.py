@@ -11,12 +11,15 @@ tables are printed and written next to it (``table.md``/``.csv``, ``abs_table.md
 from __future__ import annotations
 
 import sys
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import hydra
 from omegaconf import DictConfig, OmegaConf
 
+from ..data.inputs import ESTIMATES
+from ..options import DEVICE, option, path
 from . import CONFIG_DIR
 from .common import (
     check_config,
@@ -26,7 +29,43 @@ from .common import (
     set_threads,
 )
 
-__all__ = ["main", "refine"]
+__all__ = ["RefineSettings", "main", "refine"]
+
+
+@dataclass(frozen=True, kw_only=True)
+class RefineSettings:
+    """``posernet-refine``'s own keys (``conf/refine.yaml``; the ``sync`` group declares its
+    own)."""
+
+    input: str = option(rule=path(), help="a posernet .pt graph file, a folder of them, or an "
+                        "authors' .json")
+    split: str = option("test", help="which list of a .json file, or which split of a dataset "
+                        "root")
+    size: str = option("small", choices=("small", "large", "all"),
+                       help="graph size, for a dataset root (a make-data folder)")
+    estimate: str | None = option("kp", choices=ESTIMATES, help="initial poses to refine (free: "
+                                  "a .json's free keypoint 5-point; gt: ground truth; null: the "
+                                  "stored edge_pose)")
+    strict: bool = option(True, help=".json: reject (true) or skip with a warning (false) "
+                          "malformed graphs")
+    ckpt_path: str | None = option(None, rule=path(), help="null: the checkpoint shipped with "
+                                   "posernet (trained on synthetic data)")
+    output: str = option("${out_dir}/refined.json", rule=path(),
+                         help="the JSON file of refined and averaged poses")
+    batch_size: int = option(64, ge=1, help="graphs per batch")
+    guard: bool = option(False, help="keep the input rotation/direction on edges where the "
+                         "model's own confidence predicts its output would be worse than the "
+                         "input (input-adaptive checkpoints, e.g. the shipped one)")
+    confidence_weights: bool = option(True, help="start motion averaging's IRLS from the "
+                                      "confidence (uniform without)")
+    check_inputs: bool = option(True, help="one warning line when the inputs look unlike the "
+                                "training data or the refined poses are less cycle-consistent "
+                                "than the input")
+    device: str = option("cpu", rule=DEVICE, help="cpu | cuda | cuda:N | auto")
+    num_threads: int | None = option(1, ge=1, help="torch CPU threads (null: torch default)")
+    digits: int = option(2, ge=0, le=12, help="decimals in the printed and written tables")
+    out_dir: str = option("${hydra:runtime.output_dir}", rule=path(),
+                          help="the run's folder (holds output by default)")
 
 
 def refine(cfg: DictConfig) -> dict[str, Any]:

@@ -34,19 +34,61 @@ naming the differing values). ``ckpt_path`` and ``init_from`` exclude each other
 from __future__ import annotations
 
 import math
+import re
 import sys
 import time
+from collections.abc import Mapping
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import hydra
 from omegaconf import DictConfig
 
+from ..options import ConfigValueError, Rule, option, path
 from . import CONFIG_DIR
 from .common import check_config, quiet_lightning, run_app, run_task, set_threads
 from .resume import continues_run, kept_csv_log, relocation_callback, resume_overrides
 
-__all__ = ["init_weights", "main", "train"]
+__all__ = ["TrainSettings", "init_weights", "main", "train"]
+
+#: a metric the training logs (what the 'best' checkpoint may monitor)
+METRIC = Rule("a metric the training logs (val/loss, val/loss_<term>, val/rot_err_deg, "
+              "val/tdir_err_deg, val/abs_rot_err_deg, val/abs_pos_err, their _init)",
+              lambda v: isinstance(v, str) and re.fullmatch(
+                  r"(val|train)/(loss(_\w+)?|(abs_)?(rot|tdir)_err_deg(_init)?"
+                  r"|abs_pos_err(_init)?)", v) is not None)
+
+
+@dataclass(frozen=True, kw_only=True)
+class TrainSettings:
+    """``posernet-train``'s own keys (``conf/train.yaml``; its groups declare theirs)."""
+
+    seed: int = option(0, ge=0, help="lightning.seed_everything(seed, workers=True)")
+    ckpt_path: str | None = option(None, rule=path(), help="resume training from this "
+                                   "checkpoint (e.g. .../checkpoints/last.ckpt)")
+    init_from: str | None = option(None, rule=path(), help="fine-tune: start from this "
+                                   "checkpoint's network weights (a path, or shipped), fresh "
+                                   "optimiser at epoch 0; model.net must match it")
+    optimized_metric: str = option("val/loss", rule=METRIC, help="monitored by the 'best' "
+                                   "checkpoint and returned to sweepers")
+    test_after_training: bool = option(False, help="also run the test split with the best "
+                                       "checkpoint")
+    num_threads: int | None = option(1, ge=1, help="torch CPU threads (null: torch default); 1 "
+                                     "is fastest for 8-node graphs "
+                                     "(benchmarks/results/train_epoch.md: 30 s vs 93 s per epoch)")
+    out_dir: str = option("${hydra:runtime.output_dir}", rule=path(),
+                          help="the run's folder: checkpoints, logs, metrics.json")
+
+    @staticmethod
+    def cross_check(values: Mapping[str, Any]) -> None:
+        """Across keys (``values``: those the config sets): resuming a run and fine-tuning
+        from weights are two different starts."""
+        init, resume = values.get("init_from"), values.get("ckpt_path")
+        if init is not None and resume is not None:
+            raise ConfigValueError(f"init_from={init} and ckpt_path={resume}: give one "
+                                   f"(ckpt_path resumes a run, init_from starts a new one from "
+                                   f"its weights)")
 
 def _scalars(metrics: dict[str, Any]) -> dict[str, float]:
     """The finite one-element tensors of a Lightning metrics mapping, as floats."""

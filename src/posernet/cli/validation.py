@@ -1,399 +1,141 @@
 """One config check for every ``posernet-*`` command, run before any work or output.
 
-:func:`check_config` takes a command's composed config and checks, in this order:
-
-1. every plain value of the command's top-level keys and of its groups (``model``, ``data``,
-   ``trainer``, ``sync``, the front end's ``proposals``/``matcher``/``box_matching``/
-   ``relpose``, reconstruct's ``pairs``/``verify``/``bundle``/``check``, the demo's
-   ``images``): type, range or choices, and that a required value (``???``) was given. A group
-   built from a dataclass (``bundle``, ``verify``, ...) or from a constructor with an options
-   dataclass (its ``Options``: the sync backends, the matchers, the proposal sources; the
-   ``model`` sections: :data:`posernet.lit.posernet_module.SECTION_OPTIONS`) takes each key's
-   rule from the field that declares it (:func:`posernet.options.option`), so nothing about those
-   options is written here. Still tables here: ``data`` (the datamodule's keys and types from
-   its signature, :func:`targeted`, its ranges in :data:`DATA`), the Lightning ``trainer``
-   arguments (Lightning's, not the project's: :data:`TRAINER`) and the commands' own
-   top-level keys (:data:`COMMANDS`);
-2. what a group's own constructor checks across fields (the sync backend: its scale policy,
-   gtsam installed; the demo's synthetic dataset options), by building it early;
-3. the machine: ``device=cuda`` (``trainer.accelerator=gpu``) needs CUDA;
-4. the outputs: every folder or file the command will write can be written (nothing is
-   created: a probe file in the nearest existing folder is removed at once).
-
-Any failure is one :class:`ConfigValueError` whose message names the key, the value and what
-is expected: ``model.net.depth: 'abc' is not an integer >= 1``. Keys absent from a config (a
-group without that option) are skipped; the input files themselves are read, and reported, by
-the loaders.
+No option is defined here. Each is a field of the dataclass that declares it
+(:func:`posernet.options.option`): a command's own keys its settings dataclass (``TrainSettings``
+in :mod:`posernet.cli.train`, ...); a group built from a ``_target_`` that dataclass or the
+target's ``Options``; the demo's ``images``, the ``trainer`` and ``model``'s sections dataclasses
+of their own. :func:`check_config` applies those rules to a composed config (type, range,
+choices, a required ``???`` given), builds what checks itself across options (the sync backend,
+the demo's dataset), then checks CUDA and that the output can be written (creating nothing).
+Any failure is one :class:`ConfigValueError` naming key, value and expectation:
+``model.net.depth: 'abc' is not an integer >= 1``. Keys a config lacks are skipped.
 """
 
 from __future__ import annotations
 
+import dataclasses
+import inspect
 import re
-from collections.abc import Callable, Iterable, Mapping
+import typing
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 from ..io import writable_dir, writable_file
-from ..options import (
-    DEVICE,
-    ConfigValueError,
-    Rule,
-    anything,
-    boolean,
-    choice,
-    field_rules,
-    integer,
-    is_int,
-    number,
-    path,
-    positive,
-    rule_for,
-    text,
-)
+from ..options import ConfigValueError, Rule, field_rules, rule_for, text
 
-__all__ = ["COMMANDS", "ConfigValueError", "check_config"]
+__all__ = ["COMMANDS", "ConfigValueError", "check_config", "group_rules"]
+
+Schema = Mapping[str, Rule]
+#: a group's rules: the dotted name of its dataclass, or a function of the config giving them
+Group = str | Callable[[Any], Schema]
 
 
-# --------------------------------------------------------------------------- rules
+# --------------------------------------------------------------------------- where rules live
 
-
-def auto_or_bool() -> Rule:
-    return Rule("auto, true or false",
-                lambda v: isinstance(v, bool) or (isinstance(v, str) and v == "auto"), False)
-
-
-def paths() -> Rule:
-    """A path or a non-empty list of paths (e.g. several datasets to train on)."""
-    one = path()
-    return Rule("a path or a list of paths",
-                lambda v: one.ok(v) or (isinstance(v, list) and bool(v)
-                                        and all(one.ok(x) for x in v)))
-
-
-def one_of(*rules: Rule, expected: str | None = None) -> Rule:
-    """A value any of ``rules`` accepts."""
-    null = any(r.null for r in rules)
-    return Rule(expected or " or ".join(r.expected for r in rules),
-                lambda v: any(r.ok(v) for r in rules), null)
-
-
-def typed(owner: Any, prefix: str = "", **specific: Rule) -> dict[str, Rule]:
-    """A rule for every argument of ``owner`` (a dataclass or a class's constructor): a
-    dataclass field's own rule (its :func:`posernet.options.option` metadata, else its type),
-    a constructor argument's type annotation (``int``, ``float``, ``bool``, ``str``,
-    ``... | None``); ``specific`` rules (ranges, choices; keys without ``prefix``) take
-    precedence. The schema thus follows the code: an option added there is checked here."""
-    import dataclasses
-    import inspect
-    import typing
-
+def typed(owner: Any) -> dict[str, Rule]:
+    """A rule for every argument of ``owner``: a dataclass field's own
+    (:func:`~posernet.options.field_rules`), else a constructor argument's annotation."""
     if dataclasses.is_dataclass(owner):
-        own = field_rules(owner)
-    else:
-        hints = typing.get_type_hints(owner if inspect.isfunction(owner) else owner.__init__)
-        own = {n: rule_for(hints.get(n, Any)) for n in _parameters(owner)}
-    unknown = set(specific) - set(own)
-    if unknown:
-        raise TypeError(f"typed({getattr(owner, '__name__', owner)}): no such argument(s) "
-                        f"{sorted(unknown)}")
-    return {prefix + name: specific.get(name, rule) for name, rule in own.items()}
+        return dict(field_rules(owner))
+    hints = typing.get_type_hints(owner if inspect.isfunction(owner) else owner.__init__)
+    return {n: rule_for(hints.get(n, Any)) for n, p in inspect.signature(owner).parameters.items()
+            if n != "self" and p.kind not in (p.VAR_POSITIONAL, p.VAR_KEYWORD)}
 
 
-def _parameters(owner: Any) -> list[str]:
-    """Named arguments of a function or a class's constructor (not ``self``, ``*a``, ``**k``)."""
-    import inspect
-
-    return [n for n, p in inspect.signature(owner).parameters.items()
-            if n != "self" and p.kind not in (p.VAR_POSITIONAL, p.VAR_KEYWORD)]
-
-
-def _takes_any_keyword(owner: Any) -> bool:
-    import inspect
-
-    return any(p.kind == p.VAR_KEYWORD for p in inspect.signature(owner).parameters.values())
-
-
-def targeted(group: str, ranges: Schema | None = None,
-             default: str | None = None) -> Callable[[Any], Schema]:
-    """Schema of a group that Hydra builds from its ``_target_`` (``default`` when the config
-    names none): a rule for every argument of that target (:func:`typed`, so the keys and
-    types follow the code), the ranges and choices of ``ranges`` where they apply (every one
-    for a target taking ``**kwargs``), and ``_target_`` / ``name`` (a label). A dataclass
-    target (``bundle``, ``verify``, ...) or a target with an ``Options`` dataclass (the sync
-    backends) is checked against its fields' own rules, so such a group needs no ``ranges``.
-    Without a target it can import, the group gets ``ranges`` as they are (building it then
-    reports the bad target)."""
-    ranges = dict(ranges or {})
+def targeted(group: str, default: str | None = None) -> Callable[[Any], Schema]:
+    """Rules of a group built from its ``_target_`` (``default`` when none is named): those of
+    its ``Options`` dataclass, else :func:`typed`'s; plus ``_target_`` and ``name`` (a label),
+    the only two for a target that does not import (building the group reports it)."""
 
     def schema(cfg: Any) -> Schema:
         from hydra.utils import get_object
 
-        target = None if cfg is None else _value(cfg, f"{group}._target_")
-        if not isinstance(target, str):
-            target = default
+        target = _value(cfg, f"{group}._target_") if cfg is not None else None
+        target = target if isinstance(target, str) else default
         try:
             owner = get_object(target) if isinstance(target, str) else None
         except Exception:  # a bad target: instantiating it says so
             owner = None
-        base: Schema = {"_target_": text(), "name": text()}
+        base: dict[str, Rule] = {"_target_": text(), "name": text()}
         if owner is None:
-            return {**base, **ranges}
-        import dataclasses
+            return base
+        options = getattr(owner, "Options", None)
+        return {**base, **typed(options if dataclasses.is_dataclass(options) else owner)}
 
-        options = getattr(owner, "Options", None)  # a sync backend's options dataclass
-        if dataclasses.is_dataclass(options):
-            owner = options
-        names = ({f.name for f in dataclasses.fields(owner)} if dataclasses.is_dataclass(owner)
-                 else set(_parameters(owner)))
-        extra = ({k: r for k, r in ranges.items() if k not in names}
-                 if not dataclasses.is_dataclass(owner) and _takes_any_keyword(owner) else {})
-        return {**base, **extra, **typed(owner, **{k: r for k, r in ranges.items()
-                                                     if k in names})}
-
-    schema.ranges = ranges  # type: ignore[attr-defined]
     return schema
 
 
-THREADS = integer(1, null=True)
-DIGITS = integer(0, 12)
-SEED = integer(0)
-ESTIMATE = choice("kp", "bb")
-#: initial poses read from graph files (``.json``: also the free keypoint 5-point; null: the
-#: stored edge_pose)
-ESTIMATE_IN = choice("kp", "bb", "free", "gt", null=True)
-SIZE = choice("small", "large")
-INTRINSICS = "FX,FY,CX,CY, [FX,FY,CX,CY], a JSON / 3x3 text file, or auto"
-
-
-# --------------------------------------------------------------------------- schema
-
-Schema = Mapping[str, Rule]
-
-
 def _model(cfg: Any) -> Schema:
-    """``model``: each section's options dataclass (``net``:
-    :class:`posernet.nn.PoserNetOptions`, ``loss``/``optimizer``/``scheduler``:
-    :mod:`posernet.lit.posernet_module`'s), each field with its own rule.
-    (``model=learned_sync`` has sections of its own: keys absent here are skipped.)"""
+    """``model``: each section's options dataclass (absent keys are skipped: learned_sync's)."""
     from ..lit.posernet_module import SECTION_OPTIONS
 
     return {f"{section}.{k}": r for section, owner in SECTION_OPTIONS.items()
             for k, r in field_rules(owner).items()}
 
 
-#: ``data``: the datamodule's arguments (:func:`targeted`), with these ranges and choices
-DATA = targeted("data", {
-    "root": paths(), "estimate": ESTIMATE, "size": SIZE, "batch_size": integer(1),
-    "eval_batch_size": integer(1, null=True), "num_workers": integer(0),
-    "test_size": choice("small", "large", null=True),
-    "val_size": choice("small", "large", null=True), "seed": SEED,
-    "init_mix": Rule("a mapping of initial-pose sources (kp, bb, gt, recorrupt) to "
-                     "weights >= 0, not all 0", lambda v: _mixture_ok(v), True),
-    "gt_noise_deg": number(0), "recorrupt_deg": number(0), "mix_edge_fraction": number(0, 1),
-})
+def _declared(name: str) -> Any:
+    from hydra.utils import get_object
+
+    return get_object(name)
 
 
-def _mixture_ok(v: Any) -> bool:
-    from ..data.mixture import check_mixture
+def group_rules(group: Group, cfg: Any) -> Schema:
+    """The rules of one group of a :class:`Command`, for config ``cfg``."""
+    return field_rules(_declared(group)) if isinstance(group, str) else group(cfg)
 
-    try:
-        check_mixture(v)
-    except (ValueError, TypeError):
-        return False
-    return True
 
-#: the Lightning Trainer arguments of posernet/conf/trainer/*.yaml (others pass through
-#: unchecked). A table, not a dataclass: the arguments are Lightning's, which the project does
-#: not own, and Hydra passes them to ``lightning.Trainer`` as they are
-TRAINER: Schema = {
-    "accelerator": choice("auto", "cpu", "gpu", "cuda", "mps"),
-    "devices": one_of(Rule("", lambda v: is_int(v) and (v == -1 or v >= 1)), choice("auto"),
-                      Rule("a list of integers", lambda v: isinstance(v, list) and bool(v)
-                           and all(is_int(x) for x in v)),
-                      expected="an integer >= 1 (or -1: all), a list of integers or auto"),
-    "precision": one_of(choice("64", "32", "16", "bf16", "64-true", "32-true", "16-true",
-                               "bf16-true", "16-mixed", "bf16-mixed"),
-                        Rule("", lambda v: is_int(v) and v in (16, 32, 64)),
-                        expected="one of 64, 32, 16, bf16, 64-true, 32-true, 16-true, bf16-true, "
-                                 "16-mixed, bf16-mixed"),
-    "strategy": text(),
-    "max_epochs": Rule("an integer >= 1 (or -1: no limit)",
-                       lambda v: is_int(v) and (v == -1 or v >= 1), True),
-    "min_epochs": integer(0, null=True),
-    "max_steps": integer(-1), "fast_dev_run": one_of(boolean(), integer(0)),
-    "gradient_clip_val": number(0, null=True),
-    "gradient_clip_algorithm": choice("norm", "value", null=True),
-    "deterministic": one_of(boolean(null=True), choice("warn")),
-    "log_every_n_steps": integer(1), "check_val_every_n_epoch": integer(1, null=True),
-    "num_sanity_val_steps": integer(-1), "enable_progress_bar": boolean(),
-    "enable_model_summary": boolean(), "enable_checkpointing": boolean(),
-    "default_root_dir": path(null=True),
-}
-
-#: ``sync``: the backend's options dataclass (:func:`targeted`), each field with its own rule;
-#: cross-field rules (the scale policies a backend supports, p_min <= p_max) are the backend's
-#: own, checked by building it
 SYNC = targeted("sync")
-
-#: ``proposals`` and ``matcher``: each source's and matcher's options dataclass (its
-#: ``Options``: :class:`~posernet.frontend.proposals.SelectiveSearchOptions`,
-#: :class:`~posernet.frontend.features.SiftOptions`, ...), each field with its own rule
-PROPOSALS = targeted("proposals")
-MATCHER = targeted("matcher")
-
-
-#: the image front end's groups; those built from a dataclass (``box_matching``, ``relpose``)
-#: take every rule from its fields
-FRONTEND = {"proposals": PROPOSALS, "matcher": MATCHER,
-            "box_matching": targeted("box_matching",
-                                     default="posernet.frontend.boxmatch.BoxMatchRules"),
-            "relpose": targeted("relpose", default="posernet.frontend.relpose.PoseOptions")}
-
-#: reconstruct's option blocks, each a dataclass whose fields hold their rules
-PAIRS = targeted("pairs", default="posernet.frontend.pairs.PairOptions")
-VERIFY = targeted("verify", default="posernet.frontend.verify.VerifyRules")
-BUNDLE = targeted("bundle", default="posernet.sfm.BundleOptions")
-CHECK = targeted("check", default="posernet.sfm.selfcheck.CheckOptions")
+FRONTEND: dict[str, Group] = {
+    "proposals": targeted("proposals"), "matcher": targeted("matcher"),
+    "box_matching": targeted("box_matching", "posernet.frontend.boxmatch.BoxMatchRules"),
+    "relpose": targeted("relpose", "posernet.frontend.relpose.PoseOptions")}
+DATA = targeted("data", "posernet.data.datamodule.PoserDataModule")
 
 
-def _matcher_configs() -> tuple[str, ...]:
-    from . import CONFIG_DIR
-
-    return tuple(sorted(p.stem for p in Path(CONFIG_DIR, "matcher").glob("*.yaml"))) or (
-        "auto", "sift", "xfeat", "xfeat_lighterglue")
-
-
-def _images(cfg: Any) -> Schema:  # posernet-demo's part 1
-    from ..data.synthetic.scenes import SCENE_PRESETS
-
-    return {"enabled": boolean(), "scene": choice(*sorted(SCENE_PRESETS)), "seed": SEED,
-            "frames": integer(2), "width": integer(16), "height": integer(16),
-            "focal": positive(), "matcher": choice(*_matcher_configs()), "refine": boolean()}
+# --------------------------------------------------------------------------- the commands
 
 
 @dataclass(frozen=True)
 class Command:
-    """A command's schema: its top-level keys, its groups, and what it writes."""
+    """What a command's config check walks: where its keys are declared, what it writes."""
 
-    keys: Schema
-    groups: Mapping[str, Schema | Callable[[Any], Schema]]
-    #: the outputs, ``(key, path, "dir" | "file")``, from the config
-    outputs: Callable[[Any], Iterable[tuple[str, Any, str]]]
-    #: groups checked only when this function of the config says so
-    when: Mapping[str, Callable[[Any], bool]] | None = None
-    #: keys naming a device (a CUDA one needs CUDA)
-    devices: tuple[str, ...] = ("device",)
-    #: checks across fields that a group's own constructor makes (run before any work)
-    checks: tuple[Callable[[Any], None], ...] = ()
+    settings: str  # the dotted name of the dataclass of its top-level keys
+    groups: Mapping[str, Group]
+    output: tuple[str, str, str | None]  # its key, "dir" or "file", the path when null
+    when: tuple[str, Any] | None = None  # (key, value): groups checked only then
+    devices: tuple[str, ...] = ("device",)  # keys naming a device (CUDA needs CUDA)
+    #: ``(group, dotted name of a function of its plain values)``: built early, so that what
+    #: its own constructor checks across options runs before any work
+    checks: tuple[tuple[str, str], ...] = ()
 
 
-def _outputs(*pairs: tuple[str, str]) -> Callable[[Any], list[tuple[str, Any, str]]]:
-    def get(cfg: Any) -> list[tuple[str, Any, str]]:
-        return [(k, v, kind) for k, kind in pairs
-                if (v := _value(cfg, k)) not in (_ABSENT, _MISSING, None)]
-    return get
-
-
-def _make_data_outputs(cfg: Any) -> list[tuple[str, Any, str]]:
-    out = _value(cfg, "out_dir")
-    # default outputs/data/<preset name>: its nearest existing folder is the same one
-    return [("out_dir", out if out not in (None, _ABSENT) else "outputs/data", "dir")]
-
-
-def _sevenscenes(cfg: Any) -> bool:
-    return _value(cfg, "source") == "sevenscenes"
-
-
-def _check_init(cfg: Any) -> None:
-    """Resuming a run and fine-tuning from weights are two different starts."""
-    init, resume = _value(cfg, "init_from"), _value(cfg, "ckpt_path")
-    if init not in (None, _ABSENT) and resume not in (None, _ABSENT):
-        raise ConfigValueError(f"init_from={init} and ckpt_path={resume}: give one (ckpt_path "
-                               f"resumes a run, init_from starts a new one from its weights)")
-
-
-def _check_sync(cfg: Any) -> None:
-    """Build the backend: its own cross-field rules, before any work."""
-    sync = _value(cfg, "sync")
-    if not isinstance(sync, dict) or sync.get("name") == "none" or \
-            (sync.get("name") is None and sync.get("_target_") is None):
-        return
-    from .build import backend_from_config
-
-    try:
-        backend_from_config(sync)
-    except ValueError as exc:
-        label = sync.get("name") or sync.get("_target_")
-        raise ConfigValueError(f"sync={label}: {_first_line(exc)}") from None
-
-
-def _check_dataset(cfg: Any) -> None:
-    """The demo's synthetic dataset options (their ConfigError names the bad key)."""
-    dataset = _value(cfg, "dataset")
-    if isinstance(dataset, dict):
-        from ..data.synthetic.config import resolve_options
-
-        resolve_options(dataset)
-
-
+OUT_DIR = ("out_dir", "dir", None)
+SYNC_CHECK = ("sync", "posernet.cli.build.check_sync_config")
 COMMANDS: dict[str, Command] = {
     "train": Command(
-        keys={"seed": SEED, "ckpt_path": path(null=True), "init_from": path(null=True),
-              "optimized_metric": Rule(
-                  "a metric the training logs (val/loss, val/loss_<term>, val/rot_err_deg, "
-                  "val/tdir_err_deg, val/abs_rot_err_deg, val/abs_pos_err, their _init)",
-                  lambda v: isinstance(v, str) and re.fullmatch(
-                      r"(val|train)/(loss(_\w+)?|(abs_)?(rot|tdir)_err_deg(_init)?"
-                      r"|abs_pos_err(_init)?)", v) is not None),
-              "test_after_training": boolean(),
-              "num_threads": THREADS, "out_dir": path()},
-        groups={"data": DATA, "model": _model, "trainer": TRAINER, "sync": SYNC},
-        outputs=_outputs(("out_dir", "dir")), devices=("trainer.accelerator",),
-        checks=(_check_sync, _check_init)),
-    "eval": Command(
-        keys={"seed": SEED, "ckpt_path": path(), "graphs": path(null=True),
-              "estimate": ESTIMATE_IN, "batch_size": integer(1), "device": DEVICE,
-              "digits": DIGITS, "num_threads": THREADS, "out_dir": path()},
-        groups={"data": DATA, "sync": SYNC}, outputs=_outputs(("out_dir", "dir")),
-        checks=(_check_sync,)),
-    "refine": Command(
-        keys={"input": path(), "split": text(), "size": choice("small", "large", "all"),
-              "estimate": ESTIMATE_IN, "strict": boolean(),
-              "ckpt_path": path(null=True), "output": path(), "batch_size": integer(1),
-              "guard": boolean(), "confidence_weights": boolean(), "check_inputs": boolean(),
-              "device": DEVICE, "num_threads": THREADS, "digits": DIGITS, "out_dir": path()},
-        groups={"sync": SYNC}, outputs=_outputs(("output", "file")), checks=(_check_sync,)),
-    "demo": Command(
-        keys={"out_dir": path(), "seed": SEED, "workers": integer(1), "estimate": ESTIMATE,
-              "ckpt_path": path(null=True), "train_epochs": integer(1),
-              "camera_plots": integer(0), "batch_size": integer(1), "device": DEVICE,
-              "num_threads": THREADS, "digits": DIGITS},
-        groups={"images": _images, "sync": SYNC}, outputs=_outputs(("out_dir", "dir")),
-        checks=(_check_sync, _check_dataset)),
+        "posernet.cli.train.TrainSettings",
+        {"data": DATA, "model": _model, "trainer": "posernet.lit.trainer.TrainerOptions",
+         "sync": SYNC}, OUT_DIR, devices=("trainer.accelerator",), checks=(SYNC_CHECK,)),
+    "eval": Command("posernet.cli.evaluate.EvalSettings", {"data": DATA, "sync": SYNC}, OUT_DIR,
+                    checks=(SYNC_CHECK,)),
+    "refine": Command("posernet.cli.refine.RefineSettings", {"sync": SYNC},
+                      ("output", "file", None), checks=(SYNC_CHECK,)),
+    "demo": Command("posernet.cli.demo.DemoSettings",
+                    {"images": "posernet.cli.demo.ImagesOptions", "sync": SYNC}, OUT_DIR,
+                    checks=(SYNC_CHECK,
+                            ("dataset", "posernet.data.synthetic.config.resolve_options"))),
     "reconstruct": Command(
-        keys={"images": path(), "pattern": text(null=True), "intrinsics": anything(INTRINSICS),
-              "gt_poses": path(null=True), "out_dir": path(), "refine": boolean(), "ba": boolean(),
-              "guard": boolean(), "check_inputs": boolean(), "cache": boolean(),
-              "boxes": auto_or_bool(), "max_image_size": integer(32, null=True),
-              "strict": boolean(), "overwrite": boolean(), "self_check": boolean(),
-              "ckpt_path": path(null=True), "estimate": ESTIMATE, "kp_top_pairs": integer(0),
-              "edge_rule": choice("verified", "boxes"),
-              "seed": SEED, "workers": integer(0), "pictures": integer(0), "device": DEVICE,
-              "num_threads": THREADS, "progress": boolean(), "digits": DIGITS},
-        groups={**FRONTEND, "verify": VERIFY, "bundle": BUNDLE, "sync": SYNC, "pairs": PAIRS,
-                "check": CHECK},
-        outputs=_outputs(("out_dir", "dir")),
-        devices=("device", "matcher.device"), checks=(_check_sync,)),
+        "posernet.cli.reconstruct.ReconstructSettings",
+        {**FRONTEND, "verify": targeted("verify", "posernet.frontend.verify.VerifyRules"),
+         "bundle": targeted("bundle", "posernet.sfm.BundleOptions"), "sync": SYNC,
+         "pairs": targeted("pairs", "posernet.frontend.pairs.PairOptions"),
+         "check": targeted("check", "posernet.sfm.selfcheck.CheckOptions")},
+        OUT_DIR, devices=("device", "matcher.device"), checks=(SYNC_CHECK,)),
+    # null out_dir: outputs/data/<preset name>, whose nearest existing folder is the same
     "make_data": Command(
-        keys={"source": choice("synthetic", "sevenscenes"), "out_dir": path(null=True),
-              "preset": text(null=True), "seed": SEED, "workers": integer(1),
-              "overwrite": boolean(), "resume": boolean(), "export_json": boolean(),
-              "progress": boolean(), "root": path(null=True),
-              "scenes": anything("a list of scene folders"), "intrinsics": anything(INTRINSICS),
-              "frame_step": integer(1)},
-        groups=FRONTEND, when=dict.fromkeys(FRONTEND, _sevenscenes),
-        outputs=_make_data_outputs, devices=()),
+        "posernet.cli.make_data.MakeDataSettings", FRONTEND, ("out_dir", "dir", "outputs/data"),
+        when=("source", "sevenscenes"), devices=()),
 }
 
 
@@ -471,21 +213,17 @@ def _check_required(cfg: Any, group: str) -> None:
         raise ConfigValueError(f"{missing[0]}: a value is required ({missing[0]}=...)")
 
 
-# --------------------------------------------------------------------------- checks
-
-
 def check_config(cfg: Any, command: str) -> None:
     """Check the composed config of ``command`` (a key of :data:`COMMANDS`) before any work;
     :class:`ConfigValueError` (one line) for the first problem found."""
     spec = COMMANDS[command]
     # groups first: a top-level value may be one of theirs (eval's estimate: ${data.estimate})
-    for group, schema in spec.groups.items():
-        if spec.when and group in spec.when and not spec.when[group](cfg):
-            continue
+    groups = spec.groups if spec.when is None or _value(cfg, spec.when[0]) == spec.when[1] else {}
+    for group, declared in groups.items():
         value = _value(cfg, group)
         if value is _ABSENT or value is None:
             continue
-        rules = schema(cfg) if callable(schema) else schema
+        rules = group_rules(declared, cfg)
         if not isinstance(value, dict):  # e.g. pairs=exhaustive for pairs.mode=exhaustive
             fits = [k for k, r in rules.items() if not k.startswith("_") and r.ok(value)
                     and r.expected.startswith("one of")]
@@ -494,19 +232,24 @@ def check_config(cfg: Any, command: str) -> None:
             raise ConfigValueError(f"{group}: {value!r} is not a group of options; {hint}")
         _check_schema(cfg, rules, group + ".")
         _check_required(cfg, group)
-    _check_schema(cfg, spec.keys)
-    for check in spec.checks:
-        check(cfg)
+    settings = _declared(spec.settings)
+    _check_schema(cfg, field_rules(settings))
+    for group, check in spec.checks:
+        if isinstance(value := _value(cfg, group), dict):
+            _declared(check)(value)
+    cross_check = getattr(settings, "cross_check", None)  # the settings' rules across keys
+    if cross_check is not None:
+        cross_check({k: v for k in field_rules(settings)
+                     if (v := _value(cfg, k)) not in (_ABSENT, _MISSING)})
     for key in spec.devices:
-        _check_cuda(key, _value(cfg, key))
-    for key, value, kind in spec.outputs(cfg):
+        device = _value(cfg, key)
+        if isinstance(device, str) and (device.startswith("cuda") or device == "gpu"):
+            import torch
+
+            if not torch.cuda.is_available():
+                raise ConfigValueError(f"{key}={device} but CUDA is not available")
+    key, kind, default = spec.output
+    value = _value(cfg, key)
+    value = default if value in (None, _ABSENT) else value
+    if value not in (None, _ABSENT, _MISSING):
         (writable_dir if kind == "dir" else writable_file)(value, key)
-
-
-def _check_cuda(key: str, value: Any) -> None:
-    if not isinstance(value, str) or not (value.startswith("cuda") or value == "gpu"):
-        return
-    import torch
-
-    if not torch.cuda.is_available():
-        raise ConfigValueError(f"{key}={value} but CUDA is not available")

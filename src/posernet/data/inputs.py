@@ -9,7 +9,11 @@ from pathlib import Path
 
 from ..graph import GraphValidationError, ViewGraph, load_graphs
 
-__all__ = ["load_input_graphs"]
+__all__ = ["ESTIMATES", "load_input_graphs"]
+
+#: the initial estimates ``estimate`` may pick: keypoint and box-centre 5-point, the free
+#: keypoint 5-point (authors' ``.json``), ground truth
+ESTIMATES = ("kp", "bb", "free", "gt")
 
 
 def load_input_graphs(path: str | os.PathLike[str], split: str = "test",
