@@ -11,7 +11,8 @@ import pytest
 from omegaconf import OmegaConf
 
 from posernet.cli import CONFIG_DIR
-from posernet.cli.help import _meanings, command_help, options_owner
+from posernet.cli.help import _meanings, command_help, command_owners, options_owner
+from posernet.cli.validation import COMMANDS
 from posernet.options import (
     ConfigValueError,
     check_options,
@@ -94,8 +95,14 @@ COMMAND_DEFAULTS = {
 
 def _dataclass_blocks():
     """``(file, prefix, owner, node)`` for every block of a shipped YAML file built from a
-    dataclass (its ``_target_``): a whole group file or a block of a command's file."""
+    dataclass (its ``_target_``): a whole group file or a block of a command's file; and every
+    block of a command's file that a dataclass of its own declares (the demo's ``images``)."""
     root = Path(CONFIG_DIR)
+    for command in sorted(COMMANDS):
+        node = OmegaConf.load(root / f"{command}.yaml")
+        for prefix, owner in command_owners(command).items():
+            if prefix and prefix[:-1] in node:
+                yield f"{command}.yaml", prefix, owner, node[prefix[:-1]]
     for path in sorted(root.rglob("*.yaml")):
         node = OmegaConf.load(path)
         if not OmegaConf.is_dict(node):
@@ -122,7 +129,8 @@ def test_the_dataclass_backed_blocks_are_found():
                                                          "xfeat_lighterglue")),
                   *((f"proposals/{p}.yaml", "") for p in ("selective_search", "edge_boxes",
                                                            "file")),
-                  ("data/synthetic.yaml", ""), ("trainer/cpu.yaml", "")]:
+                  ("data/synthetic.yaml", ""), ("trainer/cpu.yaml", ""),
+                  ("demo.yaml", "images.")]:
         assert block in found, block
 
 
@@ -218,3 +226,98 @@ def test_help_shows_the_declared_help_and_choices():
     assert "keep the best this many boxes" in lines["proposals.top_k"]
     assert "Lowe's ratio" in lines["matcher.ratio"]
     assert "weakly textured" in lines["matcher.weak_share"]
+
+
+# --------------------------------------------------------------------------- the commands' own keys
+
+#: blocks of a command's file that something other than the config check builds, with the
+#: dataclass declaring their keys
+BUILT_ELSEWHERE = {("make_data", "sevenscenes"): "posernet.data.sevenscenes_graphs."
+                                                 "SevenScenesOptions"}
+
+
+def _settings(command: str) -> type:
+    return command_owners(command)[""]
+
+
+def _command_file(command: str):
+    return OmegaConf.load(Path(CONFIG_DIR) / f"{command}.yaml")
+
+
+@pytest.mark.parametrize("command", sorted(COMMANDS))
+def test_every_key_of_a_command_file_is_declared(command):
+    """Each top-level key of ``conf/<command>.yaml`` is a field of the command's settings
+    dataclass, or a block whose keys a dataclass (or its target's constructor) declares; each
+    settings field is in the file."""
+    import inspect
+
+    from hydra.utils import get_object
+
+    node = _command_file(command)
+    fields = {f.name for f in dataclasses.fields(_settings(command))}
+    undeclared = []
+    for key in node:
+        if key in ("defaults", "hydra") or key in fields:
+            continue
+        block = node._get_node(key)
+        if not OmegaConf.is_dict(block):
+            undeclared.append(key)
+            continue
+        if (command, key) in BUILT_ELSEWHERE:
+            owner = get_object(BUILT_ELSEWHERE[command, key])
+        elif key in COMMANDS[command].groups and "_target_" not in block:
+            owner = command_owners(command)[f"{key}."]
+        else:  # built from its _target_: its options dataclass, or its constructor
+            owner = get_object(str(block._get_node("_target_")._value()))
+            owner = getattr(owner, "Options", owner)
+        names = ({f.name for f in dataclasses.fields(owner)} if dataclasses.is_dataclass(owner)
+                 else set(inspect.signature(owner).parameters))
+        undeclared += [f"{key}.{k}" for k in block if k not in names | {"_target_", "name"}]
+    assert not undeclared, f"{command}.yaml: declared nowhere: {undeclared}"
+    assert fields <= set(node), f"{command}.yaml lacks {sorted(fields - set(node))}"
+
+
+@pytest.mark.parametrize("command", sorted(COMMANDS))
+def test_command_file_defaults_are_the_settings_defaults(command):
+    """The file's value of each key (an interpolation as written) is its field's default; a
+    required field (no default) is ``???`` in the file, and only such a field."""
+    node = _command_file(command)
+    differ = []
+    for f in dataclasses.fields(_settings(command)):
+        required = f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING
+        if OmegaConf.is_missing(node, f.name) or required:
+            if not (OmegaConf.is_missing(node, f.name) and required):
+                differ.append(f"{f.name}: required in {'the field' if required else 'the file'}"
+                              f" only")
+            continue
+        value = node._get_node(f.name)._value()
+        if value != _default(f):
+            differ.append(f"{f.name}: {value!r} in the file, {_default(f)!r} on the field")
+    assert not differ, f"{command}.yaml: {differ}"
+
+
+@pytest.mark.parametrize("command", sorted(COMMANDS))
+def test_command_file_comments_list_the_settings_choices(command):
+    from posernet.options import options_of
+
+    comments = _meanings(Path(CONFIG_DIR) / f"{command}.yaml", "")
+    wrong = []
+    for name, meta in options_of(_settings(command)).items():
+        listed = _listed_choices(comments.get(name, ""))
+        if meta.choices is not None and listed is not None and listed != set(meta.choices):
+            wrong.append(f"{name}: {sorted(listed)} in the comment, {sorted(meta.choices)} on "
+                         f"the field")
+    assert not wrong, f"{command}.yaml: {wrong}"
+
+
+@pytest.mark.parametrize(("prog", "command"), [(f"posernet-{c.replace('_', '-')}", c)
+                                               for c in sorted(COMMANDS)])
+def test_help_shows_the_settings_help(prog, command):
+    """Every top-level key has a one-line meaning on its field, and ``--help`` prints it."""
+    owner = _settings(command)
+    meanings = option_help(owner)
+    assert set(meanings) == {f.name for f in dataclasses.fields(owner)}, "a field lacks help"
+    text = command_help(prog, CONFIG_DIR, command)
+    lines = {ln.split()[0]: ln for ln in text.splitlines() if ln.startswith("  ")}
+    for key, meaning in meanings.items():
+        assert meaning in lines[key], key

@@ -1,10 +1,12 @@
 """``--help`` of a command, written from its own config: what it does (the config file's header
 comments), the required keys, each config group with its choices, and every option of the
 composed config (the groups' defaults included) with its default and its one-line meaning: for
-an option declared on a dataclass field (``bundle``, ``verify``, ``check``, ``pairs``,
-``relpose``, ``box_matching``, the sync backends' options) its declared help and choices
-(:func:`posernet.options.option`), else the comment beside it, or the comment block right above
-it, in whichever file sets it. Hydra's own
+an option declared on a dataclass field (the command's own keys on its settings dataclass,
+``bundle``, ``verify``, ``check``, ``pairs``, ``relpose``, ``box_matching``, ``data``,
+``trainer``, the demo's ``images``, the sync backends', matchers' and proposal sources'
+options) its declared help and choices (:func:`posernet.options.option`); only for a key no
+dataclass declares, the comment beside it, or the comment block right above it, in whichever
+file sets it. Hydra's own
 help (every group in the config folder, comments stripped, required keys as ``???``) stays at
 ``--hydra-help``.
 """
@@ -81,6 +83,22 @@ def options_owner(target: Any) -> Any:
         return None
     owner = getattr(owner, "Options", owner)
     return owner if isinstance(owner, type) and dataclasses.is_dataclass(owner) else None
+
+
+def command_owners(config_name: str) -> dict[str, type]:
+    """The dataclasses declaring options at a fixed place of command ``config_name``'s config
+    (a key of :data:`posernet.cli.validation.COMMANDS`), by prefix: ``""`` its own top-level
+    keys (its settings dataclass), ``"images."`` a group declared by a dataclass of its own;
+    ``{}`` for another config."""
+    from hydra.utils import get_object
+
+    from .validation import COMMANDS
+
+    spec = COMMANDS.get(config_name)
+    if spec is None:
+        return {}
+    own = {f"{g}.": get_object(o) for g, o in spec.groups.items() if isinstance(o, str)}
+    return {"": get_object(spec.settings), **own}
 
 
 def declared_meanings(cfg: Any) -> dict[str, str]:
@@ -177,6 +195,10 @@ def command_help(prog: str, config_dir: str | Path, config_name: str, width: int
     for path, prefix in files:  # a later file's comment wins, as its value does
         meanings.update(_meanings(path, prefix))
     meanings.update(declared_meanings(cfg))  # an option's own declaration wins over both
+    from ..options import option_help
+
+    for prefix, owner in command_owners(config_name).items():
+        meanings.update({f"{prefix}{k}": v for k, v in option_help(owner).items()})
     grouped = {prefix.split(".")[0] for _, prefix in files if prefix}
     options = [(k, _text(v), meanings.get(k, "")) for k, v in _leaves(cfg)]
     options.sort(key=lambda o: o[0].split(".")[0] in grouped)  # the command's own keys first
