@@ -67,6 +67,7 @@ __all__ = [
     "paths",
     "positive",
     "rule_for",
+    "signature_rules",
     "text",
 ]
 
@@ -286,6 +287,17 @@ def field_rules(owner: type) -> dict[str, Rule]:
         meta = f.metadata.get(KEY)
         out[f.name] = meta.rule_for(hint) if meta is not None else rule_for(hint)
     return out
+
+
+def signature_rules(owner: Any) -> dict[str, Rule]:
+    """A :class:`Rule` for every named argument of function or class ``owner`` (not ``self``,
+    ``*args``, ``**kwargs``), from its annotation alone: for a target that declares no options
+    dataclass."""
+    import inspect
+
+    hints = typing.get_type_hints(owner if inspect.isfunction(owner) else owner.__init__)
+    return {n: rule_for(hints.get(n, Any)) for n, p in inspect.signature(owner).parameters.items()
+            if n != "self" and p.kind not in (p.VAR_POSITIONAL, p.VAR_KEYWORD)}
 
 
 def option_help(owner: Any) -> dict[str, str]:

@@ -14,15 +14,13 @@ Any failure is one :class:`ConfigValueError` naming key, value and expectation:
 from __future__ import annotations
 
 import dataclasses
-import inspect
 import re
-import typing
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
 from ..io import writable_dir, writable_file
-from ..options import ConfigValueError, Rule, field_rules, rule_for, text
+from ..options import ConfigValueError, Rule, field_rules, signature_rules, text
 
 __all__ = ["COMMANDS", "ConfigValueError", "check_config", "group_rules"]
 
@@ -33,20 +31,12 @@ Group = str | Callable[[Any], Schema]
 
 # --------------------------------------------------------------------------- where rules live
 
-def typed(owner: Any) -> dict[str, Rule]:
-    """A rule for every argument of ``owner``: a dataclass field's own
-    (:func:`~posernet.options.field_rules`), else a constructor argument's annotation."""
-    if dataclasses.is_dataclass(owner):
-        return dict(field_rules(owner))
-    hints = typing.get_type_hints(owner if inspect.isfunction(owner) else owner.__init__)
-    return {n: rule_for(hints.get(n, Any)) for n, p in inspect.signature(owner).parameters.items()
-            if n != "self" and p.kind not in (p.VAR_POSITIONAL, p.VAR_KEYWORD)}
-
 
 def targeted(group: str, default: str | None = None) -> Callable[[Any], Schema]:
-    """Rules of a group built from its ``_target_`` (``default`` when none is named): those of
-    its ``Options`` dataclass, else :func:`typed`'s; plus ``_target_`` and ``name`` (a label),
-    the only two for a target that does not import (building the group reports it)."""
+    """Rules of a group built from its ``_target_`` (``default`` when none is named): its
+    ``Options`` dataclass's fields', the target's own when it is a dataclass, else its
+    arguments' annotations; plus ``_target_`` and ``name`` (a label), the only two for a target
+    that does not import (building the group reports it)."""
 
     def schema(cfg: Any) -> Schema:
         from hydra.utils import get_object
@@ -61,7 +51,9 @@ def targeted(group: str, default: str | None = None) -> Callable[[Any], Schema]:
         if owner is None:
             return base
         options = getattr(owner, "Options", None)
-        return {**base, **typed(options if dataclasses.is_dataclass(options) else owner)}
+        owner = options if dataclasses.is_dataclass(options) else owner
+        return {**base, **(field_rules(owner) if dataclasses.is_dataclass(owner)
+                           else signature_rules(owner))}
 
     return schema
 
@@ -167,12 +159,10 @@ def _value(cfg: Any, key: str) -> Any:
     except OmegaConfBaseException as exc:
         if "HydraConfig was not set" in str(exc):  # ${hydra:...} outside a Hydra run
             return _ABSENT
-        raise ConfigValueError(f"{key}: cannot resolve its value ({_first_line(exc)})") from None
+        first = next((ln.strip() for ln in str(exc).splitlines() if ln.strip()),
+                     type(exc).__name__)
+        raise ConfigValueError(f"{key}: cannot resolve its value ({first})") from None
     return value
-
-
-def _first_line(exc: BaseException) -> str:
-    return next((ln.strip() for ln in str(exc).splitlines() if ln.strip()), type(exc).__name__)
 
 
 def _check_schema(cfg: Any, schema: Schema, prefix: str = "") -> None:
