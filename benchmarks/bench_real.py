@@ -254,13 +254,31 @@ def subsample(s: ImageSet, n: int, work: Path) -> ImageSet:
                     s.source, f"{len(keys)} of {len(s.keys)} images (evenly spaced)")
 
 
+def every_step(folder: Path, images: Path, frames: int, step: int) -> Path:
+    """Every ``step``-th of the ``frames`` rendered frames in ``images`` (colour and pose) in
+    a folder of their own, ``folder/every<step>`` (made once); ``images`` itself for step 1."""
+    import shutil
+
+    if step <= 1:
+        return images
+    sub = folder / f"every{step}"
+    if not sub.is_dir():
+        tmp = folder / f".every{step}.tmp"
+        shutil.rmtree(tmp, ignore_errors=True)
+        tmp.mkdir()
+        for k in range(0, frames, step):
+            for suffix in (".color.png", POSE_SUFFIX):
+                shutil.copy(images / f"frame-{k:06d}{suffix}", tmp)
+        tmp.rename(sub)
+    return sub
+
+
 def rendered_set(work: Path, scene: str, frames: int, width: int, height: int,
                  seed: int = 0, step: int = 1, textured_every: int = 1,
                  name: str | None = None) -> ImageSet:
     """One rendered scene (7-Scenes layout, cached in ``work``) as a set: every ``step``-th of
     ``frames`` frames of one sweep; ``textured_every`` > 1 renders it low-texture (plain room,
     only every k-th object textured; :func:`posernet.data.render.render_sevenscenes`)."""
-    import shutil
 
     from posernet.data.render import render_intrinsics, render_sevenscenes
 
@@ -272,18 +290,7 @@ def rendered_set(work: Path, scene: str, frames: int, width: int, height: int,
                            frames_per_sequence=frames, width=width, height=height, focal=focal,
                            overwrite=True, progress=False, textured_every=textured_every)
     intr = ",".join(f"{v:g}" for v in render_intrinsics(folder / scene))
-    images = folder / scene / "seq-01"
-    if step > 1:  # the chosen frames (colour and pose) in a folder of their own
-        sub = folder / f"every{step}"
-        if not sub.is_dir():
-            tmp = folder / f".every{step}.tmp"
-            shutil.rmtree(tmp, ignore_errors=True)
-            tmp.mkdir()
-            for k in range(0, frames, step):
-                for suffix in (".color.png", POSE_SUFFIX):
-                    shutil.copy(images / f"frame-{k:06d}{suffix}", tmp)
-            tmp.rename(sub)
-        images = sub
+    images = every_step(folder, folder / scene / "seq-01", frames, step)
     s = load_set(name or f"rendered-{scene}", images, intr)
     texture = "" if textured_every == 1 else (
         f", low texture (plain room, one object in {textured_every} textured)")
@@ -298,7 +305,6 @@ def ring_set(work: Path, frames: int, step: int = 1, background: bool = True,
     """A plain object rendered from ``frames`` views round it (cached in ``work``;
     :func:`posernet.data.render.render_object_ring`) as a set: every ``step``-th view;
     ``background``: in a textured room, else in a plain bare one."""
-    import shutil
 
     from posernet.data.render import render_intrinsics, render_object_ring
 
@@ -307,20 +313,9 @@ def ring_set(work: Path, frames: int, step: int = 1, background: bool = True,
         render_object_ring(folder / "all", frames, background=background, overwrite=True,
                            progress=False)
     intr = ",".join(f"{v:g}" for v in render_intrinsics(folder / "all"))
-    images = folder / "all"
-    if step > 1:
-        sub = folder / f"every{step}"
-        if not sub.is_dir():
-            tmp = folder / f".every{step}.tmp"
-            shutil.rmtree(tmp, ignore_errors=True)
-            tmp.mkdir()
-            for k in range(0, frames, step):
-                for suffix in (".color.png", POSE_SUFFIX):
-                    shutil.copy(images / f"frame-{k:06d}{suffix}", tmp)
-            tmp.rename(sub)
-        images = sub
+    images = every_step(folder, folder / "all", frames, step)
     s = load_set(name or folder.name, images, intr)
-    kept = f"every {step}th of {frames} views" if step > 1 else f"{frames} views"
+    kept = f"one view in {step} of {frames}" if step > 1 else f"{frames} views"
     s.source = (f"posernet.data.render.render_object_ring: a plain cabinet-like object, {kept} "
                 f"({360 * step / frames:g} deg apart) on a ring 1.5 m round it, "
                 + ("in a textured room" if background else "in a plain bare room"))

@@ -652,9 +652,13 @@ _OURS = re.compile(r"^frame-\d+\.(color\.png|depth\.png|pose\.txt)$")
 
 
 def _clear_scene(folder: Path) -> None:
-    """Remove what a previous render wrote (and nothing else) before overwriting."""
+    """Remove what a previous render wrote (and nothing else) before overwriting: the frames
+    of the folder itself (:func:`render_object_ring`) and of its ``seq-*`` folders."""
     for name in ("TrainSplit.txt", "TestSplit.txt", "objects.json", "render.json"):
         (folder / name).unlink(missing_ok=True)
+    for f in folder.iterdir():
+        if f.is_file() and _OURS.match(f.name):
+            f.unlink()
     for seq in folder.glob("seq-*"):
         if seq.is_dir():
             for f in seq.iterdir():
@@ -662,6 +666,21 @@ def _clear_scene(folder: Path) -> None:
                     f.unlink()
             if not any(seq.iterdir()):
                 seq.rmdir()
+
+
+def _render_folder(folder: Path, overwrite: bool) -> Path:
+    """``folder``, made; one that holds files only with ``overwrite`` (a previous render's
+    files are removed then, nothing else)."""
+    if folder.exists() and not folder.is_dir():
+        raise FileExistsError(f"{folder} exists and is not a folder")
+    if folder.is_dir() and any(folder.iterdir()):
+        if not overwrite:
+            raise FileExistsError(
+                f"scene folder {folder} is not empty; pass overwrite=True to render over it"
+            )
+        _clear_scene(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    return folder
 
 
 def _check_int(name: str, v: object, lo: int) -> int:
@@ -719,16 +738,7 @@ def render_sevenscenes(
         raise ValueError(f"focal must be a positive number, got {focal!r}")
     if min_visible_px is None:
         min_visible_px = max(8, round(_MIN_PX_640 * width * height / (640 * 480)))
-    folder = Path(root) / (name or scene)
-    if folder.exists() and not folder.is_dir():
-        raise FileExistsError(f"{folder} exists and is not a folder")
-    if folder.is_dir() and any(folder.iterdir()):
-        if not overwrite:
-            raise FileExistsError(
-                f"scene folder {folder} is not empty; pass overwrite=True to render over it"
-            )
-        _clear_scene(folder)
-    folder.mkdir(parents=True, exist_ok=True)
+    folder = _render_folder(Path(root) / (name or scene), overwrite)
 
     geometry = build_scene(scene, make_rng(seed, scene, "layout"))
     renderer = Renderer(geometry, seed, width, height, float(focal), supersample,
@@ -855,17 +865,7 @@ def render_object_ring(
     for name, v in (("radius", radius), ("camera_height", camera_height), ("focal", focal)):
         if not (np.isfinite(v) and v > 0):
             raise ValueError(f"{name} must be a positive number, got {v!r}")
-    folder = Path(root)
-    if folder.exists() and not folder.is_dir():
-        raise FileExistsError(f"{folder} exists and is not a folder")
-    if folder.is_dir() and any(folder.iterdir()):
-        if not overwrite:
-            raise FileExistsError(f"folder {folder} is not empty; pass overwrite=True to render "
-                                  "over it")
-        for f in folder.iterdir():
-            if f.is_file():
-                f.unlink()
-    folder.mkdir(parents=True, exist_ok=True)
+    folder = _render_folder(Path(root), overwrite)
     scene = object_ring_scene(seed, background)
     plain = frozenset(range(3)) if background else frozenset(range(scene.num_objects))
     renderer = Renderer(scene, seed, width, height, float(focal), 1,
