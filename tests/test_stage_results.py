@@ -233,3 +233,42 @@ def test_trajectory_table_from_plain_poses() -> None:
     rows = [ln for ln in text.splitlines() if ln.startswith("| APE")]
     assert rows and float(rows[0].split("|")[2]) == pytest.approx(0.0, abs=1e-6)
     assert trajectory_table({k: gt[k] for k in ("c0", "c1")}, gt) is None
+
+
+def test_a_block_nothing_ties_to_the_rest_is_a_component_of_its_own_everywhere(tmp_path):
+    """Cameras 0-2 tied by a triangle of pairs; camera 3 joined to them by one pair whose
+    points no third camera sees, and camera 4 to camera 3 by another: the pair (3, 4) is a
+    block of its own. The self-check splits it off into a component (not unsolved), and the
+    split shows the same way in poses.json, the COLMAP models and the one-line summary."""
+    from posernet.reconstruction import write_colmap_models
+    from posernet.sfm.selfcheck import CheckOptions
+
+    view, _ = _hand_made(tmp_path)
+    keep = {(0, 1): range(0, 60), (1, 2): range(0, 60), (0, 2): range(0, 60),
+            (2, 3): range(60, 90), (3, 4): range(90, 120)}
+    pairs = {}
+    for k, pm in view.matches.pairs.items():
+        if k in keep:
+            idx = np.asarray(keep[k])
+            geo = dataclasses.replace(pm.geometry, inliers=np.stack([idx, idx], 1))
+            pairs[k] = PairMatches(geo, pm.matches.subset(idx))
+    view = assemble_frontend_result(view.records, MatchResult(view.matches.images, pairs),
+                                    PairSelection(sorted(pairs), "exhaustive", 1, N, [], 0.0))
+    rec = solve_view_graph(view, None, get_backend("rotation_translation"),
+                           check=CheckOptions(min_single_pair_inliers=20))
+    check = rec.check
+    assert check.passed.all() and check.split.tolist() == [False] * 3 + [True] * 2
+    assert "2 of them in 1 component(s) of their own" in check.line()
+    record = poses_json(rec)
+    comps = [c["component"] for c in record["cameras"].values()]
+    assert comps[:3] == [comps[0]] * 3 and comps[3] == comps[4] != comps[0]
+    assert all("component of its own" in c["note"] for c in list(record["cameras"].values())[3:])
+    assert record["self_check"]["split"] == {"cam3.png": 1, "cam4.png": 1}
+    models = write_colmap_models(tmp_path / "sparse", rec)
+    assert len(models) == 2
+    images = [(m / "images.txt").read_text() for m in models]
+    assert "cam0.png" in images[0] and "cam3.png" not in images[0]
+    assert "cam3.png" in images[1] and "cam4.png" in images[1] and "cam2.png" not in images[1]
+    points = [sum(1 for ln in (m / "points3D.txt").read_text().splitlines()
+                  if ln and not ln.startswith("#")) for m in models]
+    assert points[1] == 30  # the pair's own points, seen by both of its cameras

@@ -256,8 +256,9 @@ def self_check(rec: Reconstruction, options: CheckOptions | None = None,
     """Hold ``stage`` (default: the final stage) of ``rec`` against its verified pairs and
     (after bundle adjustment) its 3D points, one connected component at a time
     (:func:`posernet.sfm.selfcheck.check_reconstruction`). The cameras that fail become
-    unsolved in ``rec.result.solved[stage]``; the outcome of the final stage is stored in
-    ``rec.check``."""
+    unsolved in ``rec.result.solved[stage]``, and a block of cameras that nothing ties to the
+    rest of its component becomes a component of its own in ``rec.result.component[stage]``;
+    the outcome of the final stage is stored in ``rec.check``."""
     res = rec.result
     final = stage is None or stage == rec.stage
     stage = rec.stage if stage is None else stage
@@ -273,6 +274,9 @@ def self_check(rec: Reconstruction, options: CheckOptions | None = None,
     share, tri = np.full(N, np.nan), np.full(N, np.nan)
     pts = np.zeros(N, np.int64)
     runs = rec.sfm.get(stage, [])
+    part = np.full(N, -1, np.int64)
+    comp_out = comp.clone()
+    next_comp = int(comp.max()) + 1 if comp.numel() else 0
     for c in torch.unique(comp[solved]).tolist():
         members = (solved & (comp == c)).numpy()
         run = next((r for r in runs if r.placed[members].any()), None)
@@ -283,6 +287,13 @@ def self_check(rec: Reconstruction, options: CheckOptions | None = None,
         out = check_reconstruction(poses, members, evidence, *(obs or (None, None, None)),
                                    options=options)
         passed |= out.passed
+        part[members & out.passed] = 0
+        # a block of tied pairs that nothing ties to the rest is a component of its own
+        for k in np.unique(out.part[members & (out.part > 0)]).tolist():
+            block = members & (out.part == k)
+            part[block] = int(part.max(initial=0)) + 1
+            comp_out[torch.from_numpy(block)] = next_comp
+            next_comp += 1
         for i in np.flatnonzero(members):
             reason[i] = out.reason[i]
             share[i], tri[i], pts[i] = out.agreeing_share[i], out.triangulation_deg[i], \
@@ -294,8 +305,9 @@ def self_check(rec: Reconstruction, options: CheckOptions | None = None,
     check = SelfCheck(placed=solved.numpy().copy(), passed=passed, reason=reason,
                       rotation_error_deg=rot, direction_error_deg=dirs, agreeing_share=share,
                       points=pts, triangulation_deg=tri, inlier_share=inl,
-                      options=options or CheckOptions())
+                      options=options or CheckOptions(), part=part)
     res.solved[stage][0] = torch.from_numpy(passed).to(res.solved[stage][0].dtype)
+    res.component[stage][0] = comp_out
     if final:
         rec.check = check
     return check
@@ -644,6 +656,9 @@ def poses_json(rec: Reconstruction, info: dict[str, Any] | None = None) -> dict[
                            "3D points shared with the other cameras")
         elif rec.check is not None and rec.check.reason[i]:
             cam["note"] = "failed the self-check: " + rec.check.reason[i]
+        elif rec.check is not None and placed and bool(rec.check.split[i]):
+            cam["note"] = ("a component of its own: nothing ties its distance to the other "
+                           "cameras of its image pairs (split off by the self-check)")
         cams[r.key] = cam
     keys = [r.key for r in rec.frontend.records]
     edges = []
@@ -681,12 +696,37 @@ def _component_models(rec: Reconstruction) -> Iterator[tuple[Any, np.ndarray, np
     res = rec.result
     poses = res.absolute[rec.stage][0].double()
     solved = res.solved[rec.stage][0].bool().numpy()
-    for r in sorted(rec.sfm.get(rec.stage, []), key=lambda r: -int((r.refined & solved).sum())):
-        cams = np.flatnonzero(r.refined & solved)
-        if cams.size < 2 or r.points.shape[0] == 0:
+    comp = res.component[rec.stage][0].numpy()
+    models = []
+    for r in rec.sfm.get(rec.stage, []):
+        # one adjustment may hold several components: the self-check splits off blocks that
+        # nothing ties to the rest; each gets its own model, with the points its cameras see
+        for c in np.unique(comp[r.placed & solved]).tolist():
+            mine = r.placed & solved & (comp == c)
+            cams = np.flatnonzero(r.refined & mine)
+            if cams.size < 2 or r.points.shape[0] == 0:
+                continue
+            models.append((r if mine.sum() == (r.placed & solved).sum() else
+                           _run_subset(r, mine), cams, np.flatnonzero(mine)[0]))
+    for r, cams, gauge in sorted(models, key=lambda m: -m[1].size):
+        if r.points.shape[0] == 0:
             continue
-        M = poses[np.flatnonzero(r.placed & solved)[0]].numpy()  # the gauge camera
+        M = poses[gauge].numpy()  # the gauge camera: its component's first
         yield r, cams, r.points @ M[:3, :3].T + M[:3, 3]
+
+
+def _run_subset(r: Any, cams: np.ndarray) -> Any:
+    """Bundle adjustment result ``r`` cut to the cameras ``cams (N,)``: their observations, and
+    the points two of them see (renumbered)."""
+    keep = cams[r.obs_image]
+    seen = np.bincount(r.obs_point[keep], minlength=r.points.shape[0])
+    point_ok = seen >= 2
+    keep &= point_ok[r.obs_point]
+    new_id = np.cumsum(point_ok) - 1
+    return dataclasses.replace(r, points=r.points[point_ok],
+                               point_track=r.point_track[point_ok],
+                               obs_image=r.obs_image[keep], obs_keypoint=r.obs_keypoint[keep],
+                               obs_point=new_id[r.obs_point[keep]])
 
 
 def _keypoints(rec: Reconstruction) -> list[np.ndarray]:

@@ -244,25 +244,41 @@ def _two_view_tracks(sc):
     return pts, img[keep], pid[keep]
 
 
-def test_cameras_whose_distance_nothing_ties_fail(ring) -> None:
+def _blocks_are_pairs(out, ev) -> None:
+    """Every split-off block is two cameras joined by a verified pair; a camera left out
+    fails because each camera it has a pair with is already in a block."""
+    pairs = {tuple(sorted(p)) for p in ev.pairs.tolist()}
+    for k in range(1, int(out.part.max()) + 1):
+        cams = np.flatnonzero(out.part == k)
+        assert cams.size == 2 and tuple(cams) in pairs
+    for i in np.flatnonzero(~out.passed):
+        assert "distance to the other cameras is not fixed" in out.reason[i]
+        assert all(out.passed[j] for p in pairs if i in p for j in p if j != i)
+
+
+def test_cameras_whose_distance_nothing_ties_split_off(ring) -> None:
     """On the ring (pairs between neighbours only, no triangle) the 3D points tie the pairs'
-    distances together: every camera passes, including the two at an untied joint (their pairs
-    into the block cross). Cut every point to two views and no pair is tied to another: only
-    the pair with the most inliers keeps its cameras, the rest fail with the reason; the
-    check off (scale_links=0) passes them all."""
+    distances together: every camera passes in one block, including the two at an untied
+    joint (their pairs into the block cross). Cut every point to two views and no pair is
+    tied to another: the pair with the most inliers is the component's block, every further
+    pair of cameras not yet in a block is a component of its own, and a camera left alone
+    fails with the reason; the check off (scale_links=0) passes them all in one."""
     ev = evidence(ring)
     out = check_reconstruction(ring.w2c, np.ones(12, bool), ev, *structure(ring))
-    assert out.passed.all()
+    assert out.passed.all() and (out.part == 0).all() and not out.split.any()
     two = _two_view_tracks(ring)
     assert np.bincount(two[2]).max() == 2
     out = check_reconstruction(ring.w2c, np.ones(12, bool), ev, *two)
     best = ev.pairs[np.argmax(ev.weight)]
-    assert out.passed.tolist() == [i in best for i in range(12)]
-    assert all("distance to the other cameras is not fixed" in out.reason[i]
-               for i in range(12) if i not in best)
+    assert np.flatnonzero(out.part == 0).tolist() == sorted(best.tolist())
+    assert out.split.sum() >= 8 and out.passed.sum() == (out.part >= 0).sum()
+    _blocks_are_pairs(out, ev)
+    assert "component(s) of their own" in out.line()
+    assert set(out.to_dict([str(i) for i in range(12)])["split"]) == {
+        str(i) for i in np.flatnonzero(out.split)}
     out = check_reconstruction(ring.w2c, np.ones(12, bool), ev, *two,
                                options=CheckOptions(scale_links=0))
-    assert out.passed.all()
+    assert out.passed.all() and (out.part == 0).all()
 
 
 def test_a_triangle_or_crossing_pairs_tie_cameras_without_shared_points(ring) -> None:
@@ -277,8 +293,10 @@ def test_a_triangle_or_crossing_pairs_tie_cameras_without_shared_points(ring) ->
                        rotation_only=np.zeros(len(pairs), bool),
                        weight=np.concatenate([ev.weight, [1000.0]]))
     out = check_reconstruction(ring.w2c, np.ones(12, bool), tri, *_two_view_tracks(ring))
-    # the block {0, 1, 2}; camera 11 (pairs to 0 only) and 3 (to 2 only) hang on one line
-    assert out.passed.tolist() == [i in (0, 1, 2) for i in range(12)]
+    # the block {0, 1, 2}; camera 11 (pairs to 0 only) and 3 (to 2 only) hang on one line:
+    # not in it (the chain 3 ... 11 splits into components of two)
+    assert (out.part == 0).tolist() == [i in (0, 1, 2) for i in range(12)]
+    _blocks_are_pairs(out, tri)
     # camera 3 with a second pair into the block, to camera 1: it sits where the lines meet
     pairs4 = np.concatenate([pairs, [(1, 3)]])
     R13 = ring.w2c[3, :3, :3] @ ring.w2c[1, :3, :3].T
@@ -288,4 +306,61 @@ def test_a_triangle_or_crossing_pairs_tie_cameras_without_shared_points(ring) ->
                          rotation_only=np.zeros(len(pairs4), bool),
                          weight=np.concatenate([tri.weight, [1000.0]]))
     out = check_reconstruction(ring.w2c, np.ones(12, bool), cross, *_two_view_tracks(ring))
-    assert out.passed.tolist() == [i in (0, 1, 2, 3) for i in range(12)]
+    assert (out.part == 0).tolist() == [i in (0, 1, 2, 3) for i in range(12)]
+    _blocks_are_pairs(out, cross)
+
+
+def _brute_triangulation(w2c, points, obs_image, obs_point, n):
+    """Per camera the median over its observations of the largest angle to another view's
+    ray to the same point, pair by pair."""
+    centre = np.stack([-T[:3, :3].T @ T[:3, 3] for T in w2c])
+    per = [[] for _ in range(n)]
+    for o in range(obs_image.size):
+        p, i = obs_point[o], obs_image[o]
+        r = points[p] - centre[i]
+        angles = []
+        for q in np.flatnonzero(obs_point == p):
+            if q != o:
+                s = points[p] - centre[obs_image[q]]
+                c = r @ s / np.linalg.norm(r) / np.linalg.norm(s)
+                angles.append(np.degrees(np.arccos(np.clip(c, -1, 1))))
+        if angles:
+            per[i].append(max(angles))
+    return np.array([np.median(a) if a else np.nan for a in per])
+
+
+def test_triangulation_angle_is_the_widest_pair_of_rays() -> None:
+    """Cameras on an arc (rays of a point spread along one direction): the angles equal the
+    pair-by-pair largest angle, and the middle one of three views at equal angles either
+    side gets the angle to them, not the ~0 to their mean ray."""
+    from posernet.sfm.selfcheck import triangulation_angles
+
+    rng = np.random.default_rng(3)
+    n = 7
+    a = np.radians(np.linspace(-45, 45, n))
+    w2c = []
+    for t in a:
+        c = np.array([4 * np.sin(t), 0.0, -4 * np.cos(t)])
+        z = -c / np.linalg.norm(c)
+        x = np.cross([0.0, -1.0, 0.0], z)
+        x /= np.linalg.norm(x)
+        R = np.stack([x, np.cross(z, x), z])
+        w2c.append(np.block([[R, (-R @ c)[:, None]], [np.zeros((1, 3)), 1]]))
+    w2c = np.stack(w2c)
+    points = rng.uniform(-0.5, 0.5, (60, 3)) * [1, 1, 0.01]  # near the plane of the arc
+    obs_image, obs_point = [], []
+    for p in range(60):
+        start = rng.integers(0, n - 1)
+        views = np.arange(start, min(n, start + rng.integers(2, 5)))
+        obs_image += views.tolist()
+        obs_point += [p] * views.size
+    obs_image, obs_point = np.array(obs_image), np.array(obs_point)
+    counts, med = triangulation_angles(w2c, points, obs_image, obs_point, n)
+    np.testing.assert_array_equal(counts, np.bincount(obs_image, minlength=n))
+    np.testing.assert_allclose(med, _brute_triangulation(w2c, points, obs_image, obs_point, n),
+                               atol=0.05)
+    # three views 15 deg apart, the point seen by all three: the middle one's angle is 15
+    three = np.array([2, 3, 4])
+    _, med = triangulation_angles(w2c, np.zeros((1, 3)), three, np.zeros(3, np.int64), n)
+    np.testing.assert_allclose(med[three], [30, 15, 30], atol=0.01)
+    assert np.isnan(med[[0, 1, 5, 6]]).all()

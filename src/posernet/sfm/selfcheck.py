@@ -34,9 +34,12 @@ pass these checks first (:func:`check_reconstruction`):
   (``scale_links`` of them). On a chain of pairs whose points stop at two views (a sparse
   ring, views matched by different matchers), the next camera's distance is free: the answer
   there is whatever the solvers chose, right on an evenly spaced turntable, wrong elsewhere.
-  Only the largest block of tied pairs (most cameras, then most inliers) keeps its cameras,
-  with every camera whose pairs into the block cross (two known lines meet at it); a
-  rotation-only pair ties its cameras to one centre and so to any block.
+  The largest block of tied pairs (most cameras, then most inliers) keeps its cameras in the
+  component, with every camera whose pairs into the block cross (two known lines meet at it);
+  a rotation-only pair ties its cameras to one centre and so to any block. The next largest
+  block among the cameras left, and so on, is a component of its own (``part`` 1, 2, ...):
+  its cameras are right among themselves, only their distance to the others is free, as
+  between two models of an incremental mapper. A camera in no block of two or more fails.
 
 A camera that fails is reported unsolved with its reason. The run has verified itself when
 at least two cameras pass.
@@ -166,6 +169,15 @@ class SelfCheck:
     triangulation_deg: np.ndarray
     inlier_share: np.ndarray = field(default_factory=lambda: np.zeros(0))
     options: CheckOptions = field(default_factory=CheckOptions)
+    #: ``(N,)`` the block of tied pairs a passing camera belongs to: 0 the largest (the
+    #: component's frame), k >= 1 a further block that nothing ties to it (a component of its
+    #: own); -1 for a camera that did not pass
+    part: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+
+    @property
+    def split(self) -> np.ndarray:
+        """``(N,)`` passing cameras split off into components of their own."""
+        return self.passed & (self.part > 0) if self.part.size else np.zeros_like(self.passed)
 
     @property
     def failed(self) -> np.ndarray:
@@ -184,20 +196,32 @@ class SelfCheck:
             return (f"self-check: could not verify the reconstruction: {int(self.passed.sum())}"
                     f" of {n_placed} placed cameras agree with their verified image pairs and "
                     "3D points; none is reported as placed")
+        n_split = int(self.split.sum())
+        split = (f"; {n_split} of them in {self.split_parts} component(s) of their own (nothing "
+                 "ties their distance to the other cameras)") if n_split else ""
         if not n_fail:
-            return f"self-check: all {n_placed} placed cameras agree with their evidence"
+            return f"self-check: all {n_placed} placed cameras agree with their evidence{split}"
         idx = np.flatnonzero(self.failed)
         label = [names[i] if names is not None else str(i) for i in idx[:3]]
         more = f" and {n_fail - 3} more" if n_fail > 3 else ""
         first = "; ".join(f"{n}: {self.reason[i]}" for n, i in zip(label, idx[:3], strict=False))
+        split = (f"; of the {n_placed - n_fail} that passed, {n_split} are in "
+                 f"{self.split_parts} component(s) of their own (nothing ties their distance to "
+                 "the other cameras)") if n_split else ""
         return (f"self-check: {n_fail} of {n_placed} placed cameras failed and are reported "
-                f"unsolved ({first}{more})")
+                f"unsolved ({first}{more}){split}")
+
+    @property
+    def split_parts(self) -> int:
+        """How many components of their own the split cameras form."""
+        return int(np.unique(self.part[self.split]).size) if self.split.any() else 0
 
     def to_dict(self, names: Sequence[str]) -> dict:
         """JSON-ready per-camera record (failed cameras with their reasons)."""
         return {"verified": self.verified, "placed_before": int(self.placed.sum()),
                 "passed": int(self.passed.sum()),
                 "failed": {names[i]: self.reason[i] for i in np.flatnonzero(self.failed)},
+                "split": {names[i]: int(self.part[i]) for i in np.flatnonzero(self.split)},
                 "options": {k: getattr(self.options, k) for k in
                             self.options.__dataclass_fields__}}
 
@@ -273,24 +297,34 @@ def inlier_shares(w2c: np.ndarray, evidence: PairEvidence, max_px: float) -> np.
 def triangulation_angles(w2c: np.ndarray, points: np.ndarray, obs_image: np.ndarray,
                          obs_point: np.ndarray, num_cameras: int
                          ) -> tuple[np.ndarray, np.ndarray]:
-    """Per camera: points it sees ``(N,)`` and the median over its observations of the angle
-    (deg) between its ray and the mean of the other views' rays to the same point ``(N,)``
-    (NaN for a camera without observations)."""
+    """Per camera: points it sees ``(N,)`` and the median over its observations of the
+    largest angle (deg) between its ray and another view's ray to the same point ``(N,)``
+    (NaN for a camera without observations of points seen twice).
+
+    The largest angle is taken against the two extreme rays of each point (the ray furthest
+    from the rays' mean, and the ray furthest from that one): exact where a point's rays
+    spread along one direction (a camera path), close otherwise, in time linear in the
+    observations. Not the angle to the mean of the other rays: for a camera between two
+    views at equal angles either side, that mean lies along its own ray."""
     N = num_cameras
     counts = np.bincount(obs_image, minlength=N)
     med = np.full(N, np.nan)
     if obs_image.size == 0:
         return counts, med
+    P = points.shape[0]
     R, t = w2c[:, :3, :3], w2c[:, :3, 3]
     centre = -np.einsum("nji,nj->ni", R, t)
     ray = points[obs_point] - centre[obs_image]
     ray /= np.maximum(np.linalg.norm(ray, axis=1, keepdims=True), 1e-300)
-    total = np.zeros((points.shape[0], 3))
-    np.add.at(total, obs_point, ray)
-    others = total[obs_point] - ray
-    n_o = np.linalg.norm(others, axis=1)
-    cos = np.einsum("oi,oi->o", ray, others) / np.maximum(n_o, 1e-300)
-    ang = np.where(n_o > 1e-12, _angle_deg(cos), np.nan)
+    mean = np.zeros((P, 3))
+    np.add.at(mean, obs_point, ray)
+    # the ray furthest from the mean, then the ray furthest from that one
+    first = ray[_argmin_per_group(np.einsum("oi,oi->o", ray, mean[obs_point]), obs_point, P)]
+    to_first = np.einsum("oi,oi->o", ray, first[obs_point])
+    second = ray[_argmin_per_group(to_first, obs_point, P)]
+    cos = np.minimum(to_first, np.einsum("oi,oi->o", ray, second[obs_point]))
+    seen = np.bincount(obs_point, minlength=P)[obs_point]
+    ang = np.where(seen >= 2, _angle_deg(np.clip(cos, -1.0, 1.0)), np.nan)
     order = np.argsort(obs_image, kind="stable")
     img_sorted = obs_image[order]
     bounds = np.searchsorted(img_sorted, np.arange(N + 1))
@@ -301,6 +335,18 @@ def triangulation_angles(w2c: np.ndarray, points: np.ndarray, obs_image: np.ndar
         if vals.size:
             med[i] = float(np.median(vals))
     return counts, med
+
+
+def _argmin_per_group(values: np.ndarray, group: np.ndarray, G: int) -> np.ndarray:
+    """``(G,)`` the index into ``values (O,)`` of each group's smallest value (``group (O,)``
+    in ``[0, G)``; 0 for a group without members)."""
+    order = np.lexsort((values, group))
+    at = np.searchsorted(group[order], np.arange(G))
+    out = np.zeros(G, np.int64)
+    ok = at < order.size
+    ok[ok] &= group[order[at[ok]]] == np.arange(G)[ok]
+    out[ok] = order[at[ok]]
+    return out
 
 
 def check_reconstruction(w2c: np.ndarray, placed: np.ndarray, evidence: PairEvidence,
@@ -423,11 +469,12 @@ def check_reconstruction(w2c: np.ndarray, placed: np.ndarray, evidence: PairEvid
                     reason[i] = (f"its centre coincides with camera {int(j)}'s although "
                                  "their verified pair has a baseline (collapsed)")
 
+    part = np.where(ok, 0, -1)
     if opt.scale_links and E and points is not None:
         live = ok[a] & ok[b]
-        block = _tied_block(w2c, evidence, live & agree, obs_image, obs_point,
+        part = _tied_blocks(w2c, evidence, live & agree, obs_image, obs_point,
                             opt.scale_links, N)
-        for i in np.flatnonzero(ok & ~block):
+        for i in np.flatnonzero(ok & (part < 0)):
             ok[i] = False
             reason[i] = ("its distance to the other cameras is not fixed: no triangle of "
                          "verified pairs and no 3D point seen with a third camera ties its "
@@ -440,11 +487,30 @@ def check_reconstruction(w2c: np.ndarray, placed: np.ndarray, evidence: PairEvid
             reason[i] = "no other camera passed the checks"
     return SelfCheck(placed=placed, passed=ok, reason=reason, rotation_error_deg=rot_err,
                      direction_error_deg=dir_err, agreeing_share=share, points=n_pts,
-                     triangulation_deg=tri, inlier_share=inl, options=opt)
+                     triangulation_deg=tri, inlier_share=inl, options=opt,
+                     part=np.where(ok, part, -1))
 
 
 #: a camera outside the block joins when its pairs into the block cross at this angle or more
 _MIN_CROSSING_DEG = 10.0
+
+
+def _tied_blocks(w2c: np.ndarray, evidence: PairEvidence, use: np.ndarray,
+                 obs_image: np.ndarray | None, obs_point: np.ndarray | None, links: int,
+                 N: int) -> np.ndarray:
+    """``(N,)`` the block of tied pairs ``use (E,)`` each camera belongs to: 0 the largest
+    (:func:`_tied_block`), then 1, 2, ... the largest among the pairs whose cameras no earlier
+    block holds, while such a block has two cameras or more; -1 for the rest."""
+    part = np.full(N, -1, np.int64)
+    use = use.copy()
+    for k in range(N):
+        block = _tied_block(w2c, evidence, use, obs_image, obs_point, links, N)
+        if int(block.sum()) < 2:
+            break
+        part[block] = k
+        taken = part >= 0
+        use &= ~(taken[evidence.pairs[:, 0]] | taken[evidence.pairs[:, 1]])
+    return part
 
 
 def _tied_block(w2c: np.ndarray, evidence: PairEvidence, use: np.ndarray,
