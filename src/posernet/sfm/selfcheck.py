@@ -319,9 +319,10 @@ def triangulation_angles(w2c: np.ndarray, points: np.ndarray, obs_image: np.ndar
     mean = np.zeros((P, 3))
     np.add.at(mean, obs_point, ray)
     # the ray furthest from the mean, then the ray furthest from that one
-    first = ray[_argmin_per_group(np.einsum("oi,oi->o", ray, mean[obs_point]), obs_point, P)]
+    argmin = _ArgminPerGroup(obs_point, P)
+    first = ray[argmin(np.einsum("oi,oi->o", ray, mean[obs_point]))]
     to_first = np.einsum("oi,oi->o", ray, first[obs_point])
-    second = ray[_argmin_per_group(to_first, obs_point, P)]
+    second = ray[argmin(to_first)]
     cos = np.minimum(to_first, np.einsum("oi,oi->o", ray, second[obs_point]))
     seen = np.bincount(obs_point, minlength=P)[obs_point]
     ang = np.where(seen >= 2, _angle_deg(np.clip(cos, -1.0, 1.0)), np.nan)
@@ -337,16 +338,27 @@ def triangulation_angles(w2c: np.ndarray, points: np.ndarray, obs_image: np.ndar
     return counts, med
 
 
-def _argmin_per_group(values: np.ndarray, group: np.ndarray, G: int) -> np.ndarray:
-    """``(G,)`` the index into ``values (O,)`` of each group's smallest value (``group (O,)``
-    in ``[0, G)``; 0 for a group without members)."""
-    order = np.lexsort((values, group))
-    at = np.searchsorted(group[order], np.arange(G))
-    out = np.zeros(G, np.int64)
-    ok = at < order.size
-    ok[ok] &= group[order[at[ok]]] == np.arange(G)[ok]
-    out[ok] = order[at[ok]]
-    return out
+class _ArgminPerGroup:
+    """For values ``(O,)`` of observations in groups ``group (O,)`` (in ``[0, G)``): ``(G,)``
+    the index of an observation with its group's smallest value (0 for an empty group). The
+    grouping is sorted once; each call is linear."""
+
+    def __init__(self, group: np.ndarray, G: int) -> None:
+        self.order = np.argsort(group, kind="stable")
+        self.sorted = group[self.order]
+        self.starts = np.flatnonzero(np.r_[True, self.sorted[1:] != self.sorted[:-1]])
+        self.sizes = np.diff(np.r_[self.starts, self.sorted.size])
+        self.G = G
+
+    def __call__(self, values: np.ndarray) -> np.ndarray:
+        out = np.zeros(self.G, np.int64)
+        if not self.sorted.size:
+            return out
+        v = values[self.order]
+        low = np.repeat(np.minimum.reduceat(v, self.starts), self.sizes)
+        hit = v <= low
+        out[self.sorted[hit]] = self.order[hit]  # any observation at its group's minimum
+        return out
 
 
 def check_reconstruction(w2c: np.ndarray, placed: np.ndarray, evidence: PairEvidence,
