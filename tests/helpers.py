@@ -79,3 +79,14 @@ def errors(poses, graph_or_batch, alignment="rigid"):
         nb = torch.zeros(b.num_nodes, dtype=torch.long)
     B = getattr(b, "num_graphs", 1) if isinstance(b, GraphBatch) else 1
     return absolute_pose_errors(poses, b.pose_gt, nb, B, alignment=alignment)
+
+
+def as_from_a_terminal() -> None:
+    """``preexec_fn`` of a child that a test interrupts with SIGINT: the signal handled and
+    unblocked, as in a command started from a terminal. A child inherits an ignored or
+    blocked SIGINT from the test runner's process (a parallel worker may have either), and
+    would then sleep through the interrupt the test sends."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})

@@ -330,8 +330,11 @@ def test_ctrl_c_while_a_command_imports_is_one_line():
               "threading.Timer(0.3, os.kill, (os.getpid(), signal.SIGINT)).start()\n"
               "import posernet, time\n"
               "time.sleep(30)\n")
+    from helpers import as_from_a_terminal
+
     r = subprocess.run([sys.executable, "-c", script.format(prog="/venv/bin/posernet-x")],
-                       capture_output=True, text=True, timeout=120)
+                       capture_output=True, text=True, timeout=120,
+                       preexec_fn=as_from_a_terminal)
     assert (r.returncode, r.stderr) == (130, "posernet-x: interrupted\n")
     # another program importing posernet keeps Python's own handler (what a Ctrl-C does
     # inside a third-party import then is that library's business: checked without a signal)

@@ -209,9 +209,12 @@ def test_every_command_has_rows() -> None:
 def _interrupt_when(cmd: list[str], ready, cwd: Path) -> subprocess.CompletedProcess[str]:
     """Start ``cmd`` in its own process group, send SIGINT to the group (what Ctrl-C does in
     a terminal) once ``ready()`` holds, and wait."""
+    from helpers import as_from_a_terminal
+
     p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                          cwd=cwd, start_new_session=True,
-                         env={**os.environ, "OMP_NUM_THREADS": "1"})
+                         env={**os.environ, "OMP_NUM_THREADS": "1"},
+                         preexec_fn=as_from_a_terminal)
     deadline = time.monotonic() + 120
     while not ready() and p.poll() is None and time.monotonic() < deadline:
         time.sleep(0.02)

@@ -386,8 +386,11 @@ def test_ctrl_c_is_one_line_and_the_same_command_resumes(scene, tmp_path):
     cmd = [str(BIN / "posernet-reconstruct"), f"images={scene / 'seq-01'}",
            f"intrinsics={_intr(scene)}", f"out_dir={out}", "matcher=sift", "pictures=0",
            "workers=1", "progress=false"]
+    from helpers import as_from_a_terminal
+
     p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                         start_new_session=True, env=dict(os.environ, OMP_NUM_THREADS="1"))
+                         start_new_session=True, env=dict(os.environ, OMP_NUM_THREADS="1"),
+                         preexec_fn=as_from_a_terminal)
     deadline = time.monotonic() + 300
     while _cache_entries(out)["pairs"] < 3 and p.poll() is None and time.monotonic() < deadline:
         time.sleep(0.01)
