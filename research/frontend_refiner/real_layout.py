@@ -12,7 +12,9 @@ import cv2
 
 REAL = Path(__file__).resolve().parents[2] / "benchmarks" / "data" / "real"
 SETS = {"redkitchen": "7scenes_redkitchen", "fountain": "strecha_fountain_p11",
-        "herzjesu": "strecha_herzjesu_p25", "dino": "middlebury_dino_sparse_ring"}
+        "herzjesu": "strecha_herzjesu_p25", "dino": "middlebury_dino_sparse_ring",
+        "redkitchenwide": "7scenes_redkitchen_wide", "squirrel": "squirrel_turntable",
+        "entry": "strecha_entry_p10"}
 
 
 def main(out: Path) -> None:
