@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -279,6 +281,16 @@ def test_cameras_whose_distance_nothing_ties_split_off(ring) -> None:
     out = check_reconstruction(ring.w2c, np.ones(12, bool), ev, *two,
                                options=CheckOptions(scale_links=0))
     assert out.passed.all() and (out.part == 0).all()
+    # inside a block of its own the thin-support rule holds again: a pair of 30 inliers is
+    # not enough for a component of two (across the ring each camera had two pairs)
+    weak = dataclasses.replace(ev, weight=np.where(np.arange(len(ev.weight)) ==
+                                                   np.argmax(ev.weight), ev.weight, 30.0))
+    out = check_reconstruction(ring.w2c, np.ones(12, bool), weak, *two)
+    assert np.flatnonzero(out.part == 0).tolist() == sorted(best.tolist())
+    assert not out.split.any() and out.passed.sum() == 2
+    thin = [i for i in range(12) if "component of its own" in out.reason[i]]
+    assert len(thin) >= 6 and all("30 inliers (< 50)" in out.reason[i] for i in thin)
+    assert all(i in thin or "not fixed" in out.reason[i] for i in np.flatnonzero(~out.passed))
 
 
 def test_a_triangle_or_crossing_pairs_tie_cameras_without_shared_points(ring) -> None:

@@ -491,6 +491,7 @@ def check_reconstruction(w2c: np.ndarray, placed: np.ndarray, evidence: PairEvid
             reason[i] = ("its distance to the other cameras is not fixed: no triangle of "
                          "verified pairs and no 3D point seen with a third camera ties its "
                          "pair to the rest")
+        _thin_blocks(part, ok, reason, live & agree, w, evidence, opt)
 
     share = np.where(placed, share, np.nan)
     if int(ok.sum()) < 2:
@@ -501,6 +502,39 @@ def check_reconstruction(w2c: np.ndarray, placed: np.ndarray, evidence: PairEvid
                      direction_error_deg=dir_err, agreeing_share=share, points=n_pts,
                      triangulation_deg=tri, inlier_share=inl, options=opt,
                      part=np.where(ok, part, -1))
+
+
+def _thin_blocks(part: np.ndarray, ok: np.ndarray, reason: list[str], good: np.ndarray,
+                 w: np.ndarray, evidence: PairEvidence, opt: CheckOptions) -> None:
+    """The thin-support rules again inside each split-off block (``part`` >= 1; ``ok``,
+    ``reason`` and ``part`` updated in place): a camera resting on one agreeing pair of its
+    block needs ``min_single_pair_inliers`` in it and, with ``single_planar_fails``, a pair a
+    homography does not explain; a block left with fewer than two cameras fails."""
+    a, b = evidence.pairs[:, 0], evidence.pairs[:, 1]
+    for k in np.unique(part[part > 0]).tolist():
+        inside = good & (part[a] == k) & (part[b] == k)
+        n_in = np.bincount(a[inside], minlength=part.size) + np.bincount(b[inside],
+                                                                          minlength=part.size)
+        for e in np.flatnonzero(inside):
+            for i in (a[e], b[e]):
+                if n_in[i] != 1 or not ok[i]:
+                    continue
+                if w[e] < opt.min_single_pair_inliers:
+                    why = (f"with {int(w[e])} inliers (< {opt.min_single_pair_inliers}): too "
+                           "few to rule out a two-view ambiguity")
+                elif opt.single_planar_fails and evidence.planar[e]:
+                    why = "whose inliers a homography explains"
+                else:
+                    continue
+                ok[i], part[i] = False, -1
+                reason[i] = ("in a component of its own (nothing ties it to the others), it "
+                             f"rests on one verified image pair {why}")
+        left = np.flatnonzero(part == k)
+        if left.size < 2:
+            for i in left:
+                ok[i], part[i] = False, -1
+                reason[i] = ("in a component of its own (nothing ties it to the others), no "
+                             "other camera of it passed the checks")
 
 
 #: a camera outside the block joins when its pairs into the block cross at this angle or more
