@@ -404,13 +404,10 @@ def main_first_line(record: dict[str, Any]) -> str:
     head = (f"{kind}: the main matcher alone placed {record['placed']} of "
             f"{record['images']} images")
     if record["fallback"] == "ran":
-        line = (f"{head} (< {record['main_first']:.0%}), so the pairs were matched again "
-                "with the fallback")
-        if "fallback_placed" in record:  # older records say no more
-            kept = ("its result is kept" if record.get("kept") == "fallback" else
-                    "the main matcher's result is kept")
-            line += f", which placed {record['fallback_placed']}: {kept}"
-        return line
+        kept = ("its result is kept" if record["kept"] == "fallback" else
+                "the main matcher's result is kept")
+        return (f"{head} (< {record['main_first']:.0%}), so the pairs were matched again "
+                f"with the fallback, which placed {record['fallback_placed']}: {kept}")
     return f"{head} (>= {record['main_first']:.0%}): the fallback was not needed"
 
 
