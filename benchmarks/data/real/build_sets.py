@@ -14,9 +14,12 @@ Derived sparse sets (the trust benchmark's hard cases; same raw inputs, same con
 full Strecha set (views 0, 3, 6, ...: a chain of far-apart views); ``dino_far8`` and
 ``herzjesu_far8`` keep 8 views chosen far apart by greedy farthest-point sampling on the
 viewing direction (:func:`farthest_views`, starting from the first view). The turntable
-squirrel: ``squirrel`` (all 36 views, 10 deg apart) and ``squirrel_far8``. ``trust`` builds
-all seven. ``7scenes_wide``: 100 frames equally spaced in path length over all 1000 frames, the
-pool of the wide-baseline pairs benchmark (``bench_real.py --pairs``).
+squirrel: ``squirrel`` (all 36 views, 10 deg apart) and ``squirrel_far8``, also at the
+camera's full 1280x960 (``squirrel_far8_full``). ``dtu24_far8``: 8 views far apart of DTU MVS
+scan24 at 1600x1200 (``dtu/scan24/``: ``images/`` and ``cameras_sphere.npz`` of
+wqrray/nerf_baseline ``data/dtu_scan24/``). ``trust`` builds all nine. ``7scenes_wide``: 100
+frames equally spaced in path length over all 1000 frames, the pool of the wide-baseline pairs
+benchmark (``bench_real.py --pairs``).
 
     python benchmarks/data/real/build_sets.py dino herzjesu fountain entry 7scenes
     python benchmarks/data/real/build_sets.py trust
@@ -237,6 +240,47 @@ def build_squirrel(raw: Path, name: str = "squirrel_turntable", far: int = 0,
     write_intrinsics(out, Ks)
 
 
+def _decompose(P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(K, c2w) of a 3x4 projection P = K [R | t] (known up to scale): c2w = [R^T | C]."""
+    if np.linalg.det(P[:, :3]) < 0:
+        P = -P
+    K, R, Ch = cv2.decomposeProjectionMatrix(P)[:3]
+    S = np.diag(np.sign(np.diag(K)))  # negative diagonal entries of K folded into R
+    K, R = K @ S, S @ R
+    K = K / K[2, 2]
+    assert np.linalg.det(R) > 0
+    c2w = np.eye(4)
+    c2w[:3, :3], c2w[:3, 3] = R.T, (Ch[:3] / Ch[3]).ravel()
+    return K, c2w
+
+
+def build_dtu(raw: Path, scan: str = "scan24", far: int = 8) -> None:
+    """A DTU MVS scan in the IDR / NeuS layout (``images/000000.png ...``, rectified
+    1600x1200, and ``cameras_sphere.npz`` with ``world_mat_i`` = K [R | t] in the DTU frame,
+    millimetres): ``far`` views by :func:`farthest_views`, full size, named ``rect_NNN`` by
+    their 1-based DTU view number. The scale_mat is not applied (metric poses)."""
+    src = raw / "dtu" / scan
+    out = HERE / f"dtu_{scan}_far{far}"
+    clean(out)
+    cams = np.load(src / "cameras_sphere.npz")
+    files = sorted((src / "images").glob("*.png"))
+    centre = cams["scale_mat_0"][:3, 3]  # the object's centre
+    Ks, views = [], []
+    for i in range(len(files)):
+        K, c2w = _decompose(cams[f"world_mat_{i}"][:3, :4].astype(np.float64))
+        w2c = np.linalg.inv(c2w)
+        assert (w2c[:3, :3] @ centre + w2c[:3, 3])[2] > 0, f"view {i} faces away"
+        Ks.append(K)
+        views.append(c2w)
+    keep = farthest_views(views, far)
+    assert all(np.allclose(Ks[i], Ks[keep[0]], atol=0.5) for i in keep), "per-view K differ"
+    for i in keep:
+        img = cv2.imread(str(files[i]), cv2.IMREAD_COLOR)
+        write_jpeg(out / f"rect_{i + 1:03d}.jpg", img, 92)
+        write_pose(out / f"rect_{i + 1:03d}.pose.txt", views[i])
+    write_intrinsics(out, np.mean([Ks[i] for i in keep], axis=0))
+
+
 def build_cabinet(raw: Path, n_keep: int = 20) -> None:
     """TUM fr3_cabinet key frames (as shipped in benchun123/cuboid_slam_with_bbox_constraints):
     ``truth_cam_poses.txt`` rows ``t tx ty tz qx qy qz qw`` are TUM ground truth, c2w, metres."""
@@ -258,7 +302,7 @@ def build_cabinet(raw: Path, n_keep: int = 20) -> None:
 
 
 TRUST = ("herzjesu_every3", "fountain_every3", "entry_every3", "dino_far8", "herzjesu_far8",
-         "squirrel", "squirrel_far8")
+         "squirrel", "squirrel_far8", "squirrel_far8_full", "dtu24_far8")
 
 
 if __name__ == "__main__":
@@ -295,5 +339,9 @@ if __name__ == "__main__":
             build_squirrel(a.raw)
         elif s == "squirrel_far8":
             build_squirrel(a.raw, "squirrel_turntable_far8", far=8)
+        elif s == "squirrel_far8_full":  # the same views at the camera's own 1280x960
+            build_squirrel(a.raw, "squirrel_turntable_far8_full", far=8, scale=1)
+        elif s == "dtu24_far8":
+            build_dtu(a.raw, "scan24", far=8)
         else:
             raise SystemExit(f"unknown set {s}")

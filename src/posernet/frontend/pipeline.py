@@ -440,9 +440,21 @@ class ImageFrontend:
                 and self._ensure_fallback(b)):
             first.seconds["fallback"] += time.perf_counter() - t0
             second = FrontendSummary()
-            m2, res2 = self._match_verify(a, b, fm.match_fallback, second)
+            screened = []
+            # a matcher may screen its fallback (FallbackMatcher.match_fallback_screened)
+            both = getattr(fm, "match_fallback_screened", None)
+
+            def match(fa: Features, fb: Features) -> Matches:
+                if both is None:
+                    return fm.match_fallback(fa, fb)
+                m, s = both(fa, fb)
+                screened.append(s)
+                return m
+
+            m2, res2 = self._match_verify(a, b, match, second)
             first.seconds["fallback"] += sum(second.seconds.values())
             first.fallback["tried"] += 1
+            first.fallback["screened"] += int(any(screened))
             keep = False
             if res2.is_edge:
                 # its pose must explain SIFT's own matches: two matchers agreeing
