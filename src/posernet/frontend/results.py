@@ -79,8 +79,8 @@ class FrontendSummary:
             sparse = " in a sparse set (any pair may be matched again)" if f.get("sparse") else ""
             out.append(f"fallback matcher: {f['images']} weakly textured images{sparse}, "
                        f"{f['tried']} pairs matched again"
-                       + (f" ({f['screened']} on their best keypoints alone: too few or plenty "
-                          "of matches there)" if f.get("screened") else "")
+                       + (f" ({f['screened']} on their best keypoints alone: too few matches "
+                          "there)" if f.get("screened") else "")
                        + f", {f['kept']} of them kept ({s['fallback']:.1f} s)")
         if self.reused:
             out.append(f"reused from the cache: {self.reused['images']} images, "
