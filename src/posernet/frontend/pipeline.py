@@ -447,7 +447,7 @@ class ImageFrontend:
             def match(fa: Features, fb: Features) -> Matches:
                 if both is None:
                     return fm.match_fallback(fa, fb)
-                m, s = both(fa, fb)
+                m, s = both(fa, fb, screen=len(self.records) > 2)
                 screened.append(s)
                 return m
 
