@@ -164,7 +164,10 @@ class ImageFrontend:
         self._sparse = False  # a sparse set: any pair may get the fallback (fallback_on)
         self._held = False  # the fallback held back: the main matcher alone (hold_fallback)
         self._fallback_lock = threading.Lock()
-        self._augment_lock = threading.Lock()
+        # one lock per image: an image gets its fallback features once, while other images'
+        # are extracted beside it on the other workers
+        self._augment_locks: dict[int, threading.Lock] = {}
+        self._augment_locks_lock = threading.Lock()
         # per image: edges the main matcher verified firmly (None: not counted yet), and the
         # main matcher's attempts kept between the two passes of evaluate_pairs
         self._strong: np.ndarray | None = None
@@ -519,7 +522,9 @@ class ImageFrontend:
         """Give image ``i`` the matcher's fallback features (appended to its own, once; the
         image's cache entry is written again); False when they cannot be made."""
         fm = self.matcher
-        with self._augment_lock:
+        with self._augment_locks_lock:
+            lock = self._augment_locks.setdefault(i, threading.Lock())
+        with lock:
             data = self.image(i)
             if fm.has_fallback(data.features):
                 return True
