@@ -135,7 +135,7 @@ def test_the_fallback_screens_a_pair_on_its_best_keypoints() -> None:
     ref, screened = full.match_fallback_screened(fa, fb)
     assert not screened and len(ref) > 64
     # a screen the pair passes: all keypoints matched, the same matches as without one
-    passes = FallbackMatcher(screen_k=64, screen_matches=10, lighterglue=True)
+    passes = FallbackMatcher(screen_k=64, screen_matches=10, screen_plenty=0, lighterglue=True)
     m, screened = passes.match_fallback_screened(fa, fb)
     assert not screened
     np.testing.assert_array_equal(m.idx_a, ref.idx_a)
@@ -149,6 +149,14 @@ def test_the_fallback_screens_a_pair_on_its_best_keypoints() -> None:
     assert m.idx_a.min() >= na and m.idx_a.max() < na + 64 and m.idx_b.max() < nb + 64
     np.testing.assert_array_equal(m.uv_a, fa.uv[m.idx_a])
     assert len(fails.match_fallback(fa, fb)) == len(m)
+    # a screen with plenty of matches: the pair is matched on its best 2 x screen_k only,
+    # which is what a screen of 64 keypoints found
+    best64 = m
+    plenty = FallbackMatcher(screen_k=32, screen_matches=1, screen_plenty=1, lighterglue=True)
+    m, screened = plenty.match_fallback_screened(fa, fb)
+    assert not screened
+    np.testing.assert_array_equal(m.idx_a, best64.idx_a)
+    np.testing.assert_array_equal(m.idx_b, best64.idx_b)
     # the front end's choice for a set of two images: no screen
     m, screened = fails.match_fallback_screened(fa, fb, screen=False)
     assert not screened
