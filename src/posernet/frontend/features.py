@@ -840,9 +840,10 @@ class FallbackMatcher:
             too many images unplaced. A few photos far apart are where SIFT's matches run
             out first (wide-baseline indoor pairs: SIFT places 2 of 15, XFeat + LighterGlue
             13 within 20 deg); a larger textured set stays with SIFT (0: never sparse).
-        screen_k, screen_matches: LighterGlue's cost grows faster than the square of the
-            keypoints (on 2 CPU threads about 0.15 s a pair at 1024, 0.46 s at 2048, 2.2 s at
-            4096), and in a sparse set of far-apart views most pairs share nothing. So the
+        screen_k, screen_matches, screen_plenty: LighterGlue's cost grows faster than the
+            square of the keypoints (on 2 CPU threads about 0.15 s a pair at 1024, 0.46 s at
+            2048, 2.2 s at 4096), and in a sparse set of far-apart views most pairs share
+            nothing. So the
             fallback first matches a pair of a set of three images or more (two share one
             pair: nothing to save) on each image's best ``screen_k`` XFeat keypoints
             (the first of its ``top_k``, which XFeat orders by score), and matches all
@@ -922,9 +923,7 @@ class FallbackMatcher:
         self.xfeat_options = (f"top_k={top_k}, lighterglue={bool(lighterglue)}, "
                               f"min_cossim={min_cossim}, "
                               f"detection_threshold={detection_threshold}, "
-                              f"min_conf={min_conf}, screen_k={screen_k}, "
-                              f"screen_matches={screen_matches}, "
-                              f"screen_plenty={screen_plenty}") if self._available else None
+                              f"min_conf={min_conf}") if self._available else None
         if o.lighterglue:
             self.name = "sift+xfeat+lighterglue"
 
