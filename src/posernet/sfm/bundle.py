@@ -661,6 +661,26 @@ class _Schur:
         dp = -Vg - np.einsum("pij,pj->pi", Vinv, wtd.reshape(npt, 3))
         return dc, dp
 
+    def damping(self) -> tuple[np.ndarray, np.ndarray]:
+        """The diagonals Marquardt's damping scales, ``(6 nc + nf,)`` and ``(npt, 3)``, with
+        the floor :meth:`step` gives them."""
+        if self.iterative:
+            du = np.diagonal(self.Ucc, axis1=1, axis2=2).ravel()
+            if self.nf:
+                du = np.r_[du, self.Uf[6 * self.nc:, 6 * self.nc:].diagonal()]
+        else:
+            du = np.diag(self.U)
+        return (np.maximum(du, 1e-9),
+                np.maximum(np.diagonal(self.V, axis1=1, axis2=2), 1e-9))
+
+    def predicted_decrease(self, lam: float, dc: np.ndarray, dp: np.ndarray) -> float:
+        """How much the damped Gauss-Newton model says the step ``dc, dp`` of :meth:`step`
+        lowers the cost: ``h^T (lam D h - g) / 2`` (the model's gradient ``g``, ``D`` the
+        damped diagonal), which needs no product with the Jacobian."""
+        du, dv = self.damping()
+        return 0.5 * float(lam * (du * dc * dc).sum() - (self.g * dc).sum()
+                           + lam * (dv * dp * dp).sum() - (self.gp * dp).sum())
+
     def _damped_v(self, lam: float) -> np.ndarray:
         """``(npt, 3, 3)`` inverses of the damped point blocks."""
         V = self.V.copy()
@@ -821,6 +841,12 @@ def _solve_lm(prob: _Problem, x0: np.ndarray, med0: float, opt: BundleOptions
 
     Every iteration reweights the observations by ``rho'(|e|^2 / f^2)`` and takes a damped
     Gauss-Newton step (:class:`_Schur`), accepted when it lowers the robust cost at ``f``.
+    The damping follows Nielsen's rule (Madsen, Nielsen & Tingleff, *Methods for non-linear
+    least squares problems*, 2004): after a step it shrinks by up to 3x as far as the model
+    predicted the decrease; a rejected step multiplies it by 2, 4, 8, ... in turn. A fixed
+    "divide by 5 / multiply by 10" let it fall too low in the long curved valley of a free
+    focal length (focal against scene depth), so that every other step was rejected: 744
+    evaluations against 161 for the same optimum on 8 DTU views.
     Exact reduced solves keep their accuracy on ill-conditioned problems (long focal lengths,
     where rotation and translation nearly trade off) on which an iterative trust-region solve
     stalls. ``f`` anneals from ``anneal_factor`` x the median error to ``f_scale``, divided by
@@ -847,7 +873,7 @@ def _solve_lm(prob: _Problem, x0: np.ndarray, med0: float, opt: BundleOptions
     if opt.anneal_factor > 0 and opt.loss != "linear":
         fs = max(opt.f_scale, opt.anneal_factor * med0)
     cost = _robust_cost(r, opt.loss, fs)
-    nfev, lam = 1, 1e-4
+    nfev, lam, nu = 1, 1e-4, 2.0
     while nfev < opt.max_nfev:
         e2 = (r.reshape(-1, 2) ** 2).sum(1)
         sw = np.repeat(np.sqrt(_rho(e2 / fs**2, opt.loss)[1]), 2)
@@ -872,8 +898,12 @@ def _solve_lm(prob: _Problem, x0: np.ndarray, med0: float, opt: BundleOptions
             nfev += 1
             cost_new = _robust_cost(r_new, opt.loss, fs) if np.isfinite(r_new).all() else np.inf
             if cost_new < cost:
+                # Nielsen's update: damp less the better the model predicted the decrease
+                pred = system.predicted_decrease(lam, dc, dp)
+                rho = min((cost - cost_new) / pred, 1.0) if pred > 0 else 1.0
+                lam, nu = max(lam * max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3), 1e-12), 2.0
                 break
-            lam = min(lam * 10.0, 1e12)
+            lam, nu = min(lam * nu, 1e12), 2.0 * nu
             if lam >= 1e12:
                 break
         if not cost_new < cost:
@@ -881,7 +911,7 @@ def _solve_lm(prob: _Problem, x0: np.ndarray, med0: float, opt: BundleOptions
                 return x, r, nfev, True, "no step lowers the robust cost (LM)"
             fs = max(opt.f_scale, fs / opt.anneal_step)
             cost = _robust_cost(r, opt.loss, fs)
-            lam = 1e-4
+            lam, nu = 1e-4, 2.0
             continue
         gain = cost - cost_new
         small = (gain <= opt.irls_tol * cost_new
@@ -889,7 +919,6 @@ def _solve_lm(prob: _Problem, x0: np.ndarray, med0: float, opt: BundleOptions
                  or (gain <= 10 * opt.irls_tol * cost_new and opt.camera_tol > 0
                      and _camera_move(prob, x, x_new, spread_move) <= opt.camera_tol))
         x, r, cost = (_rescale(prob, x_new, spread0) if hold else x_new), r_new, cost_new
-        lam = max(lam / 5.0, 1e-12)
         if fs > opt.f_scale:
             if small or gain <= 1e-3 * cost:
                 fs = max(opt.f_scale, fs / opt.anneal_step)
