@@ -80,10 +80,12 @@ class Reconstruction:
     #: are unsolved in ``result.solved[stage]``. None when the check was not run.
     check: SelfCheck | None = None
     #: in a weakly textured or sparse set whose matcher has a fallback: how many images the
-    #: main matcher alone placed (``placed``, ``images``, ``main_first``) and whether the
-    #: fallback then ``"ran"`` or was ``"not needed"``; when it ran, how many images its pass
-    #: placed (``fallback_placed``) and which result was ``kept`` (``"main"``: the fallback
-    #: placed no more). None elsewhere.
+    #: main matcher alone placed (``placed``, ``images``, ``main_first``; ``placed`` is None
+    #: when its edges touch too few images, ``linked``, to reach the share, and the fallback
+    #: placed more than that: it was then not solved) and whether the fallback then
+    #: ``"ran"`` or was ``"not needed"``; when it ran, how many images its pass placed
+    #: (``fallback_placed``) and which result was ``kept`` (``"main"``: the fallback placed
+    #: no more). None elsewhere.
     main_first: dict[str, Any] | None = None
     #: with a refiner and the self-check: each stage's cameras that passed
     #: (``{"initial+ba": k, "refined+ba": k}``); the final stage is the one with more
@@ -363,22 +365,36 @@ def reconstruct(
     # precise matches only where that leaves images unplaced, and its result only where it
     # places more of them.
     share = float(frontend.matcher.main_first)
+    solve_args = (model, backend, device, guard, bundle_adjust, bundle, check)
     frontend.hold_fallback(True)
     try:
-        rec = _solve(frontend, selection, clock, *args)
-        placed = int(rec.result.solved[rec.stage][0].sum()) if rec.result.absolute else 0
+        view: FrontendResult | None = _pair_stages(frontend, selection, clock, name, estimate,
+                                                  progress)
     except NothingPlaced:
-        rec, placed = None, 0
+        view = None
     finally:
         frontend.hold_fallback(False)
-    main = {"placed": placed, "images": n, "main_first": share,
+    # A camera is placed only through its edges: the images they touch bound what the main
+    # matcher's result can place, so its solve waits where that bound is below the share.
+    linked = _linked_images(view)
+    rec, placed = None, 0
+    if view is not None and linked >= share * n:
+        rec = _solve_view(view, clock, *solve_args)
+        placed = _placed(rec)
+    main = {"placed": placed if rec is not None or view is None else None, "linked": linked,
+            "images": n, "main_first": share,
             "sparse": bool(frontend.summary.fallback.get("sparse", 0))}
     if rec is not None and placed >= share * n:
         rec.main_first = {**main, "fallback": "not needed"}
         return rec
     frontend.forget_pairs()
     second = _solve(frontend, selection, clock, *args, release=release_descriptors)
-    again = int(second.result.solved[second.stage][0].sum()) if second.result.absolute else 0
+    again = _placed(second)
+    if rec is None and view is not None and linked >= again:
+        # the fallback placed no more than the main matcher's edges reach, and at a tie the
+        # main matcher's more precise result would stay: solve it after all
+        rec = _solve_view(view, clock, *solve_args)
+        placed = main["placed"] = _placed(rec)
     if rec is not None and placed >= again:
         # the fallback placed no more cameras: the main matcher's more precise result stays
         rec.main_first = {**main, "fallback": "ran", "fallback_placed": again, "kept": "main"}
@@ -386,6 +402,18 @@ def reconstruct(
     second.main_first = {**main, "fallback": "ran", "fallback_placed": again,
                          "kept": "fallback"}
     return second
+
+
+def _placed(rec: Reconstruction) -> int:
+    """Cameras the final stage of ``rec`` placed."""
+    return int(rec.result.solved[rec.stage][0].sum()) if rec.result.absolute else 0
+
+
+def _linked_images(view: FrontendResult | None) -> int:
+    """Images with at least one edge in ``view``'s graph (0 without a view)."""
+    if view is None or view.graph.num_edges == 0:
+        return 0
+    return int(torch.unique(view.graph.edge_index).numel())
 
 
 def stage_choice_line(rec: Reconstruction) -> str | None:
@@ -401,8 +429,12 @@ def stage_choice_line(rec: Reconstruction) -> str | None:
 def main_first_line(record: dict[str, Any]) -> str:
     """One line on :attr:`Reconstruction.main_first`."""
     kind = "sparse set" if record.get("sparse") else "weakly textured set"
-    head = (f"{kind}: the main matcher alone placed {record['placed']} of "
-            f"{record['images']} images")
+    if record["placed"] is None:  # not solved: its edges reach too few images
+        head = (f"{kind}: the main matcher's pairs alone link {record['linked']} of "
+                f"{record['images']} images")
+    else:
+        head = (f"{kind}: the main matcher alone placed {record['placed']} of "
+                f"{record['images']} images")
     if record["fallback"] == "ran":
         kept = ("its result is kept" if record["kept"] == "fallback" else
                 "the main matcher's result is kept")
@@ -420,6 +452,16 @@ def _solve(frontend: ImageFrontend, selection: PairSelection, clock: _StageClock
     screening: crowded inliers, rotations breaking triangles), the graph stage, then
     :func:`solve_view_graph`. ``release``: the front end's descriptors go after the graph
     stage."""
+    view = _pair_stages(frontend, selection, clock, name, estimate, progress, release)
+    return _solve_view(view, clock, model, backend, device, guard, bundle_adjust, bundle,
+                       check)
+
+
+def _pair_stages(frontend: ImageFrontend, selection: PairSelection, clock: _StageClock,
+                 name: str, estimate: str, progress: bool, release: bool = False
+                 ) -> FrontendResult:
+    """The pair and graph stages of :func:`_solve`: the assembled view graph with its
+    ``estimate`` initial poses; NothingPlaced when no pair became an edge."""
     matches = frontend.match(selection.pairs, progress=progress)
     clock.done("pairs", len(selection.pairs))
     view = frontend.view_graph(selection, matches, meta={"name": name, "size": "all"})
@@ -433,8 +475,7 @@ def _solve(frontend: ImageFrontend, selection: PairSelection, clock: _StageClock
             "placed (" + "; ".join(line for line in view.summary.lines()
                                    if line.startswith(("pairs:", "verification:"))) + ")",
             view, clock.stages)
-    return _solve_view(view, clock, model, backend, device, guard, bundle_adjust, bundle,
-                       check)
+    return view
 
 
 def solve_view_graph(frontend: FrontendResult, model: torch.nn.Module | None, backend: Any,
