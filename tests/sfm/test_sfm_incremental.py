@@ -194,3 +194,38 @@ def test_start_options_are_checked() -> None:
         BundleOptions(incremental_max_cameras=1)
     with pytest.raises(ValueError, match=r"explained_min: 1.5 is not a number in \[0, 1\]"):
         BundleOptions(explained_min=1.5)
+
+
+def test_pairs_whose_matches_the_adjustment_dropped_are_counted() -> None:
+    """A correct adjustment keeps most of every verified pair's matches as common 3D points;
+    one that dropped a pair's shared observations (a loop left open at that pair) leaves it
+    under ``pair_explained_min``, which puts the adjustment in doubt."""
+    from dataclasses import replace
+
+    from posernet.sfm.mapper import _doubts, _open_pairs, baseline_pairs
+
+    sc = make_scene(num_cameras=6, num_points=300, noise_px=0.3, seed=3)
+    opt = BundleOptions(pair_explained_matches=50)
+    res = bundle_adjust_reconstruction(sc.uv, sc.pair_matches, sc.K, None, sc.w2c,
+                                       np.ones(6, bool), opt)
+    n_kp = [len(u) for u in sc.uv]
+    assert _open_pairs(res, sc.pair_matches, n_kp, opt) == 0
+    pairs = baseline_pairs(sc.pair_matches)
+    assert _doubts(res, np.ones(6, bool), opt, pairs, 0) == []
+    # drop camera 1's observations of the points it shares with camera 0
+    (a, b), m = next((k, v) for k, v in sc.pair_matches.items() if tuple(k) == (0, 1))
+    assert len(m) >= 50
+    offs = np.concatenate(([0], np.cumsum(n_kp)))
+    point = np.full(offs[-1], -1)
+    point[offs[res.obs_image] + res.obs_keypoint] = res.obs_point
+    shared = set(point[offs[0] + m[:, 0]].tolist()) - {-1}
+    gone = (res.obs_image == 1) & np.isin(res.obs_point, list(shared))
+    cut = replace(res, obs_image=res.obs_image[~gone], obs_keypoint=res.obs_keypoint[~gone],
+                  obs_point=res.obs_point[~gone])
+    n_open = _open_pairs(cut, sc.pair_matches, n_kp, opt)
+    assert n_open >= 1  # (0, 1), and camera 1's pairs whose points were mostly those
+    assert _open_pairs(cut, sc.pair_matches, n_kp, replace(opt, pair_explained_min=0.0)) == 0
+    assert _open_pairs(cut, sc.pair_matches, n_kp,
+                       replace(opt, pair_explained_matches=10**6)) == 0
+    doubts = _doubts(cut, np.ones(6, bool), opt, pairs, 1)
+    assert "1 verified pair(s) keep under 30% of their matches" in doubts

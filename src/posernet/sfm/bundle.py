@@ -123,6 +123,12 @@ class BundleOptions:
     explained_min: float = option(0.75, ge=0, le=1, help="auto: other starts tried when the "
                                   "averaged one explains less than this share of the track "
                                   "observations")
+    pair_explained_min: float = option(0.3, ge=0, le=1, help="auto: other starts tried also "
+                                       "when a verified pair with pair_explained_matches "
+                                       "matches or more keeps less than this share of them "
+                                       "as common 3D points (a loop left open)")
+    pair_explained_matches: int = option(100, ge=1, help="... counting pairs with this many "
+                                         "matches")
     pcg_min_cameras: int = option(400, ge=0, help="lm: problems with this many variable "
                                   "cameras solve the reduced system by conjugate gradients")
     threads: int = option(0, ge=0, help="threads of the reduced camera system's products "

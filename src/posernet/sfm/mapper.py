@@ -383,10 +383,35 @@ def baseline_pairs(pair_matches: Mapping[tuple[int, int], np.ndarray],
     return np.array(keep, np.int64).reshape(-1, 2)
 
 
+def _open_pairs(r: SfmResult, pair_matches: Mapping[tuple[int, int], np.ndarray],
+                num_keypoints: Sequence[int], opt: BundleOptions) -> int:
+    """Verified pairs of two refined cameras with ``opt.pair_explained_matches`` matches or
+    more of which less than ``opt.pair_explained_min`` end as one 3D point seen in both: the
+    adjustment dropped their matches as outliers. On a turntable ring adjusted from averaged
+    poses whose loop did not close, the pairs across the seam kept 21-23 % of 110-300
+    matches while every camera was refined and 93 % of the observations explained; the
+    correct adjustments of the development sets keep 45 % or more of every such pair."""
+    big = [(k, m) for k, m in pair_matches.items()
+           if len(m) >= opt.pair_explained_matches
+           and r.refined[int(k[0])] and r.refined[int(k[1])]]
+    if not big or r.obs_image.size == 0:
+        return 0
+    offs = np.concatenate(([0], np.cumsum(num_keypoints))).astype(np.int64)
+    point = np.full(int(offs[-1]), -1, np.int64)  # the 3D point of each keypoint, -1: none
+    point[offs[r.obs_image] + r.obs_keypoint] = r.obs_point
+    pair = np.concatenate([np.full(len(m), i) for i, (_, m) in enumerate(big)])
+    a = np.concatenate([offs[int(k[0])] + m[:, 0] for k, m in big])
+    b = np.concatenate([offs[int(k[1])] + m[:, 1] for k, m in big])
+    kept = (point[a] == point[b]) & (point[a] >= 0)
+    share = np.bincount(pair, kept, len(big)) / np.bincount(pair, minlength=len(big))
+    return int((share < opt.pair_explained_min).sum())
+
+
 def _doubts(r: SfmResult, members: np.ndarray, opt: BundleOptions,
-            pairs: np.ndarray) -> list[str]:
+            pairs: np.ndarray, open_pairs: int = 0) -> list[str]:
     """Why an adjustment of the ``members`` may have kept a wrong start (empty: no doubt):
-    cameras left unrefined, too few track observations explained, a camera whose points are
+    cameras left unrefined, too few track observations explained, ``open_pairs`` verified
+    pairs whose matches it dropped (:func:`_open_pairs`), a camera whose points are
     seen only under tiny angles (explained by rotation alone), or two centres on one spot
     (a collapse that bundle adjustment keeps): two refined cameras of a matched image pair
     with a baseline (``pairs (E, 2)``, :func:`baseline_pairs`) closer than a tenth of the
@@ -403,6 +428,9 @@ def _doubts(r: SfmResult, members: np.ndarray, opt: BundleOptions,
     explained = _support(r) / max(int(r.tracks.track.size), 1)
     if explained < opt.explained_min:
         out.append(f"explains {explained:.0%} of the track observations")
+    if open_pairs:
+        out.append(f"{open_pairs} verified pair(s) keep under {opt.pair_explained_min:.0%} "
+                   "of their matches")
     ref = np.flatnonzero(r.refined)
     if ref.size >= 2 and r.obs_image.size:
         _, tri = triangulation_angles(r.w2c, r.points, r.obs_image, r.obs_point,
@@ -450,6 +478,7 @@ def _best_start(uv: Sequence[np.ndarray], pair_matches: Mapping[tuple[int, int],
     _check_inputs(uv, K, dist, w2c, members)
     small = int(members.sum()) <= opt.incremental_max_cameras
     pairs = baseline_pairs(pair_matches, rotation_only)
+    n_kp = [len(u) for u in uv]
 
     def averaged() -> SfmResult:
         return bundle_adjust_reconstruction(uv, pair_matches, K, dist, w2c, placed,
@@ -490,7 +519,8 @@ def _best_start(uv: Sequence[np.ndarray], pair_matches: Mapping[tuple[int, int],
     why = ""
     if opt.start == "auto" or not small:
         tried["averaged"] = averaged()
-        doubts = _doubts(tried["averaged"], members, opt, pairs)
+        doubts = _doubts(tried["averaged"], members, opt, pairs,
+                         _open_pairs(tried["averaged"], pair_matches, n_kp, opt))
         if not doubts:
             tried["averaged"].stats["start"] = {
                 "kept": "averaged", "why": "every camera refined, explaining "
@@ -504,7 +534,8 @@ def _best_start(uv: Sequence[np.ndarray], pair_matches: Mapping[tuple[int, int],
                 tried["positioning"] = res
     if small:
         best = max(tried.values(), key=_score) if tried else None
-        if best is None or _doubts(best, members, opt, pairs):
+        if best is None or _doubts(best, members, opt, pairs,
+                                   _open_pairs(best, pair_matches, n_kp, opt)):
             res = incremental()
             if res is not None:
                 tried["incremental"] = res
