@@ -229,3 +229,21 @@ def test_pairs_whose_matches_the_adjustment_dropped_are_counted() -> None:
                        replace(opt, pair_explained_matches=10**6)) == 0
     doubts = _doubts(cut, np.ones(6, bool), opt, pairs, 1)
     assert "1 verified pair(s) keep under 30% of their matches" in doubts
+
+
+def test_a_start_far_off_puts_the_adjustment_in_doubt() -> None:
+    """An adjustment whose start was more than ``start_error_px`` off is in doubt even when it
+    converged well: from that far, it may have settled in a wrong minimum."""
+    from dataclasses import replace
+
+    from posernet.sfm.mapper import _doubts, baseline_pairs
+
+    sc = make_scene(num_cameras=6, num_points=300, noise_px=0.3, seed=3)
+    res = bundle_adjust_reconstruction(sc.uv, sc.pair_matches, sc.K, None, sc.w2c,
+                                       np.ones(6, bool), BundleOptions())
+    pairs = baseline_pairs(sc.pair_matches)
+    assert res.stats["median_error_before"] < 1.0
+    assert _doubts(res, np.ones(6, bool), BundleOptions(), pairs) == []
+    far = replace(res, stats={**res.stats, "median_error_before": 242.0})
+    assert _doubts(far, np.ones(6, bool), BundleOptions(), pairs) == ["started 242 px off"]
+    assert _doubts(far, np.ones(6, bool), BundleOptions(start_error_px=300.0), pairs) == []

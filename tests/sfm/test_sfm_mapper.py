@@ -23,7 +23,7 @@ def _result(centres: np.ndarray, pairs: np.ndarray) -> SimpleNamespace:
     obs_point = np.tile(np.arange(20), n)
     return SimpleNamespace(refined=np.ones(n, bool), w2c=w2c, points=pts,
                            obs_image=obs_image, obs_point=obs_point,
-                           tracks=SimpleNamespace(track=obs_point)), pairs
+                           tracks=SimpleNamespace(track=obs_point), stats={}), pairs
 
 
 def _ring(n: int, moved: float | None = None) -> tuple[SimpleNamespace, np.ndarray]:

@@ -129,6 +129,9 @@ class BundleOptions:
                                        "as common 3D points (a loop left open)")
     pair_explained_matches: int = option(100, ge=1, help="... counting pairs with this many "
                                          "matches")
+    start_error_px: float = option(20.0, gt=0, help="auto: other starts tried also when the "
+                                   "averaged start's median reprojection error is above "
+                                   "this (px)")
     pcg_min_cameras: int = option(400, ge=0, help="lm: problems with this many variable "
                                   "cameras solve the reduced system by conjugate gradients")
     threads: int = option(0, ge=0, help="threads of the reduced camera system's products "
