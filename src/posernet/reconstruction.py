@@ -59,7 +59,8 @@ from .sfm.selfcheck import CheckOptions, PairEvidence, SelfCheck, check_reconstr
 
 __all__ = ["NothingPlaced", "Reconstruction", "bundle_stage", "edge_weights", "focal_mode",
            "gauge_fixed", "largest_point_cloud", "main_first_line", "pair_evidence",
-           "poses_json", "reconstruct", "self_check", "solve_view_graph", "stage_choice_line",
+           "poses_json", "reconstruct", "refocus_line", "self_check", "solve_view_graph",
+           "stage_choice_line",
            "trajectory_errors_table",
            "unplaced_json", "write_camera_view", "write_colmap_models", "write_poses_json"]
 
@@ -87,6 +88,12 @@ class Reconstruction:
     #: (``fallback_placed``) and which result was ``kept`` (``"main"``: the fallback placed
     #: no more). None elsewhere.
     main_first: dict[str, Any] | None = None
+    #: with one guessed focal length that bundle adjustment moved by more than
+    #: ``bundle.refocus``: the guess and the adjusted focal length (``guess_px``,
+    #: ``adjusted_px``, ``share``), the cameras each pass placed (``placed``, ``again``) and
+    #: which result was ``kept`` (``"again"``, verified with the adjusted one, unless it placed
+    #: fewer: ``"first"``). None elsewhere.
+    refocus: dict[str, Any] | None = None
     #: with a refiner and the self-check: each stage's cameras that passed
     #: (``{"initial+ba": k, "refined+ba": k}``); the final stage is the one with more
     #: (the refined one on a tie). None elsewhere.
@@ -350,7 +357,67 @@ def reconstruct(
     :meth:`~ImageFrontend.select_pairs`, :meth:`~ImageFrontend.match`,
     :meth:`~ImageFrontend.view_graph`); the rest runs on the assembled
     :class:`~posernet.frontend.results.FrontendResult` alone (:func:`solve_view_graph`).
-    Raises :class:`NothingPlaced` when no pair became an edge."""
+    Raises :class:`NothingPlaced` when no pair became an edge.
+
+    Guessed intrinsics, one focal length shared by every image: when bundle adjustment moved
+    it by more than ``bundle.refocus`` of the guess, the pairs were verified with a wrong
+    one (their relative poses bent by it), so everything from the pairs on runs again with the
+    adjusted focal length (:meth:`ImageFrontend.with_intrinsics`, still refined); that
+    result is kept unless it places fewer cameras (:attr:`Reconstruction.refocus` says
+    which)."""
+    rec = _reconstruct_once(frontend, model, backend, device, name, estimate, progress, guard,
+                            bundle_adjust, bundle, pairs, check, release_descriptors)
+    share = (bundle or BundleOptions()).refocus
+    focal = adjusted_focal(rec) if bundle_adjust and share > 0 else None
+    if focal is None:
+        return rec
+    guess = float(frontend.records[0].K[0, 0])
+    if abs(focal / guess - 1.0) <= share:
+        return rec
+    K = np.stack([r.K for r in frontend.records]).astype(np.float64)
+    K[:, :2, :2] *= focal / guess  # fx, fy and skew by one factor, as the adjustment does
+    record = {"guess_px": guess, "adjusted_px": focal, "share": share}
+    try:
+        again = _reconstruct_once(frontend.with_intrinsics(K), model, backend, device, name,
+                                  estimate, progress, guard, bundle_adjust, bundle, pairs,
+                                  check, release_descriptors)
+    except NothingPlaced:
+        rec.refocus = {**record, "placed": _placed(rec), "again": 0, "kept": "first"}
+        return rec
+    for k, v in rec.stages.items():  # the kept result's stage times count both passes
+        for out in (again.stages,):
+            if k in out:
+                out[k]["seconds"] += v["seconds"]
+                out[k]["peak_mb"] = max(out[k]["peak_mb"], v["peak_mb"])
+    first, second = _placed(rec), _placed(again)
+    if second < first:
+        rec.refocus = {**record, "placed": first, "again": second, "kept": "first"}
+        return rec
+    again.refocus = {**record, "placed": first, "again": second, "kept": "again"}
+    return again
+
+
+def adjusted_focal(rec: Reconstruction) -> float | None:
+    """The focal length (px) the bundle adjustment of ``rec``'s final stage gave images that
+    share one guessed focal length: that of its component with the most refined cameras (then
+    the most observations). None when the intrinsics were given, differ between images, or
+    nothing was adjusted."""
+    recs = rec.frontend.records
+    if any(r.intrinsics_source == "given" for r in recs) or focal_mode(recs) != "shared":
+        return None
+    runs = [r for r in rec.sfm.get(rec.stage, []) if r.refined.any()]
+    if not runs:
+        return None
+    best = max(runs, key=lambda r: (int(r.refined.sum()), int(r.obs_image.size)))
+    return float(best.K[int(np.flatnonzero(best.refined)[0]), 0, 0])
+
+
+def _reconstruct_once(frontend: ImageFrontend, model: torch.nn.Module | None, backend: Any,
+                      device: str | torch.device, name: str, estimate: str, progress: bool,
+                      guard: bool, bundle_adjust: bool, bundle: BundleOptions | None,
+                      pairs: PairOptions | None, check: CheckOptions | bool | None,
+                      release_descriptors: bool) -> Reconstruction:
+    """:func:`reconstruct` with the front end's intrinsics as they are."""
     n = len(frontend.records)
     clock = _StageClock()
     frontend.extract(progress=progress)
@@ -414,6 +481,17 @@ def _linked_images(view: FrontendResult | None) -> int:
     if view is None or view.graph.num_edges == 0:
         return 0
     return int(torch.unique(view.graph.edge_index).numel())
+
+
+def refocus_line(record: dict[str, Any]) -> str:
+    """One line on :attr:`Reconstruction.refocus`."""
+    head = (f"focal length: guessed {record['guess_px']:.0f} px, adjusted to "
+            f"{record['adjusted_px']:.0f} px (more than {record['share']:.0%} off), so the "
+            f"pairs were verified again with it")
+    if record["kept"] == "again":
+        return f"{head}: {record['again']} cameras placed (first pass {record['placed']})"
+    return (f"{head}, which placed fewer cameras ({record['again']} against "
+            f"{record['placed']}): the first pass is kept")
 
 
 def stage_choice_line(rec: Reconstruction) -> str | None:
@@ -722,7 +800,8 @@ def poses_json(rec: Reconstruction, info: dict[str, Any] | None = None) -> dict[
             "stages": rec.stages,
             "bundle_adjustment": bundle,
             "self_check": None if rec.check is None else rec.check.to_dict(keys),
-            "main_first": rec.main_first, "stage_checks": rec.stage_checks,
+            "main_first": rec.main_first, "refocus": rec.refocus,
+            "stage_checks": rec.stage_checks,
             "cameras": cams, "edges": edges,
             "rejected_pairs": rec.frontend.rejected_pairs()}
 

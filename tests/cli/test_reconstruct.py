@@ -211,12 +211,23 @@ def test_reconstruct_bad_input_is_one_line(scene, tmp_path, args, message):
 @pytest.mark.slow
 def test_without_intrinsics_the_focal_length_is_recovered(scene, tmp_path):
     """No intrinsics: the prior (1.2 x the longest side, 22 % too long here) is refined by
-    bundle adjustment to the rendering's focal length."""
+    bundle adjustment to the rendering's focal length; having moved by more than
+    ``bundle.refocus``, the pairs are verified again with it (not with ``refocus=0``)."""
     out = tmp_path / "out"
     r = _run(f"images={scene / 'seq-01'}", f"out_dir={out}", "matcher=sift", "pictures=0")
     assert r.returncode == 0, r.stderr
     assert "8 from the prior" in r.stdout and "refines the focal length" in r.stdout
-    cams = json.loads((out / "poses.json").read_text())["cameras"]
+    poses = json.loads((out / "poses.json").read_text())
+    refocus = poses["refocus"]
+    assert refocus["guess_px"] == pytest.approx(1.2 * W)
+    assert refocus["adjusted_px"] == pytest.approx(F, rel=0.03)
+    assert refocus["kept"] == "again" and refocus["again"] == 8
+    assert "so the pairs were verified again with it: 8 cameras placed" in r.stdout
+    off = _run(f"images={scene / 'seq-01'}", f"out_dir={tmp_path / 'off'}", "matcher=sift",
+               "pictures=0", "bundle.refocus=0")
+    assert off.returncode == 0, off.stderr
+    assert json.loads((tmp_path / "off" / "poses.json").read_text())["refocus"] is None
+    cams = poses["cameras"]
     assert all(c["solved"] and c["intrinsics_source"] == "prior" for c in cams.values())
     f = [c["K"][0][0] for c in cams.values()]
     assert np.allclose(f, F, rtol=0.02), (f, F)

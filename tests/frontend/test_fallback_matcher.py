@@ -574,3 +574,54 @@ def test_the_fallback_result_is_kept_only_where_it_places_more(scene, helps) -> 
     fallback_edges = [p for p in rec.frontend.matches.pairs.values()
                       if p.geometry.is_edge and p.geometry.info.get("matcher") == "fallback"]
     assert bool(fallback_edges) == more
+
+
+@pytest.mark.parametrize(("first", "again", "kept"), [(6, 8, "again"), (6, 6, "again"),
+                                                       (6, 4, "first"), (6, None, "first")])
+def test_refocus_keeps_the_second_pass_unless_it_places_fewer(monkeypatch, first, again,
+                                                              kept) -> None:
+    """A guessed focal length that the adjustment moved by more than ``bundle.refocus``: the
+    pairs run again with the adjusted one, and that result is kept unless it places fewer
+    cameras (or nothing: the first pass then stays)."""
+    from types import SimpleNamespace
+
+    import posernet.reconstruction as R
+    from posernet.sfm import BundleOptions
+
+    K = np.array([[768.0, 0, 320], [0, 768.0, 240], [0, 0, 1]])
+    seen = []
+
+    class FE:
+        def __init__(self) -> None:
+            self.records = [SimpleNamespace(K=K.copy()) for _ in range(8)]
+
+        def with_intrinsics(self, K2):
+            seen.append(K2)
+            return "refocused"
+
+    def once(fe, *args):
+        if fe == "refocused":
+            if again is None:
+                raise R.NothingPlaced("none", None, {})
+            return SimpleNamespace(n=again, refocus=None, stages={})
+        return SimpleNamespace(n=first, refocus=None, stages={"pairs": {"seconds": 1.0,
+                                                                         "peak_mb": 1.0}})
+
+    monkeypatch.setattr(R, "_reconstruct_once", once)
+    monkeypatch.setattr(R, "adjusted_focal", lambda rec: 585.0)
+    monkeypatch.setattr(R, "_placed", lambda rec: rec.n)
+    rec = R.reconstruct(FE(), None, None, bundle=BundleOptions())
+    assert rec.refocus["kept"] == kept and rec.refocus["placed"] == first
+    assert rec.refocus["guess_px"] == 768.0 and rec.refocus["adjusted_px"] == 585.0
+    np.testing.assert_allclose(seen[0][:, 0, 0], 585.0)
+    np.testing.assert_allclose(seen[0][:, 0, 2], 320.0)  # the principal point stays
+    assert rec.n == (first if kept == "first" else again)
+    assert R.refocus_line(rec.refocus).startswith("focal length: guessed 768 px, adjusted to "
+                                                  "585 px")
+    # within the share, or with refocus=0: one pass
+    seen.clear()
+    monkeypatch.setattr(R, "adjusted_focal", lambda rec: 768.0 * 1.05)
+    assert R.reconstruct(FE(), None, None, bundle=BundleOptions()).refocus is None
+    monkeypatch.setattr(R, "adjusted_focal", lambda rec: 585.0)
+    assert R.reconstruct(FE(), None, None, bundle=BundleOptions(refocus=0.0)).refocus is None
+    assert not seen

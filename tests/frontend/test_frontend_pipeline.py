@@ -258,3 +258,39 @@ def test_released_descriptors_keep_evaluated_pairs_and_refuse_new_matching(scene
         fe.pair(a, b)
     with pytest.raises(RuntimeError, match="selecting pairs.*released"):
         fe.select_pairs()
+
+
+def test_a_front_end_with_other_intrinsics_verifies_its_pairs_again(scene, tmp_path) -> None:
+    """``with_intrinsics``: the same images, options and cache folder with new intrinsics;
+    the images' features carry over, the pairs are verified again under the new K."""
+    records = records_for_images(scene, "300,300,160,120", "*.color.png", "none")
+    for r in records:
+        r.intrinsics_source = "prior"  # guessed: the matches are remembered for a second pass
+    calls = []
+
+    class Counting(SiftMatcher):
+        def match(self, a, b):
+            calls.append(1)
+            return super().match(a, b)
+
+    fe = ImageFrontend(records, None, Counting(), edge_rule="verified", seed=3,
+                       cache=tmp_path / "cache")
+    fe.evaluate_pairs([(0, 1)], progress=False)
+    assert len(calls) == 1
+    K = np.stack([r.K for r in fe.records])
+    K[:, :2, :2] *= 1.5
+    other = fe.with_intrinsics(K)
+    assert [r.key for r in other.records] == [r.key for r in fe.records]
+    np.testing.assert_allclose(other.records[0].K[0, 0], 450.0)
+    assert fe.records[0].K[0, 0] == 300.0  # the first front end keeps its own
+    assert other.cache is not None and other.cache.root == fe.cache.root
+    assert other.seed == 3 and other.image(0).features is fe.image(0).features
+    a, b = 0, 1
+    assert fe._pair_key(a, b) != other._pair_key(a, b)  # its pairs are not the cached ones
+    other.evaluate_pairs([(0, 1)], progress=False)  # verified again, not matched again
+    assert len(calls) == 1 and other.summary.pairs.get("edge", 0) == fe.summary.pairs["edge"]
+    with pytest.raises(ValueError, match=r"with_intrinsics: K must be finite"):
+        fe.with_intrinsics(K[:1])
+    K[0, 0, 0] = np.nan
+    with pytest.raises(ValueError, match=r"with_intrinsics: K must be finite"):
+        fe.with_intrinsics(K)

@@ -213,7 +213,7 @@ def test_pairs_whose_matches_the_adjustment_dropped_are_counted() -> None:
     pairs = baseline_pairs(sc.pair_matches)
     assert _doubts(res, np.ones(6, bool), opt, pairs, 0) == []
     # drop camera 1's observations of the points it shares with camera 0
-    (a, b), m = next((k, v) for k, v in sc.pair_matches.items() if tuple(k) == (0, 1))
+    m = sc.pair_matches[(0, 1)]
     assert len(m) >= 50
     offs = np.concatenate(([0], np.cumsum(n_kp)))
     point = np.full(offs[-1], -1)

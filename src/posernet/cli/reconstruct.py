@@ -227,6 +227,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
         main_first_line,
         poses_json,
         reconstruct,
+        refocus_line,
         stage_choice_line,
         trajectory_errors_table,
         write_camera_view,
@@ -300,7 +301,8 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     summary = rec.frontend.summary
     print("[2/3] front end: " + "\n      ".join(
         [*rec.pairs.lines(), *summary.lines(),
-         *([main_first_line(rec.main_first)] if rec.main_first else [])]))
+         *([main_first_line(rec.main_first)] if rec.main_first else []),
+         *([refocus_line(rec.refocus)] if rec.refocus else [])]))
     if checks is not None and bool(cfg.get("check_inputs", True)):
         line, info["input_check"] = checks.check([rec.graph], rec.result)
         if line:

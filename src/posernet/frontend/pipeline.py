@@ -172,7 +172,47 @@ class ImageFrontend:
         # main matcher's attempts kept between the two passes of evaluate_pairs
         self._strong: np.ndarray | None = None
         self._first: dict[tuple[int, int], tuple[Matches, PairResult, FrontendSummary]] = {}
+        # per (matcher, a, b): its matches and whether screened, kept where the intrinsics are
+        # guessed, for a front end with_intrinsics makes (matching does not depend on them)
+        self._matched: dict[tuple[str, int, int], tuple[Matches, bool]] = {}
+        self._remember = all(r.intrinsics_source != "given" for r in self.records)
         self.cache = None if cache is None else FrontendCache(cache, self.fingerprint())
+
+    def with_intrinsics(self, K: np.ndarray) -> ImageFrontend:
+        """A fresh front end over the same images, with the same options and cache folder,
+        whose images have the intrinsics ``K (N, 3, 3)`` (their ``intrinsics_source`` kept):
+        its pairs are verified again (the cache's pair keys hold the intrinsics) on the
+        matches this one made, which it remembers where the intrinsics were guessed (else
+        they are matched again); the images' features come from this one (when not
+        released) or the cache."""
+        K = np.asarray(K, np.float64)
+        if K.shape != (len(self.records), 3, 3) or not np.isfinite(K).all():
+            raise ValueError(f"with_intrinsics: K must be finite ({len(self.records)}, 3, 3), "
+                             f"got {K.shape}")
+        records = [replace(r, K=K[i].copy()) for i, r in enumerate(self.records)]
+        fresh = ImageFrontend(
+            records, self.proposals, self.matcher, rules=self.rules, pose=self.pose,
+            verify=self.verify, estimate=self.estimate, edge_rule=self.edge_rule,
+            kp_top_pairs=self.kp_top_pairs, seed=self.seed, workers=self.workers,
+            keep_matches=self.keep_matches,
+            cache=None if self.cache is None else self.cache.root,
+            max_image_size=self.max_image_size)
+        if not self._released:
+            fresh._images = dict(self._images)  # per-image work does not depend on K
+            fresh._digest = dict(self._digest)
+        fresh._matched = dict(self._matched)
+        return fresh
+
+    def _matched_once(self, kind: str, a: int, b: int, match: Any) -> tuple[Matches, bool]:
+        """``match()`` (-> matches, screened) of pair ``a, b`` by matcher ``kind``, from the
+        memo when an earlier front end (:meth:`with_intrinsics`) or this one made it."""
+        key = (kind, a, b)
+        hit = self._matched.get(key)
+        if hit is None:
+            hit = match()
+            if self._remember:
+                self._matched[key] = hit
+        return hit
 
     @classmethod
     def from_evaluated(cls, records: Sequence[ImageRecord], features: Sequence[Features],
@@ -448,9 +488,9 @@ class ImageFrontend:
             both = getattr(fm, "match_fallback_screened", None)
 
             def match(fa: Features, fb: Features) -> Matches:
-                if both is None:
-                    return fm.match_fallback(fa, fb)
-                m, s = both(fa, fb, screen=len(self.records) > 2)
+                m, s = self._matched_once(
+                    "fallback", a, b, lambda: (fm.match_fallback(fa, fb), False) if both is None
+                    else both(fa, fb, screen=len(self.records) > 2))
                 screened.append(s)
                 return m
 
@@ -483,7 +523,12 @@ class ImageFrontend:
         with the fallback on, the result's ``info`` records the inliers and their spread
         (``main_inliers``, ``main_spread``) that decide about the fallback."""
         first = FrontendSummary()
-        m, res = self._match_verify(a, b, self.matcher.match, first)
+
+        def match(fa: Features, fb: Features) -> Matches:
+            return self._matched_once("main", a, b, lambda: (self.matcher.match(fa, fb),
+                                                             False))[0]
+
+        m, res = self._match_verify(a, b, match, first)
         if self.fallback_on():
             n_in = _edge_inliers(res)
             spread = self._spread(a, b, res.inliers) if n_in else None

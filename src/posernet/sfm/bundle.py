@@ -132,6 +132,10 @@ class BundleOptions:
     start_error_px: float = option(20.0, gt=0, help="auto: other starts tried also when the "
                                    "averaged start's median reprojection error is above "
                                    "this (px)")
+    refocus: float = option(0.1, ge=0, help="posernet-reconstruct: when one guessed focal "
+                            "length shared by every image moved by more than this share, the "
+                            "pairs are verified again with the adjusted one and the cameras "
+                            "placed again (0: never)")
     pcg_min_cameras: int = option(400, ge=0, help="lm: problems with this many variable "
                                   "cameras solve the reduced system by conjugate gradients")
     threads: int = option(0, ge=0, help="threads of the reduced camera system's products "
