@@ -592,23 +592,27 @@ def test_refocus_keeps_the_second_pass_unless_it_places_fewer(monkeypatch, first
     seen = []
 
     class FE:
-        def __init__(self) -> None:
-            self.records = [SimpleNamespace(K=K.copy()) for _ in range(8)]
+        def __init__(self, Ks=None) -> None:
+            self.records = [SimpleNamespace(K=(K if Ks is None else Ks[i]).copy())
+                            for i in range(8)]
+            self.refocused = Ks is not None
 
         def with_intrinsics(self, K2):
             seen.append(K2)
-            return "refocused"
+            return FE(K2)
 
     def once(fe, *args):
-        if fe == "refocused":
+        if fe.refocused:
             if again is None:
                 raise R.NothingPlaced("none", None, {})
-            return SimpleNamespace(n=again, refocus=None, stages={})
-        return SimpleNamespace(n=first, refocus=None, stages={"pairs": {"seconds": 1.0,
-                                                                         "peak_mb": 1.0}})
+            return SimpleNamespace(n=again, refocus=None, stages={}, frontend=fe)
+        return SimpleNamespace(n=first, refocus=None, frontend=fe,
+                               stages={"pairs": {"seconds": 1.0, "peak_mb": 1.0}})
 
     monkeypatch.setattr(R, "_reconstruct_once", once)
-    monkeypatch.setattr(R, "adjusted_focal", lambda rec: 585.0)
+    # the second pass's adjustment leaves the focal length where it started
+    monkeypatch.setattr(R, "adjusted_focal", lambda rec: float(rec.frontend.records[0].K[0, 0])
+                        if rec.frontend.refocused else 585.0)
     monkeypatch.setattr(R, "_placed", lambda rec: rec.n)
     rec = R.reconstruct(FE(), None, None, bundle=BundleOptions())
     assert rec.refocus["kept"] == kept and rec.refocus["placed"] == first
