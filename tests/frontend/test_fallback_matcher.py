@@ -161,9 +161,14 @@ def test_the_fallback_screens_a_pair_on_its_best_keypoints() -> None:
     m, screened = fails.match_fallback_screened(fa, fb, screen=False)
     assert not screened
     np.testing.assert_array_equal(m.idx_a, ref.idx_a)
-    # no screen when the images have no more keypoints than it takes
+    # no screen when the images have no more keypoints than it takes, nor fewer than twice
     big = FallbackMatcher(screen_k=10**5, screen_matches=10**6, lighterglue=True)
     assert not big.match_fallback_screened(fa, fb)[1]
+    most = max(n_xfeat, len(fb) - fb.extra["primary"])
+    half = FallbackMatcher(screen_k=most // 2 + 1, screen_matches=10**6, lighterglue=True)
+    assert not half.match_fallback_screened(fa, fb)[1]
+    assert FallbackMatcher(screen_k=most // 2, screen_matches=10**6,
+                           lighterglue=True).match_fallback_screened(fa, fb)[1]
 
 
 def test_without_xfeat_it_is_sift_with_one_warning(scene, monkeypatch, caplog) -> None:

@@ -1060,7 +1060,9 @@ class FallbackMatcher:
         """:meth:`match_fallback`'s matches, and whether they are the screen's alone: a pair
         whose best ``screen_k`` keypoints find fewer than ``screen_matches`` matches (no sign
         of overlap) is not matched on all ``top_k`` and keeps those; one whose screen finds
-        ``screen_plenty`` or more is matched on its best ``2 * screen_k``. ``screen=False``: all
+        ``screen_plenty`` or more is matched on its best ``2 * screen_k``. No screen when
+        neither image has ``2 * screen_k`` keypoints (all of them cost under four screens).
+        ``screen=False``: all
         ``top_k`` at once (the front end's choice for a set of two images, whose one pair is
         the whole problem: nothing to save there)."""
         xf = self._xfeat_matcher()
@@ -1068,7 +1070,10 @@ class FallbackMatcher:
             return Matches.empty(), False
         fa, fb = self._part(a, True), self._part(b, True)
         k, m, full = self.screen_k, None, (fa, fb)
-        if screen and 0 < k < max(len(fa), len(fb)):
+        # LighterGlue's cost grows with the square of the keypoints: with fewer than 2 k in
+        # both images (a 640x480 photo: 1300-1500), matching them all costs under 4 screens,
+        # and a screen that passes (every pair of such sets here) is spent for nothing
+        if screen and 0 < 2 * k <= max(len(fa), len(fb)):
             m = xf.match(_best(fa, k), _best(fb, k))  # a prefix: its indices are fa's, fb's
             if 0 < self.screen_plenty <= len(m):
                 full = (_best(fa, 2 * k), _best(fb, 2 * k))  # plenty: twice as many will do
