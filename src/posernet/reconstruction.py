@@ -369,38 +369,29 @@ def reconstruct(
             pairs, check, release_descriptors)
     rec = _reconstruct_once(frontend, *args)
     share = (bundle or BundleOptions()).refocus
-    if not bundle_adjust or share <= 0:
-        return rec
+    focal = adjusted_focal(rec) if bundle_adjust and share > 0 else None
     guess = float(frontend.records[0].K[0, 0])
-    for _ in range(REFOCUS_PASSES):
-        focal = adjusted_focal(rec)
-        used = float(rec.frontend.records[0].K[0, 0])
-        if focal is None or abs(focal / used - 1.0) <= share:
-            break
-        K = np.stack([r.K for r in rec.frontend.records]).astype(np.float64)
-        K[:, :2, :2] *= focal / used  # fx, fy and skew by one factor, as the adjustment does
-        record = {"guess_px": guess, "adjusted_px": focal, "share": share}
-        try:
-            again = _reconstruct_once(frontend.with_intrinsics(K), *args)
-        except NothingPlaced:
-            rec.refocus = {**record, "placed": _placed(rec), "again": 0, "kept": "first"}
-            break
-        for k, v in rec.stages.items():  # the kept result's stage times count every pass
-            if k in again.stages:
-                again.stages[k]["seconds"] += v["seconds"]
-                again.stages[k]["peak_mb"] = max(again.stages[k]["peak_mb"], v["peak_mb"])
-        first, second = _placed(rec), _placed(again)
-        if second < first:
-            rec.refocus = {**record, "placed": first, "again": second, "kept": "first"}
-            break
-        again.refocus = {**record, "placed": first, "again": second, "kept": "again"}
-        rec = again
-    return rec
-
-
-#: passes after the first with a focal length moved by ``bundle.refocus`` (a third one,
-#: from the second's focal length, placed no camera more right on the trust sets)
-REFOCUS_PASSES = 1
+    if focal is None or abs(focal / guess - 1.0) <= share:
+        return rec
+    # one pass more: a third, from the second pass's focal length, placed no camera more
+    # right on the far-apart dino views, the office room or the plain ring
+    K = np.stack([r.K for r in frontend.records]).astype(np.float64)
+    K[:, :2, :2] *= focal / guess  # fx, fy and skew by one factor, as the adjustment does
+    record = {"guess_px": guess, "adjusted_px": focal, "share": share, "placed": _placed(rec)}
+    try:
+        again = _reconstruct_once(frontend.with_intrinsics(K), *args)
+    except NothingPlaced:
+        rec.refocus = {**record, "again": 0, "kept": "first"}
+        return rec
+    for k, v in rec.stages.items():  # the kept result's stage times count both passes
+        if k in again.stages:
+            again.stages[k]["seconds"] += v["seconds"]
+            again.stages[k]["peak_mb"] = max(again.stages[k]["peak_mb"], v["peak_mb"])
+    if _placed(again) < record["placed"]:
+        rec.refocus = {**record, "again": _placed(again), "kept": "first"}
+        return rec
+    again.refocus = {**record, "again": _placed(again), "kept": "again"}
+    return again
 
 
 def adjusted_focal(rec: Reconstruction) -> float | None:

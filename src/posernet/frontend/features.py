@@ -1062,9 +1062,8 @@ class FallbackMatcher:
         of overlap) is not matched on all ``top_k`` and keeps those; one whose screen finds
         ``screen_plenty`` or more is matched on its best ``2 * screen_k``. No screen when
         neither image has ``2 * screen_k`` keypoints (all of them cost under four screens).
-        ``screen=False``: all
-        ``top_k`` at once (the front end's choice for a set of two images, whose one pair is
-        the whole problem: nothing to save there)."""
+        ``screen=False``: all ``top_k`` at once (the front end's choice for a set of two
+        images, whose one pair is the whole problem: nothing to save there)."""
         xf = self._xfeat_matcher()
         if xf is None or not (self.has_fallback(a) and self.has_fallback(b)):
             return Matches.empty(), False
