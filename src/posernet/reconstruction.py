@@ -459,12 +459,17 @@ def _reconstruct_once(frontend: ImageFrontend, model: torch.nn.Module | None, ba
         # main matcher's more precise result would stay: solve it after all
         rec = _solve_view(view, clock, *solve_args)
         placed = main["placed"] = _placed(rec)
+    # what the fallback's pass matched again and kept (the kept result may be the main one)
+    fb = second.frontend.summary.fallback
+    ran = {"fallback": "ran", "fallback_placed": again,
+           "fallback_tried": int(fb.get("tried", 0)), "fallback_kept": int(fb.get("kept", 0))}
     if rec is not None and placed >= again:
-        # the fallback placed no more cameras: the main matcher's more precise result stays
-        rec.main_first = {**main, "fallback": "ran", "fallback_placed": again, "kept": "main"}
+        # the fallback placed no more cameras: the main matcher's more precise result stays;
+        # its summary says so instead of counting no pair matched again
+        rec.frontend.summary.fallback["main_kept"] = 1
+        rec.main_first = {**main, **ran, "kept": "main"}
         return rec
-    second.main_first = {**main, "fallback": "ran", "fallback_placed": again,
-                         "kept": "fallback"}
+    second.main_first = {**main, **ran, "kept": "fallback"}
     return second
 
 
@@ -513,8 +518,10 @@ def main_first_line(record: dict[str, Any]) -> str:
     if record["fallback"] == "ran":
         kept = ("its result is kept" if record["kept"] == "fallback" else
                 "the main matcher's result is kept")
+        again = (f" ({record['fallback_tried']} of them, {record['fallback_kept']} kept)"
+                 if "fallback_tried" in record else "")
         return (f"{head} (< {record['main_first']:.0%}), so the pairs were matched again "
-                f"with the fallback, which placed {record['fallback_placed']}: {kept}")
+                f"with the fallback{again}, which placed {record['fallback_placed']}: {kept}")
     return f"{head} (>= {record['main_first']:.0%}): the fallback was not needed"
 
 

@@ -575,6 +575,14 @@ def test_the_fallback_result_is_kept_only_where_it_places_more(scene, helps) -> 
     line = main_first_line(record)
     assert f"which placed {record['fallback_placed']}" in line
     assert ("its result is kept" if more else "the main matcher's result is kept") in line
+    # the fallback pass's own counts, whichever result is kept
+    assert (record["fallback_tried"], record["fallback_kept"]) == (
+        fe.summary.fallback["tried"], fe.summary.fallback["kept"])
+    assert f"({2 * N - 3} of them, {record['fallback_kept']} kept)" in line
+    fallback_line = next(x for x in rec.frontend.summary.lines()
+                         if x.startswith("fallback matcher:"))
+    assert ("pairs matched again" in fallback_line) == more
+    assert ("the main matcher's alone" in fallback_line) == (not more)
     # the returned result is the kept pass's: its edges and counts
     fallback_edges = [p for p in rec.frontend.matches.pairs.values()
                       if p.geometry.is_edge and p.geometry.info.get("matcher") == "fallback"]

@@ -49,7 +49,8 @@ class FrontendSummary:
     flat_keypoints: int = 0  # keypoints dropped on uniform patches
     reused: Counter = field(default_factory=Counter)  # "images" / "pairs" read from the cache
     boxes: bool = True  # False: no proposals were made (keypoints only)
-    # matcher fallback: "images" with fallback features, pairs "tried" again, results "kept"
+    # matcher fallback: "images" with fallback features, pairs "tried" again, results "kept";
+    # "main_kept": the main matcher's pass of a sparse or weak set, kept over the fallback's
     fallback: Counter = field(default_factory=Counter)
 
     def lines(self) -> list[str]:
@@ -77,11 +78,15 @@ class FrontendSummary:
         if self.fallback:
             f = self.fallback
             sparse = " in a sparse set (any pair may be matched again)" if f.get("sparse") else ""
-            out.append(f"fallback matcher: {f['images']} weakly textured images{sparse}, "
-                       f"{f['tried']} pairs matched again"
-                       + (f" ({f['screened']} on their best keypoints alone: too few matches "
-                          "there)" if f.get("screened") else "")
-                       + f", {f['kept']} of them kept ({s['fallback']:.1f} s)")
+            head = f"fallback matcher: {f['images']} weakly textured images{sparse}"
+            if f.get("main_kept"):  # the main matcher's pass, kept over the fallback's
+                out.append(f"{head}; these pairs are the main matcher's alone, its result "
+                           "kept over the fallback's (below)")
+            else:
+                out.append(f"{head}, {f['tried']} pairs matched again"
+                           + (f" ({f['screened']} on their best keypoints alone: too few "
+                              "matches there)" if f.get("screened") else "")
+                           + f", {f['kept']} of them kept ({s['fallback']:.1f} s)")
         if self.reused:
             out.append(f"reused from the cache: {self.reused['images']} images, "
                        f"{self.reused['pairs']} pairs")
