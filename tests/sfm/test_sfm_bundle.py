@@ -8,6 +8,8 @@ import cv2
 import numpy as np
 import pytest
 import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from posernet.metrics import absolute_pose_errors_per_camera
 from posernet.sfm import (
@@ -375,3 +377,18 @@ def test_bundle_adjust_with_pcg_matches_the_direct_solver() -> None:
     np.testing.assert_allclose(out[1].errors, out[0].errors, atol=1e-4)
     with pytest.raises(ValueError, match="pcg_min_cameras"):
         BundleOptions(pcg_min_cameras=-1)
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(st.floats(-4.0, 4.0, allow_nan=False), min_size=3, max_size=3),
+       st.sampled_from([1.0, 1e-3, 1e-6, 1e-9, 0.0]))
+def test_rotvec_to_matrix_is_rodrigues(v, scale) -> None:
+    """The solver's rotation-vector map equals OpenCV's Rodrigues, near zero too, and is a
+    rotation (orthonormal, determinant 1)."""
+    from posernet.sfm.bundle import _rotvec_to_matrix
+
+    w = np.asarray(v, np.float64) * scale
+    R = _rotvec_to_matrix(w[None])[0]
+    np.testing.assert_allclose(R, cv2.Rodrigues(w)[0], atol=1e-12)
+    np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-12)
+    assert np.linalg.det(R) == pytest.approx(1.0, abs=1e-12)
