@@ -518,10 +518,10 @@ def main_first_line(record: dict[str, Any]) -> str:
     if record["fallback"] == "ran":
         kept = ("its result is kept" if record["kept"] == "fallback" else
                 "the main matcher's result is kept")
-        again = (f" ({record['fallback_tried']} of them, {record['fallback_kept']} kept)"
-                 if "fallback_tried" in record else "")
         return (f"{head} (< {record['main_first']:.0%}), so the pairs were matched again "
-                f"with the fallback{again}, which placed {record['fallback_placed']}: {kept}")
+                f"with the fallback ({record['fallback_tried']} of them, "
+                f"{record['fallback_kept']} kept), which placed {record['fallback_placed']}: "
+                f"{kept}")
     return f"{head} (>= {record['main_first']:.0%}): the fallback was not needed"
 
 

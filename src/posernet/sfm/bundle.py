@@ -214,17 +214,25 @@ def _robust_cost(r: np.ndarray, loss: str, f_scale: float) -> float:
 
 
 def _rotvec_to_matrix(w: np.ndarray) -> np.ndarray:
-    """``(N, 3)`` rotation vectors -> ``(N, 3, 3)``: Rodrigues' formula in numpy, with the
-    series of its coefficients near zero (called once per solver evaluation on a few
-    cameras, where a torch call costs 20x more; scipy's Rotation, the same values, costs
-    0.15-0.2 s of import in a run that needs nothing else of ``scipy.spatial``)."""
+    """``(N, 3)`` rotation vectors -> ``(N, 3, 3)``: Rodrigues' formula in numpy (called once
+    per solver evaluation on a few cameras, where a torch call costs 20x more; scipy's
+    Rotation, the same values, costs 0.15-0.2 s of import in a run that needs nothing else of
+    ``scipy.spatial``)."""
+    W, sinc, cosc, _ = _so3_series(w)
+    return np.eye(3) + sinc[:, None, None] * W + cosc[:, None, None] * (W @ W)
+
+
+def _so3_series(w: np.ndarray) -> tuple[np.ndarray, ...]:
+    """For rotation vectors ``w (N, 3)``: ``hat(w) (N, 3, 3)`` and the coefficients
+    ``sin t / t``, ``(1 - cos t) / t^2`` and ``(t - sin t) / t^3`` ``(N,)`` of ``t = |w|``,
+    by their series near zero, which the exponential and its left Jacobian are made of."""
     th = np.linalg.norm(w, axis=1)
     small = th < 1e-5
     ths = np.where(small, 1.0, th)
-    a = np.where(small, 1.0 - th**2 / 6, np.sin(ths) / ths)
-    b = np.where(small, 0.5 - th**2 / 24, (1 - np.cos(ths)) / ths**2)
-    W = _hat(w)
-    return np.eye(3) + a[:, None, None] * W + b[:, None, None] * (W @ W)
+    sinc = np.where(small, 1.0 - th**2 / 6, np.sin(ths) / ths)
+    cosc = np.where(small, 0.5 - th**2 / 24, (1 - np.cos(ths)) / ths**2)
+    third = np.where(small, 1.0 / 6 - th**2 / 120, (ths - np.sin(ths)) / ths**3)
+    return _hat(w), sinc, cosc, third
 
 
 def _hat(v: np.ndarray) -> np.ndarray:
@@ -237,13 +245,8 @@ def _hat(v: np.ndarray) -> np.ndarray:
 
 def _left_jacobian(w: np.ndarray) -> np.ndarray:
     """SO(3) left Jacobian ``(N, 3, 3)``: ``exp(w + d) ~ exp(J_l(w) d) exp(w)``."""
-    th = np.linalg.norm(w, axis=1)
-    small = th < 1e-5
-    ths = np.where(small, 1.0, th)
-    a = np.where(small, 0.5 - th**2 / 24, (1 - np.cos(ths)) / ths**2)
-    b = np.where(small, 1.0 / 6 - th**2 / 120, (ths - np.sin(ths)) / ths**3)
-    W = _hat(w)
-    return np.eye(3) + a[:, None, None] * W + b[:, None, None] * (W @ W)
+    W, _, cosc, third = _so3_series(w)
+    return np.eye(3) + cosc[:, None, None] * W + third[:, None, None] * (W @ W)
 
 
 def gauge_cameras(obs_image: np.ndarray, obs_point: np.ndarray, num_cameras: int,
