@@ -27,6 +27,16 @@ def test_noise_free_table_is_perfect_and_labelled():
     assert "| KP | eig_se3 |" in md and "alignment: rigid" in md and "Graphs per row: 5." in md
 
 
+def test_translation_units_name_the_ground_truths():
+    """Metres for the datasets' graphs; the unit a caller names (photos' pose files) else."""
+    graphs = [make_graph(6, 6, seed=k) for k in range(2)]
+    res = refine_graphs(None, graphs, backend=get_backend("eig_se3"), progress=False)
+    ev = evaluate_result(res)
+    assert "Translation error (m)" in result_tables(ev)["absolute"].to_markdown()
+    md = result_tables(ev, units="ground-truth units")["absolute"].to_markdown()
+    assert "Translation error (ground-truth units)" in md and "(m)" not in md
+
+
 def test_oracle_and_similarity_labels():
     graphs = [make_graph(8, 8, seed=10 + k, rot_noise_deg=3.0, trans_noise=0.05)
               for k in range(6)]

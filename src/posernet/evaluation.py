@@ -116,15 +116,23 @@ def evaluate_result(result: RefineResult, rotation_gauge: str = "rotations") -> 
 
 
 def result_tables(evaluation: dict[str, Any], label: str = "KP",
-                  backend: dict[str, Any] | None = None, title: str = "") -> dict[str, Any]:
+                  backend: dict[str, Any] | None = None, title: str = "",
+                  units: str = "m") -> dict[str, Any]:
     """Paper-style :class:`~posernet.report.ResultTable`\\ s from :func:`evaluate_result`.
 
     ``relative`` (Table 1 layout: initial vs PoserNet) and, with motion averaging,
     ``absolute`` (Table 3 layout), whose note states the scale policy and alignment and whose
     rows count the cameras placed (``Cameras placed: k of n``; errors are over placed cameras).
     Graphs without ground truth and edges without a measurable error are counted in the notes.
+    ``units`` names the ground truth's length unit in the translation columns' title: ``"m"``
+    for the datasets' graphs; photos' pose files carry none (a DTU scan's are millimetres).
     """
+    import dataclasses
+
     from .report import ABSOLUTE_GROUPS, ResultTable, TableRow
+
+    groups = tuple(dataclasses.replace(g, title=g.title.replace("(m)", f"({units})"))
+                   for g in ABSOLUTE_GROUPS)
 
     names = {"initial": "Initial", "refined": "PoserNet"}
     B = evaluation.get("graphs")
@@ -168,6 +176,6 @@ def result_tables(evaluation: dict[str, Any], label: str = "KP",
         tables["absolute"] = ResultTable(
             rows=[TableRow((label, stage_name(s)), cells, placed=count(s)) for s, cells in
                   evaluation["absolute"].items()],
-            groups=ABSOLUTE_GROUPS, title=f"Absolute poses after motion averaging{title}",
+            groups=groups, title=f"Absolute poses after motion averaging{title}",
             note=note)
     return tables

@@ -57,12 +57,16 @@ from .refinement import RefineResult, refine_graphs
 from .sfm import BundleOptions, SfmResult, anchored_cameras, bundle_adjust_reconstruction
 from .sfm.selfcheck import CheckOptions, PairEvidence, SelfCheck, check_reconstruction
 
-__all__ = ["NothingPlaced", "Reconstruction", "bundle_stage", "edge_weights", "focal_mode",
-           "gauge_fixed", "largest_point_cloud", "main_first_line", "pair_evidence",
+__all__ = ["GT_UNITS", "NothingPlaced", "Reconstruction", "bundle_stage", "edge_weights",
+           "focal_mode", "gauge_fixed", "largest_point_cloud", "main_first_line", "pair_evidence",
            "poses_json", "reconstruct", "refocus_line", "self_check", "solve_view_graph",
            "stage_choice_line",
            "trajectory_errors_table",
            "unplaced_json", "write_camera_view", "write_colmap_models", "write_poses_json"]
+
+#: the length unit of aligned positions and their errors: a photo set's pose files name none
+#: (a DTU scan's are millimetres, 7-Scenes' metres)
+GT_UNITS = "ground-truth units"
 
 
 @dataclass
@@ -944,7 +948,7 @@ def write_camera_view(path: str | os.PathLike[str], rec: Reconstruction,
         for n in names:
             cams[n]["camera_to_world"] = moved.cameras[n]
         points = moved.points
-        units = "ground-truth units (aligned by a similarity)"
+        units = f"{GT_UNITS} (aligned by a similarity)"
     title = (f"{len(names)} of {len(record['cameras'])} cameras (largest component)"
              + (f", {len(points)} points" if points is not None else ""))
     return write_html_view(path, cams, points, colours,

@@ -120,6 +120,8 @@ def test_reconstruct_recovers_rendered_rotations(scene, tmp_path):
     # tables from the pose files, pictures and the summary
     assert (out / "table.md").is_file() and (out / "abs_table.md").is_file()
     assert "Absolute poses" in r.stdout
+    # pose files name no unit: the translation columns say so rather than claim metres
+    assert "Translation error (ground-truth units)" in (out / "abs_table.md").read_text()
     img = cv2.imread(str(out / "matches_0.png"))
     assert img is not None and img.shape[1] > 2 * W - 10
     assert cv2.imread(str(out / "cameras.png")) is not None

@@ -182,7 +182,7 @@ def _pictures(rec: Any, out: Path, k: int) -> list[Path]:
 def _camera_plot(rec: Any, out: Path) -> Path | None:
     from ..metrics import align_to_ground_truth
     from ..plots import plot_cameras
-    from ..reconstruction import gauge_fixed
+    from ..reconstruction import GT_UNITS, gauge_fixed
 
     res, stage, g = rec.result, rec.stage, rec.graph
     if not res.absolute:
@@ -208,7 +208,7 @@ def _camera_plot(rec: Any, out: Path) -> Path | None:
                               + ("\naligned to the ground truth by a similarity" if has_gt
                                  else "\npositions up to one similarity: no metric scale"),
                         links=stage if has_gt else None,
-                        units="m" if has_gt else "scale-free")
+                        units=GT_UNITS if has_gt else "scale-free")
 
 
 def run(cfg: DictConfig) -> dict[str, Any]:
@@ -222,6 +222,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     from ..guard import load_refiner
     from ..io import atomic_write_json, atomic_write_text
     from ..reconstruction import (
+        GT_UNITS,
         NothingPlaced,
         focal_mode,
         main_first_line,
@@ -356,7 +357,8 @@ def run(cfg: DictConfig) -> dict[str, Any]:
             ev = evaluate_result(rec.result)
             tables = result_tables(ev, label=str(cfg.estimate).upper(),
                                    backend=rec.result.backend,
-                                   title=f": {len(records)} images of {Path(cfg.images).name}")
+                                   title=f": {len(records)} images of {Path(cfg.images).name}",
+                                   units=GT_UNITS)
             for key, stem in (("relative", "table"), ("absolute", "abs_table")):
                 if key in tables:
                     tables[key].write(out, stem, digits=int(cfg.digits))
