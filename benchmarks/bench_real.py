@@ -76,7 +76,8 @@ TRUST_SETS = ("middlebury_dino_sparse_ring", "middlebury_dino_sparse_ring_far8",
               "strecha_herzjesu_p25_every3", "strecha_fountain_p11_every3",
               "strecha_entry_p10_every3", "strecha_herzjesu_p25_far8", "squirrel_turntable",
               "squirrel_turntable_far8", "squirrel_turntable_far8_full", "dtu_scan24_far8",
-              "dtu_scan97_far8", "dtu_scan69_far8", "dtu_scan106_far8")
+              "dtu_scan97_far8", "dtu_scan69_far8", "dtu_scan106_far8",
+              "dtu_scan65_far8")
 # ... and rendered low-texture rooms: (name, scene preset, seed, frames of the sweep, every
 # step-th frame kept, every k-th object textured)
 TRUST_RENDERED = (("lowtex_chess_every3", "chess", 0, 36, 3, 8),

@@ -20,7 +20,8 @@ scan24 at 1600x1200 (``dtu/scan24/``: ``images/`` and ``cameras_sphere.npz`` of
 wqrray/nerf_baseline ``data/dtu_scan24/``); ``dtu97_far8`` the same of scan97 (tuna cans and
 food packets; jiangsijia9495/CQ-NIR ``public_data/dtu_scan97/``), ``dtu69_far8`` and
 ``dtu106_far8`` of scan69 (ceramic snowmen) and scan106 (stone pigeons) from the same
-repository. ``trust`` builds all twelve.
+repository, ``dtu65_far8`` of scan65 (tuanduy161202/NeuS_Test
+``NeuS/public_data/dtu_scan65/``). ``trust`` builds all thirteen.
 ``7scenes_wide``: 100 frames equally spaced in path length over all 1000 frames, the pool of the
 wide-baseline pairs benchmark (``bench_real.py --pairs``).
 
@@ -306,7 +307,7 @@ def build_cabinet(raw: Path, n_keep: int = 20) -> None:
 
 TRUST = ("herzjesu_every3", "fountain_every3", "entry_every3", "dino_far8", "herzjesu_far8",
          "squirrel", "squirrel_far8", "squirrel_far8_full", "dtu24_far8", "dtu97_far8",
-         "dtu69_far8", "dtu106_far8")
+         "dtu69_far8", "dtu106_far8", "dtu65_far8")
 
 
 if __name__ == "__main__":
@@ -345,7 +346,7 @@ if __name__ == "__main__":
             build_squirrel(a.raw, "squirrel_turntable_far8", far=8)
         elif s == "squirrel_far8_full":  # the same views at the camera's own 1280x960
             build_squirrel(a.raw, "squirrel_turntable_far8_full", far=8, scale=1)
-        elif s in ("dtu24_far8", "dtu97_far8", "dtu69_far8", "dtu106_far8"):
+        elif s in ("dtu24_far8", "dtu97_far8", "dtu69_far8", "dtu106_far8", "dtu65_far8"):
             build_dtu(a.raw, f"scan{s[3:].split('_')[0]}", far=8)
         else:
             raise SystemExit(f"unknown set {s}")
