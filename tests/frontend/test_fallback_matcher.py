@@ -80,6 +80,17 @@ def test_options_and_rule() -> None:
     assert not m.keeps_fallback(0, 22, 0.0, matches=5, textured=True)  # chance inliers
     assert not m.keeps_fallback(0, 60, 0.0, matches=40, textured=True)
     assert not m.keeps_fallback(0, 60, 0.0, matches=5, textured=False)
+    # a pair alone able to tie an image (no pair of it has 15 SIFT matches): matched again
+    # however few SIFT's matches, kept on 100 inliers of the fallback's own
+    assert m.fallback_alone == 100
+    assert m.wants_fallback(3, 0, None, alone=True)
+    assert not m.wants_fallback(3, 0, None, degree=2, alone=True)
+    assert m.keeps_fallback(0, 100, 0.0, matches=3, alone=True)
+    assert not m.keeps_fallback(0, 99, 0.0, matches=3, alone=True)  # 51-55: wrong ones seen
+    assert not m.keeps_fallback(120, 110, 0.0, matches=3, alone=True)  # SIFT's has more
+    off = make("sift_xfeat", fallback_alone=0)
+    assert not off.wants_fallback(3, 0, None, alone=True)
+    assert not off.keeps_fallback(0, 300, 0.0, matches=3, alone=True)
     assert m.is_sparse_set(12) and not m.is_sparse_set(13)
     assert not make("sift_xfeat", sparse_images=0).is_sparse_set(2)
     with pytest.raises(ValueError, match="sparse_images"):
@@ -231,11 +242,12 @@ class _Stub:
         return inliers < 50
 
     def wants_fallback(self, matches: int, inliers: int, spread: float | None,
-                       degree: int = 0, textured: bool = False) -> bool:
+                       degree: int = 0, textured: bool = False, alone: bool = False) -> bool:
         return matches >= self.min_matches and inliers < 50
 
     def keeps_fallback(self, inliers: int, new_inliers: int, agreement: float,
-                       matches: int | None = None, textured: bool = False) -> bool:
+                       matches: int | None = None, textured: bool = False,
+                       alone: bool = False) -> bool:
         return agreement >= self.fallback_agree and new_inliers > inliers
 
     def match_fallback(self, a: Features, b: Features) -> Matches:
@@ -351,9 +363,9 @@ class _Sparse(_Stub):
         return self.sparse
 
     def wants_fallback(self, matches: int, inliers: int, spread: float | None,
-                       degree: int = 0, textured: bool = False) -> bool:
+                       degree: int = 0, textured: bool = False, alone: bool = False) -> bool:
         self.textured.append(textured)
-        return super().wants_fallback(matches, inliers, spread, degree, textured)
+        return super().wants_fallback(matches, inliers, spread, degree, textured, alone)
 
 
 def test_a_sparse_set_of_textured_images_gets_the_fallback(scene) -> None:
@@ -370,6 +382,50 @@ def test_a_sparse_set_of_textured_images_gets_the_fallback(scene) -> None:
     assert any("in a sparse set" in line for line in on.summary.lines())
 
 
+class _Orphan(_Sparse):
+    """The sparse stub, with every main match of the first image cut to 5 (fewer than its
+    ``fallback_matches``): no pair of it could tie it but one matched again alone."""
+
+    fallback_matches = 15
+
+    def __init__(self, first: np.ndarray) -> None:
+        super().__init__(True)
+        self.first, self.asked = first, []
+
+    def extract(self, image: np.ndarray) -> Features:
+        f = super().extract(image)
+        f.extra["first"] = bool(np.array_equal(image, self.first))
+        return f
+
+    def match(self, a: Features, b: Features) -> Matches:
+        m = self.sift.match(a, b)
+        return m.subset(np.arange(min(5, len(m)))) if a.extra["first"] or b.extra["first"] \
+            else m
+
+    def wants_fallback(self, matches: int, inliers: int, spread: float | None,
+                       degree: int = 0, textured: bool = False, alone: bool = False) -> bool:
+        self.asked.append((matches, alone))
+        return False
+
+
+def test_an_image_no_pair_ties_is_matched_again_alone(scene) -> None:
+    """In a sparse set, the pairs of an image none of whose pairs has ``fallback_matches``
+    main matches are the ones the matcher is told could tie it alone; none other is."""
+    records = records_for_images(scene, INTR, "*.color.png", "none")
+    first = cv2.imread(str(records[0].path), cv2.IMREAD_COLOR)
+    fe = _frontend(scene, _Orphan(first))
+    fe.evaluate_pairs(PAIRS, progress=False)
+    asked = fe.matcher.asked
+    assert len(asked) == len(PAIRS)
+    assert sum(alone for _, alone in asked) == N - 1  # the first image's pairs
+    assert all(alone == (matches <= 5) for matches, alone in asked)
+    # a set that is not sparse has none
+    fe = _frontend(scene, _Orphan(first))
+    fe.matcher.sparse = False
+    fe.evaluate_pairs(PAIRS, progress=False)
+    assert fe._orphan is None
+
+
 class _Degree(_Stub):
     """The stub with SIFT's full matches first: a pair is rematched when weak (fewer than
     ``need`` inliers) and an image of it has fewer than two firm edges."""
@@ -382,7 +438,7 @@ class _Degree(_Stub):
         return inliers < self.need
 
     def wants_fallback(self, matches: int, inliers: int, spread: float | None,
-                       degree: int = 0, textured: bool = False) -> bool:
+                       degree: int = 0, textured: bool = False, alone: bool = False) -> bool:
         self.asked.append(degree)
         return degree < 2 and self.is_weak(inliers, spread)
 

@@ -276,6 +276,10 @@ class FallbackOptions(XFeatOptions, SiftOptions):
                                                 "SIFT edges than this")
     fallback_agree: float = option(0.5, ge=0, le=1, help="the fallback's pose must explain "
                                                          "this share of SIFT's matches")
+    fallback_alone: int = option(100, ge=0, help="sparse set: a pair of an image none of "
+                                                 "whose pairs has fallback_matches SIFT "
+                                                 "matches is matched again too, kept with "
+                                                 "this many inliers of its own (0: never)")
     weak_share: float = option(0.5, ge=0, le=1, help="the fallback runs in a set where at "
                                                      "least this share is weakly textured")
     main_first: float = option(1.0, ge=0, le=1, help="... and only when SIFT alone places "
@@ -962,6 +966,7 @@ class FallbackMatcher:
         fallback_matches: int = 15,
         fallback_degree: int = 2,
         fallback_agree: float = 0.5,
+        fallback_alone: int = 100,
         weak_share: float = 0.5,
         main_first: float = 1.0,
         sparse_images: int = 12,
@@ -978,6 +983,7 @@ class FallbackMatcher:
         self.fallback_matches = int(o.fallback_matches)
         self.fallback_spread = float(o.fallback_spread)
         self.fallback_agree = float(o.fallback_agree)
+        self.fallback_alone = int(o.fallback_alone)
         self.weak_share = float(o.weak_share)
         self.main_first = float(o.main_first)
         self.sparse_images = int(o.sparse_images)
@@ -1009,7 +1015,8 @@ class FallbackMatcher:
                 f"fallback_spread={self.fallback_spread}, "
                 f"fallback_matches={self.fallback_matches}, "
                 f"fallback_degree={self.fallback_degree}, "
-                f"fallback_agree={self.fallback_agree}, weak_share={self.weak_share}, "
+                f"fallback_agree={self.fallback_agree}, "
+                f"fallback_alone={self.fallback_alone}, weak_share={self.weak_share}, "
                 f"sparse_images={self.sparse_images}, screen_k={self.screen_k}, "
                 f"screen_matches={self.screen_matches}, "
                 f"screen_plenty={self.screen_plenty})")
@@ -1104,25 +1111,36 @@ class FallbackMatcher:
                                                    and spread < self.fallback_spread)
 
     def wants_fallback(self, matches: int, inliers: int, spread: float | None,
-                       degree: int = 0, textured: bool = False) -> bool:
+                       degree: int = 0, textured: bool = False, alone: bool = False) -> bool:
         """Whether a pair with ``matches`` SIFT matches, of which verification kept
         ``inliers`` (0: rejected) covering ``spread`` of the images, between images the
         less connected of which has ``degree`` firm SIFT edges, is matched again with XFeat.
         A pair of two ``textured`` images (in a sparse set) needs no minimum of SIFT
-        matches: it is wide baselines, not plain surfaces, that leave SIFT with few."""
-        return ((textured or matches >= self.fallback_matches)
+        matches: it is wide baselines, not plain surfaces, that leave SIFT with few. Nor,
+        with ``fallback_alone``, does a pair ``alone`` can tie: in a sparse set, one of its
+        images has no pair with ``fallback_matches`` SIFT matches (a dark or rolled view
+        SIFT finds nothing in), so no other pair could place it."""
+        few_ok = textured or (alone and self.fallback_alone > 0)
+        return ((few_ok or matches >= self.fallback_matches)
                 and degree < self.fallback_degree and self.is_weak(inliers, spread))
 
     def keeps_fallback(self, inliers: int, new_inliers: int, agreement: float,
-                       matches: int | None = None, textured: bool = False) -> bool:
+                       matches: int | None = None, textured: bool = False,
+                       alone: bool = False) -> bool:
         """Whether the fallback's edge, keeping ``new_inliers`` with a pose that explains the
         share ``agreement`` of SIFT's ``matches`` matches, replaces SIFT's result
         (``inliers``; 0: no edge). A pair of two ``textured`` images where SIFT found fewer
         than ``fallback_matches`` matches (too few to judge by) needs ``fallback_inliers``
         inliers of the fallback's own instead: LighterGlue verifies about 20 chance inliers
-        between two images of noise, a wide indoor pair it matches right 100-500."""
-        if textured and matches is not None and matches < self.fallback_matches:
-            return new_inliers >= max(self.fallback_inliers, inliers + 1)
+        between two images of noise, a wide indoor pair it matches right 100-500. A pair
+        matched again because it is ``alone`` (:meth:`wants_fallback`) needs
+        ``fallback_alone``: on the far-apart squirrel views two such pairs kept 51 and 55
+        wrong inliers, the right ones of a dark or rolled DTU view 161-368."""
+        if matches is not None and matches < self.fallback_matches:
+            if textured:
+                return new_inliers >= max(self.fallback_inliers, inliers + 1)
+            if alone and self.fallback_alone > 0:  # too few of SIFT's to agree with
+                return new_inliers >= max(self.fallback_alone, inliers + 1)
         return agreement >= self.fallback_agree and new_inliers > inliers
 
     def match_fallback(self, a: Features, b: Features) -> Matches:

@@ -162,6 +162,7 @@ class ImageFrontend:
         self._digest: dict[int, str] = {}
         self._fallback: bool | None = None  # the matcher's fallback runs (decided once)
         self._sparse = False  # a sparse set: any pair may get the fallback (fallback_on)
+        self._orphan: np.ndarray | None = None  # (N,) images no pair ties (_orphans)
         self._held = False  # the fallback held back: the main matcher alone (hold_fallback)
         self._fallback_lock = threading.Lock()
         # one lock per image: an image gets its fallback features once, while other images'
@@ -504,7 +505,7 @@ class ImageFrontend:
                 agree = self._agreement(m, res2, a, b)
                 res2.info["fallback_agreement"] = round(agree, 4)
                 keep = fm.keeps_fallback(res.info["main_inliers"], _edge_inliers(res2), agree,
-                                         len(m), self._textured_pair(a, b))
+                                         len(m), self._textured_pair(a, b), self._alone(a, b))
             if keep:
                 second.seconds, second.fallback = first.seconds, first.fallback
                 second.fallback["kept"] += 1
@@ -556,7 +557,12 @@ class ImageFrontend:
             return False
         degree = 0 if self._strong is None else int(min(self._strong[a], self._strong[b]))
         return fm.wants_fallback(matches, res.info["main_inliers"], res.info["main_spread"],
-                                 degree, self._textured_pair(a, b))
+                                 degree, self._textured_pair(a, b), self._alone(a, b))
+
+    def _alone(self, a: int, b: int) -> bool:
+        """Whether an image of pair ``a, b`` of a sparse set has no pair with the matcher's
+        ``fallback_matches`` main matches (nor an edge): no other pair could tie it."""
+        return self._orphan is not None and bool(self._orphan[a] or self._orphan[b])
 
     def _textured_pair(self, a: int, b: int) -> bool:
         """Whether neither image of pair ``a, b`` is weakly textured."""
@@ -643,7 +649,7 @@ class ImageFrontend:
         self._pairs.clear()
         self._first.clear()
         self.matches.clear()
-        self._strong = None
+        self._strong = self._orphan = None
         s = self.summary
         s.pairs.clear()
         s.rejected.clear()
@@ -918,6 +924,7 @@ class ImageFrontend:
                 if self._is_strong(p):
                     strong[list(k)] += 1
             self._strong = strong
+            self._orphan = self._orphans(done) if self._sparse else None
             for k, r in done.items():
                 if len(r) == 3:
                     self._first[k] = r  # type: ignore[assignment]
@@ -930,6 +937,20 @@ class ImageFrontend:
                              "fallback" if evaluate is not self._evaluate else "pairs"):
             self._store_pair(*res)
         return [self.pair(a, b) for a, b in pairs]
+
+    def _orphans(self, done: dict[tuple[int, int], Any]) -> np.ndarray:
+        """(N,) bool: images none of whose pairs (``done``'s first results, and the pairs
+        stored before) has the matcher's ``fallback_matches`` main matches or is an edge."""
+        least = int(getattr(self.matcher, "fallback_matches", 0))
+        tied = np.zeros(len(self.records), bool)
+        for k, r in done.items():
+            m, res = (r[0], r[1]) if len(r) == 3 else (None, r[0])
+            if res.is_edge or (len(m) if m is not None else res.n_kp) >= least:
+                tied[list(k)] = True
+        for k, p in self._pairs.items():
+            if p.is_edge or p.n_kp >= least:
+                tied[list(k)] = True
+        return ~tied
 
     def _map(self, fn: Any, items: Sequence[Any], progress: bool, desc: str) -> list[Any]:
         """``fn`` over ``items`` in order, on ``workers`` threads, with a progress bar."""
