@@ -4,9 +4,7 @@ Not run by tests; kept so the conversions are reproducible. Raw inputs are expec
 ``--raw`` (default /tmp/raw): ``dino/`` (Middlebury dinoSparseRing), ``hj/`` and
 ``fountain/``, ``entry/`` (Strecha Herz-Jesu-P25 / fountain-P11 / entry-P10 images +
 ``.camera`` files as in openMVG/SfM_quality_evaluation), ``7s/`` (the 7-Scenes frames of
-andyzeng/tsdf-fusion-python ``data/``), ``cab/`` (TUM fr3_cabinet key frames of
-benchun123/cuboid_slam_with_bbox_constraints ``data/``; built only on request: it fails the
-checks for lack of texture), ``squirrel/`` (``image_N.jpg`` + ``viff.xml`` of
+andyzeng/tsdf-fusion-python ``data/``), ``squirrel/`` (``image_N.jpg`` + ``viff.xml`` of
 xocoatzin/Voxel-Carving ``assets/``: a glazed ceramic squirrel on a turntable).
 
 Derived sparse sets (the trust benchmark's hard cases; same raw inputs, same conversions):
@@ -285,26 +283,6 @@ def build_dtu(raw: Path, scan: str = "scan24", far: int = 8) -> None:
     write_intrinsics(out, np.mean([Ks[i] for i in keep], axis=0))
 
 
-def build_cabinet(raw: Path, n_keep: int = 20) -> None:
-    """TUM fr3_cabinet key frames (as shipped in benchun123/cuboid_slam_with_bbox_constraints):
-    ``truth_cam_poses.txt`` rows ``t tx ty tz qx qy qz qw`` are TUM ground truth, c2w, metres."""
-    src = raw / "cab"
-    out = HERE / "tum_fr3_cabinet"
-    clean(out)
-    gt = np.loadtxt(src / "truth_cam_poses.txt")
-    idx = sorted(set(np.round(np.linspace(0, len(gt) - 1, n_keep)).astype(int).tolist()))
-    for i in idx:
-        g = gt[i]
-        c2w = np.eye(4)
-        c2w[:3, :3] = quat_to_R(g[4:8])
-        c2w[:3, 3] = g[1:4]
-        img = cv2.imread(str(src / f"{i:04d}_rgb_raw.jpg"), cv2.IMREAD_COLOR)
-        stem = f"{i:04d}_{g[0]:.4f}"
-        write_jpeg(out / f"{stem}.jpg", img, 95)
-        write_pose(out / f"{stem}.pose.txt", c2w)
-    write_intrinsics(out, np.array([[535.4, 0, 320.1], [0, 539.2, 247.6], [0, 0, 1.0]]))
-
-
 TRUST = ("herzjesu_every3", "fountain_every3", "entry_every3", "dino_far8", "herzjesu_far8",
          "squirrel", "squirrel_far8", "squirrel_far8_full", "dtu24_far8", "dtu97_far8",
          "dtu69_far8", "dtu106_far8", "dtu65_far8")
@@ -328,8 +306,6 @@ if __name__ == "__main__":
             build_7scenes(a.raw)
         elif s == "7scenes_wide":  # the pairs benchmark's pool: 100 frames of the whole path
             build_7scenes(a.raw, last=1000, n_keep=100, name="7scenes_redkitchen_wide")
-        elif s == "cabinet":
-            build_cabinet(a.raw)
         elif s == "herzjesu_every3":
             build_strecha(a.raw, "hj", "strecha_herzjesu_p25_every3", step=3)
         elif s == "fountain_every3":
