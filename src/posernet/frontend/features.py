@@ -904,6 +904,10 @@ class FallbackMatcher:
         fallback_degree: ... and one of the two images has fewer firm SIFT edges (not weak
             by the two rules above) than this.
         fallback_agree: share of SIFT's matches of a pair the fallback's pose must explain.
+        fallback_alone: in a sparse set, an image none of whose pairs has
+            ``fallback_matches`` SIFT matches gets its pairs matched again all the same, and
+            such an edge is kept with this many inliers of the fallback's own (0: never;
+            :meth:`wants_fallback`, :meth:`keeps_fallback`).
         weak_share: the fallback runs only where at least this share of a set's images is
             weakly textured (the front end decides once per set): a textured set with a few
             plain frames (7-Scenes RedKitchen: 2 of 20) stays with SIFT alone.
