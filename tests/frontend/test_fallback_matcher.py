@@ -388,9 +388,9 @@ class _Orphan(_Sparse):
 
     fallback_matches = 15
 
-    def __init__(self, first: np.ndarray) -> None:
+    def __init__(self, first: np.ndarray, rematch: bool = False) -> None:
         super().__init__(True)
-        self.first, self.asked = first, []
+        self.first, self.asked, self.rematch = first, [], rematch
 
     def extract(self, image: np.ndarray) -> Features:
         f = super().extract(image)
@@ -405,7 +405,7 @@ class _Orphan(_Sparse):
     def wants_fallback(self, matches: int, inliers: int, spread: float | None,
                        degree: int = 0, textured: bool = False, alone: bool = False) -> bool:
         self.asked.append((matches, alone))
-        return False
+        return self.rematch and alone
 
 
 def test_an_image_no_pair_ties_is_matched_again_alone(scene) -> None:
@@ -418,6 +418,13 @@ def test_an_image_no_pair_ties_is_matched_again_alone(scene) -> None:
     asked = fe.matcher.asked
     assert len(asked) == len(PAIRS)
     assert sum(alone for _, alone in asked) == N - 1  # the first image's pairs
+    assert fe.summary.fallback["alone"] == 0  # the stub matches none again
+    # matched again: counted, and the summary line says why
+    fe = _frontend(scene, _Orphan(first, rematch=True))
+    fe.evaluate_pairs(PAIRS, progress=False)
+    assert fe.summary.fallback["tried"] == fe.summary.fallback["alone"] == N - 1
+    line = next(x for x in fe.summary.lines() if x.startswith("fallback matcher:"))
+    assert f"{N - 1} pairs matched again ({N - 1} of an image no pair of SIFT" in line
     assert all(alone == (matches <= 5) for matches, alone in asked)
     # a set that is not sparse has none
     fe = _frontend(scene, _Orphan(first))

@@ -499,6 +499,7 @@ class ImageFrontend:
             first.seconds["fallback"] += sum(second.seconds.values())
             first.fallback["tried"] += 1
             first.fallback["screened"] += int(any(screened))
+            first.fallback["alone"] += int(self._alone(a, b))
             keep = False
             if res2.is_edge:
                 # its pose must explain SIFT's own matches: two matchers agreeing

@@ -50,7 +50,9 @@ class FrontendSummary:
     reused: Counter = field(default_factory=Counter)  # "images" / "pairs" read from the cache
     boxes: bool = True  # False: no proposals were made (keypoints only)
     # matcher fallback: "images" with fallback features, pairs "tried" again, results "kept";
-    # "main_kept": the main matcher's pass of a sparse or weak set, kept over the fallback's
+    # of those tried, "screened" (the screen's matches alone) and "alone" (of an image no
+    # main-matcher pair ties); "main_kept": the main matcher's pass of a sparse or weak set,
+    # kept over the fallback's
     fallback: Counter = field(default_factory=Counter)
 
     def lines(self) -> list[str]:
@@ -83,9 +85,12 @@ class FrontendSummary:
                 out.append(f"{head}; these pairs are the main matcher's alone, its result "
                            "kept over the fallback's (below)")
             else:
+                notes = ([f"{f['screened']} on their best keypoints alone: too few matches "
+                          "there"] if f.get("screened") else []) + (
+                    [f"{f['alone']} of an image no pair of SIFT matches ties"]
+                    if f.get("alone") else [])
                 out.append(f"{head}, {f['tried']} pairs matched again"
-                           + (f" ({f['screened']} on their best keypoints alone: too few "
-                              "matches there)" if f.get("screened") else "")
+                           + (f" ({'; '.join(notes)})" if notes else "")
                            + f", {f['kept']} of them kept ({s['fallback']:.1f} s)")
         if self.reused:
             out.append(f"reused from the cache: {self.reused['images']} images, "
