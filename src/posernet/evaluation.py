@@ -127,12 +127,7 @@ def result_tables(evaluation: dict[str, Any], label: str = "KP",
     ``units`` names the ground truth's length unit in the translation columns' title: ``"m"``
     for the datasets' graphs; photos' pose files carry none (a DTU scan's are millimetres).
     """
-    import dataclasses
-
-    from .report import ABSOLUTE_GROUPS, ResultTable, TableRow
-
-    groups = tuple(dataclasses.replace(g, title=g.title.replace("(m)", f"({units})"))
-                   for g in ABSOLUTE_GROUPS)
+    from .report import ResultTable, TableRow, absolute_groups
 
     names = {"initial": "Initial", "refined": "PoserNet"}
     B = evaluation.get("graphs")
@@ -176,6 +171,7 @@ def result_tables(evaluation: dict[str, Any], label: str = "KP",
         tables["absolute"] = ResultTable(
             rows=[TableRow((label, stage_name(s)), cells, placed=count(s)) for s, cells in
                   evaluation["absolute"].items()],
-            groups=groups, title=f"Absolute poses after motion averaging{title}",
+            groups=absolute_groups(units),
+            title=f"Absolute poses after motion averaging{title}",
             note=note)
     return tables

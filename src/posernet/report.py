@@ -37,6 +37,7 @@ __all__ = [
     "MetricGroup",
     "ResultTable",
     "TableRow",
+    "absolute_groups",
     "cpu_model",
     "interleave",
     "mean_std_row",
@@ -58,10 +59,16 @@ RELATIVE_GROUPS: tuple[MetricGroup, ...] = (
     MetricGroup("rot", "Orientation error (deg)", ANGLE_THRESHOLDS_DEG),
     MetricGroup("tdir", "Translation direction error (deg)", ANGLE_THRESHOLDS_DEG),
 )
-ABSOLUTE_GROUPS: tuple[MetricGroup, ...] = (
-    MetricGroup("rot", "Rotation error (deg)", ANGLE_THRESHOLDS_DEG),
-    MetricGroup("trans", "Translation error (m)", METRE_THRESHOLDS),
-)
+
+
+def absolute_groups(units: str = "m") -> tuple[MetricGroup, ...]:
+    """The absolute-pose column blocks, translation in ``units`` (the ground truth's unit;
+    its thresholds are in that unit too)."""
+    return (MetricGroup("rot", "Rotation error (deg)", ANGLE_THRESHOLDS_DEG),
+            MetricGroup("trans", f"Translation error ({units})", METRE_THRESHOLDS))
+
+
+ABSOLUTE_GROUPS: tuple[MetricGroup, ...] = absolute_groups()
 
 
 @dataclass(frozen=True)

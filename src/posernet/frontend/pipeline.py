@@ -162,7 +162,7 @@ class ImageFrontend:
         self._digest: dict[int, str] = {}
         self._fallback: bool | None = None  # the matcher's fallback runs (decided once)
         self._sparse = False  # a sparse set: any pair may get the fallback (fallback_on)
-        self._orphan: np.ndarray | None = None  # (N,) images no pair ties (_orphans)
+        self._orphan: np.ndarray | None = None  # (N,) images no pair ties (evaluate_pairs)
         self._held = False  # the fallback held back: the main matcher alone (hold_fallback)
         self._fallback_lock = threading.Lock()
         # one lock per image: an image gets its fallback features once, while other images'
@@ -916,16 +916,18 @@ class ImageFrontend:
             # image's firm edges; pass 2 then decides about the fallback pair by pair
             done = dict(self._map(lambda k: (k, self._cached(*k) or self._first_attempt(*k)),
                                   todo, progress, "pairs"))
+            # each image's firm edges, and whether any pair ties it (an edge, or enough main
+            # matches for the fallback's rules): over these first results and earlier pairs
             strong = np.zeros(len(self.records), np.int64)
-            for k, r in done.items():
-                res = r[1] if len(r) == 3 else r[0]
-                if self._is_strong(res):
-                    strong[list(k)] += 1
-            for k, p in self._pairs.items():
-                if self._is_strong(p):
-                    strong[list(k)] += 1
+            tied = np.zeros(len(self.records), bool)
+            least = int(getattr(self.matcher, "fallback_matches", 0))
+            firsts = [(k, r[1], len(r[0])) if len(r) == 3 else (k, r[0], r[0].n_kp)
+                      for k, r in done.items()]
+            for k, res, n in firsts + [(k, p, p.n_kp) for k, p in self._pairs.items()]:
+                strong[list(k)] += int(self._is_strong(res))
+                tied[list(k)] |= res.is_edge or n >= least
             self._strong = strong
-            self._orphan = self._orphans(done) if self._sparse else None
+            self._orphan = ~tied if self._sparse else None
             for k, r in done.items():
                 if len(r) == 3:
                     self._first[k] = r  # type: ignore[assignment]
@@ -938,20 +940,6 @@ class ImageFrontend:
                              "fallback" if evaluate is not self._evaluate else "pairs"):
             self._store_pair(*res)
         return [self.pair(a, b) for a, b in pairs]
-
-    def _orphans(self, done: dict[tuple[int, int], Any]) -> np.ndarray:
-        """(N,) bool: images none of whose pairs (``done``'s first results, and the pairs
-        stored before) has the matcher's ``fallback_matches`` main matches or is an edge."""
-        least = int(getattr(self.matcher, "fallback_matches", 0))
-        tied = np.zeros(len(self.records), bool)
-        for k, r in done.items():
-            m, res = (r[0], r[1]) if len(r) == 3 else (None, r[0])
-            if res.is_edge or (len(m) if m is not None else res.n_kp) >= least:
-                tied[list(k)] = True
-        for k, p in self._pairs.items():
-            if p.is_edge or p.n_kp >= least:
-                tied[list(k)] = True
-        return ~tied
 
     def _map(self, fn: Any, items: Sequence[Any], progress: bool, desc: str) -> list[Any]:
         """``fn`` over ``items`` in order, on ``workers`` threads, with a progress bar."""
